@@ -1,0 +1,94 @@
+"""Sensor model: noise statistics against their analytic moments, CFA phase, ADC limits, cos θ falloff."""
+
+import numpy as np
+import pytest
+
+from bmi_sdk.geometry import BMI_SENSOR
+from bmi_sdk.sensor import (
+    PAPER_NOISE_SIGMAS,
+    SensorModel,
+    add_gaussian_noise,
+    bayer_mosaic,
+    cfa_channel_map,
+    relative_illumination,
+)
+
+
+@pytest.mark.parametrize("sigma", PAPER_NOISE_SIGMAS)
+def test_paper_gaussian_noise_moments(sigma):
+    rng = np.random.default_rng(1)
+    x = np.full((400, 500), 0.5, np.float32)
+    y = add_gaussian_noise(x, sigma, rng)
+    assert y.dtype == np.float32
+    n = y.size
+    assert abs(y.mean() - 0.5) < 5 * sigma / np.sqrt(n) + 1e-7
+    # sample std within 5 standard errors of sigma (se ≈ σ / sqrt(2n))
+    assert abs(y.std() - sigma) <= 5 * sigma / np.sqrt(2 * n) + 1e-7
+
+
+def test_paper_noise_clips_and_refuses_bad_sigma():
+    rng = np.random.default_rng(0)
+    y = add_gaussian_noise(np.zeros((100, 100), np.float32), 0.05, rng)
+    assert y.min() == 0.0 and y.max() <= 1.0
+    with pytest.raises(ValueError, match="sigma"):
+        add_gaussian_noise(np.zeros(3), -0.1, rng)
+
+
+@pytest.mark.parametrize("mean_e", [3.0, 40.0, 2500.0])  # exact Poisson and Gaussian-limit regimes
+def test_poisson_gaussian_dn_moments(mean_e):
+    model = SensorModel()
+    gain, black = 2.0, 200
+    exposure_us = 1000.0
+    irr = np.full((500, 400), mean_e / (model.electrons_per_us * exposure_us), np.float32)
+    dn = model.expose_mosaic(irr, exposure_us, gain, black, np.random.default_rng(7)).astype(np.float64)
+    g = model.conversion_gain_dn_per_e * gain
+    mu = black + g * mean_e
+    var = g * g * (mean_e + model.read_noise_e**2) + 1 / 12
+    n = dn.size
+    assert abs(dn.mean() - mu) < 5 * np.sqrt(var / n)
+    assert abs(dn.var() / var - 1) < 5 * np.sqrt(2 / n) + 0.01
+
+
+def test_saturation_and_black_frame():
+    model = SensorModel(read_noise_e=0.0)
+    hot = model.expose_mosaic(np.full((8, 8), 50.0, np.float32), 10_000, 16.0, 256, np.random.default_rng(0))
+    assert (hot == model.white_level_dn).all()
+    dark = model.expose_mosaic(np.zeros((8, 8), np.float32), 10_000, 1.0, 256, np.random.default_rng(0))
+    assert (dark == 256).all()
+    # the full well clips before the ADC: gain 1 on a full well stays below white
+    well = model.expose_mosaic(np.full((8, 8), 50.0, np.float32), 10_000, 1.0, 0, np.random.default_rng(0))
+    assert (well == round(model.full_well_e * model.conversion_gain_dn_per_e)).all()
+
+
+def test_adc_refuses_bad_black_level():
+    with pytest.raises(ValueError, match="black_level_dn"):
+        SensorModel().adc(np.zeros(2), 1.0, 5000)
+
+
+def test_bayer_mosaic_rggb_phase_follows_window_offset():
+    h, w = 6, 8
+    rgb = np.stack([np.full((h, w), c, np.float32) for c in (1, 2, 3)], axis=-1)
+    m = bayer_mosaic(rgb)
+    assert m[0, 0] == 1 and m[0, 1] == 2 and m[1, 0] == 2 and m[1, 1] == 3
+    # a window starting at an odd row/col on the full sensor starts on B
+    m11 = bayer_mosaic(rgb, row0=1, col0=1)
+    assert m11[0, 0] == 3 and m11[1, 1] == 1
+    full = bayer_mosaic(np.random.default_rng(0).random((10, 12, 3)))
+    win = bayer_mosaic(np.random.default_rng(0).random((10, 12, 3))[3:9, 5:11], row0=3, col0=5)
+    np.testing.assert_array_equal(full[3:9, 5:11], win)
+    np.testing.assert_array_equal(cfa_channel_map(2, 2), [[0, 1], [1, 2]])
+
+
+def test_relative_illumination_cos_theta():
+    g = BMI_SENSOR
+    cy, cx = g.centre_px
+    row0, col0 = 2000, 3500
+    ri = relative_illumination(g, row0, col0, 10, 20)
+    assert ri.shape == (10, 20) and ri.dtype == np.float32
+    r, c = 5, 7
+    theta_rad = np.hypot(row0 + r - cy, col0 + c - cx) * g.pitch_um * 1e-3 / g.radius_mm
+    assert ri[r, c] == pytest.approx(np.cos(theta_rad), rel=1e-6)
+    # the corner is just inside the 60° field (59.7°); a sensor with a 50° circle is dark there
+    assert relative_illumination(g, 0, 0, 1, 1)[0, 0] == pytest.approx(np.cos(np.radians(59.68)), abs=1e-3)
+    narrow = type(g)(max_field_deg=50.0)
+    assert relative_illumination(narrow, 0, 0, 1, 1)[0, 0] == 0.0
