@@ -75,14 +75,28 @@ def cfa_channel_map(height: int, width: int, row0: int = 0, col0: int = 0) -> np
     return _RGGB_CHANNEL[rows, cols]
 
 
-def relative_illumination(geometry: SensorGeometry, row0: int, col0: int, height: int, width: int) -> np.ndarray:
+def relative_illumination(geometry: SensorGeometry, row0: int, col0: int, height: int, width: int,
+                          step_px: float = 0.01) -> np.ndarray:
     """cos θ falloff of a monocentric lens (its pupil compresses by cos θ off axis), 0 outside the image circle.
 
-    θ is the object-space field angle of each pixel, from ``geometry``; the result is H×W float32.
+    θ is the object-space field angle that ``geometry`` assigns to each pixel's
+    radial distance. Since the falloff depends on that distance only, it is
+    tabulated through ``geometry`` every ``step_px`` of radius and looked up
+    (nearest entry: error ≤ ½ step × dθ/dr, about 1e-6 at the default), which
+    makes a full frame ~10× cheaper than per-pixel trigonometry. H×W float32.
     """
-    theta_deg, _ = geometry.grid(row0, col0, height, width)
+    cy, cx = geometry.centre_px
+    mm_per_px = geometry.pitch_um * 1e-3
+    dy = ((np.arange(row0, row0 + height) - cy) * mm_per_px).astype(np.float32)[:, None]
+    dx = ((np.arange(col0, col0 + width) - cx) * mm_per_px).astype(np.float32)[None, :]
+    radial_mm = np.hypot(dy, dx)
+    step_mm = step_px * mm_per_px
+    table_mm = np.arange(0.0, float(radial_mm.max()) + 2 * step_mm, step_mm)
+    theta_deg = geometry.field_deg_from_radial_mm(table_mm)
     inside = np.isfinite(theta_deg) & (theta_deg <= geometry.max_field_deg)
-    return np.where(inside, np.cos(np.radians(np.where(inside, theta_deg, 0.0))), 0.0).astype(np.float32)
+    table = np.where(inside, np.cos(np.radians(np.where(inside, theta_deg, 0.0))), 0.0).astype(np.float32)
+    radial_mm *= np.float32(1 / step_mm)
+    return table[np.rint(radial_mm).astype(np.intp)]
 
 
 @dataclass(frozen=True)
@@ -93,7 +107,7 @@ class SensorModel:
     (relative units, quantum efficiency included); with the defaults, irradiance
     1.0 fills the well in 10 ms. ``poisson_exact_below_e``: shot noise is drawn
     exactly from a Poisson law below this mean and from its Gaussian limit
-    N(μ, μ) above it (skewness 1/√μ < 0.03 there), which is ~6× faster on a
+    N(μ, μ) above it (skewness 1/√μ ≤ 0.1 there), which is ~6× faster on a
     full frame; both regimes have the analytic mean and variance.
     """
 
@@ -102,7 +116,7 @@ class SensorModel:
     conversion_gain_dn_per_e: float = 0.64
     electrons_per_us: float = 0.6
     adc_bits: int = 12
-    poisson_exact_below_e: float = 1000.0
+    poisson_exact_below_e: float = 100.0
 
     def __post_init__(self):
         for name in ("full_well_e", "conversion_gain_dn_per_e", "electrons_per_us"):

@@ -1,0 +1,27 @@
+"""Simulated BMI camera firmware: registers, sensor readout, RAW12 framing with CRC, transport, faults.
+
+Public API (the rest is private):
+
+* ``FirmwareDevice`` — one simulated camera (register file, readout, faults);
+* ``FirmwareServer`` — serves a device over TCP on loopback; ``InProcessLink``
+  serves it over an in-process socket pair;
+* ``FaultPlan`` / ``Fault`` — seeded fault injection;
+* irradiance sources (``IrradianceSource`` protocol, ``FlatField``,
+  ``DarkFrame``, ``PolarChart``, ``InFocusImageStandIn``) and the
+  ``register_source`` / ``make_source`` registry the forward simulator plugs into;
+* ``registers`` and ``wire`` — the register map and the wire format
+  (docs/protocol.md).
+"""
+
+from . import registers, wire
+from .device import MODEL_NAME, FirmwareDevice, lens_identity
+from .endpoint import FirmwareServer, InProcessLink
+from .faults import Fault, FaultPlan
+from .sources import (DarkFrame, FlatField, InFocusImageStandIn, IrradianceSource, PolarChart, make_source,
+                      register_source, source_names)
+
+__all__ = [
+    "registers", "wire", "MODEL_NAME", "FirmwareDevice", "lens_identity", "FirmwareServer", "InProcessLink",
+    "Fault", "FaultPlan", "DarkFrame", "FlatField", "InFocusImageStandIn", "IrradianceSource", "PolarChart",
+    "make_source", "register_source", "source_names",
+]

@@ -1,0 +1,150 @@
+"""The simulated camera: register file, sensor readout, frame counter, temperature, fault injector.
+
+``FirmwareDevice`` is what the camera's firmware holds. It knows nothing of
+sockets: ``firmware_sim.endpoint`` serves it over a stream (TCP or an
+in-process socket pair). One host at a time may hold the device (``claim``),
+as with a real camera.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
+from bmi_sdk.sensor import CFA_PATTERN, SensorModel
+
+from . import registers as R
+from .faults import FaultInjector, FaultPlan
+from .readout import Readout
+from .sources import IrradianceSource, PolarChart
+from .wire import FLAG_TEST_PATTERN, FrameHeader, packed_size, pack12
+
+MODEL_NAME = "BMI-SIM"
+
+
+def lens_identity(name: str = "bmi_monocentric") -> dict:
+    """Name and optical SHA-256 of the lens the camera carries."""
+    from bmi_sdk.optics.prescription import load_lens
+
+    lens = load_lens(name)
+    return {"name": lens.name, "sha256": lens.sha256()}
+
+
+@dataclass
+class ReadoutResult:
+    header: FrameHeader
+    pixels: np.ndarray
+
+
+class FirmwareDevice:
+    """State of one simulated camera. Thread-safe: the link thread and the host's in-process calls share it."""
+
+    def __init__(self, source: IrradianceSource | None = None, serial: int = 1, seed: int = 0,
+                 faults: FaultPlan | None = None, geometry: SensorGeometry = BMI_SENSOR,
+                 model: SensorModel = SensorModel(), lens: str = "bmi_monocentric"):
+        if (geometry.width_px, geometry.height_px) != (R.SENSOR_WIDTH_PX, R.SENSOR_HEIGHT_PX):
+            raise ValueError(f"the firmware drives a {R.SENSOR_WIDTH_PX}×{R.SENSOR_HEIGHT_PX} sensor, "
+                             f"geometry is {geometry.width_px}×{geometry.height_px}")
+        self.regs = R.RegisterFile(serial)
+        self.seed = int(seed)
+        self.geometry = geometry
+        self.model = model
+        self.lens = lens_identity(lens)
+        self.injector = FaultInjector(faults or FaultPlan())
+        self._readout = Readout(geometry, model)
+        self._source = source if source is not None else PolarChart(geometry)
+        self._lock = threading.RLock()
+        self._claimed = False
+        self._boot_ns = time.monotonic_ns()
+
+    # -- ownership ------------------------------------------------------------
+    def claim(self) -> bool:
+        with self._lock:
+            if self._claimed:
+                return False
+            self._claimed = True
+            return True
+
+    def release(self) -> None:
+        with self._lock:
+            self._claimed = False
+            self.regs.set_status(R.Status.ACQUIRING, False)
+
+    # -- world ----------------------------------------------------------------
+    def load_source(self, source: IrradianceSource) -> None:
+        """Put another scene in front of the camera (the simulated world)."""
+        if not isinstance(source, IrradianceSource):
+            raise TypeError(f"{source!r} is not an irradiance source (needs name, irradiance(), metadata())")
+        with self._lock:
+            self._source = source
+
+    @property
+    def source(self) -> IrradianceSource:
+        return self._source
+
+    def describe(self) -> dict:
+        """What the device tells a host in its HELLO reply."""
+        serial = self.regs.get("SERIAL")
+        return {
+            "model": MODEL_NAME, "serial": f"BMI-{serial:08X}",
+            "firmware_version": ".".join(map(str, R.FIRMWARE_VERSION)),
+            "registers": R.describe(), "cfa": CFA_PATTERN, "bit_depth": self.model.adc_bits,
+            "white_level_dn": self.model.white_level_dn, "geometry": self.geometry.to_dict(),
+            "lens": self.lens, "sensor_model": self.model.to_dict(), "source": self._source.metadata(),
+        }
+
+    # -- registers ------------------------------------------------------------
+    def read_register(self, address: int) -> tuple[R.RegError, int]:
+        with self._lock:
+            return self.regs.read(address)
+
+    def write_register(self, address: int, value: int) -> R.RegError:
+        with self._lock:
+            return self.regs.write(address, value)
+
+    def set_acquiring(self, on: bool) -> None:
+        with self._lock:
+            self.regs.set_status(R.Status.ACQUIRING, on)
+
+    def now_ns(self) -> int:
+        """Device clock: nanoseconds since power-on."""
+        return time.monotonic_ns() - self._boot_ns
+
+    # -- readout --------------------------------------------------------------
+    def read_out(self) -> ReadoutResult:
+        """Expose and read one frame with the current registers (advances FRAME_COUNTER)."""
+        with self._lock:
+            regs = self.regs
+            frame_id = regs.get("FRAME_COUNTER")
+            roi = regs.roi()
+            exposure_us = regs.get("EXPOSURE_US")
+            gain_milli = regs.get("ANALOG_GAIN_MILLI")
+            black = regs.get("BLACK_LEVEL_DN")
+            pattern = R.TestPattern(regs.get("TEST_PATTERN"))
+            source = self._source
+            regs.set_internal("FRAME_COUNTER", (frame_id + 1) & R.U32_MAX)
+            temp_mc = int(25_000 + 15_000 * (1 - math.exp(-(frame_id + 1) / 2000)))
+            regs.set_internal("SENSOR_TEMP_MILLI_C", temp_mc)
+        start_ns = self.now_ns()
+        if pattern == R.TestPattern.OFF:
+            rng = np.random.default_rng([self.seed, frame_id])
+            pixels = self._readout.sensor_frame(source, roi, exposure_us, gain_milli / 1000, black, rng)
+        else:
+            pixels = self._readout.test_pattern(pattern, roi, frame_id)
+        x, y, w, h = roi
+        header = FrameHeader(
+            frame_id=frame_id, device_ts_ns=start_ns, readout_ts_ns=self.now_ns(), exposure_us=exposure_us,
+            gain_milli=gain_milli, black_level_dn=black, white_level_dn=self.model.white_level_dn,
+            roi_x_px=x, roi_y_px=y, width_px=w, height_px=h, temperature_milli_c=temp_mc,
+            payload_len=packed_size(w * h), flags=FLAG_TEST_PATTERN if pattern else 0)
+        return ReadoutResult(header, pixels)
+
+    def frame_bytes(self) -> tuple[FrameHeader, bytes]:
+        """Read out one frame and pack its payload (RAW12) as it goes on the wire."""
+        result = self.read_out()
+        return result.header, pack12(result.pixels)
