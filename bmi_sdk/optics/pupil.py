@@ -1,0 +1,324 @@
+"""Exact off-axis pupils: aim real rays at the stop, trace them onto the sensor,
+and describe the converging wave in the sensor's local frame.
+
+For each (field θ, object range d, wavelength λ) this module
+
+1. finds the real chief ray (through the stop centre) and the real pupil
+   extent by tracing fans aimed from the object point (no paraxial or cos θ
+   assumption: a non-concentric or fisheye lens gets its true pupil shape,
+   position and asymmetry);
+2. traces a grid of rays that over-fills the stop onto the image surface;
+3. expresses every ray by its direction cosines (L, M) along the image
+   surface's tangent axes at the chief-ray point P (L radial/meridional,
+   M sagittal), and its *angle eikonal* referred to P,
+   V(s; P) = OPL(Q) + n s·(P − Q), Q being where the ray meets the sensor.
+   The wavefront aberration is W = (V_chief − V)/λ (Welford's sign: an
+   under-corrected lens has positive spherical aberration, matching the
+   Seidel sums), and the Debye integral is
+   U(r) = ∫∫ a(L, M) exp(−2πi W) exp(ik s·(r − P)) dL dM;
+4. fits smooth polynomials in (L, M): W (waves), the squared normalised
+   height on every surface that could vignette (stop included, ≤ 1 means
+   transmitted), and the launch coordinates (their Jacobian is the pupil
+   amplitude). The PSF code evaluates these on any uniform (L, M) grid, which
+   gives exact output sampling with a matrix Fourier transform.
+
+The object sits in the y–z plane above the axis; its image lands at −y. The
+kernel's radial axis (+x of a PSF) points away from the optical centre.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .paraxial import entrance_pupil, indices
+from .prescription import Lens
+from .raytrace import RayTraceError, image_normal, trace
+
+FAN_MERIDIONAL = 33
+FAN_SAGITTAL = 17
+FIT_MARGIN = 1.12  # rays fitted up to this normalised stop radius
+
+
+@dataclass
+class PupilFit:
+    """The converging wave of one (θ, d, λ), ready for PSF evaluation."""
+
+    field_deg: float
+    depth_m: float
+    wavelength_um: float
+    chief_point_mm: np.ndarray  # P on the image surface
+    chief_direction: np.ndarray
+    e_rad: np.ndarray
+    e_sag: np.ndarray
+    normal: np.ndarray
+    l_centre: float
+    m_centre: float
+    l_half: float  # half extent of the transmitted pupil in L
+    m_half: float
+    degree: int
+    coeffs: dict  # name -> (degree+1, degree+1) monomial coefficients in normalised (ξ, η)
+    apertures: list  # names in coeffs that are aperture functions (≤ 1 transmits)
+    fit_rms_waves: float
+    n_rays: int
+
+    def _powers(self, x):
+        return x[:, None] ** np.arange(self.degree + 1)[None, :]
+
+    def evaluate(self, name: str, l_grid: np.ndarray, m_grid: np.ndarray) -> np.ndarray:
+        """Fitted quantity on the separable grid (len(l_grid), len(m_grid))."""
+        xi = self._powers((l_grid - self.l_centre) / self.l_half)
+        eta = self._powers((m_grid - self.m_centre) / self.m_half)
+        return xi @ self.coeffs[name] @ eta.T
+
+
+def _launch(lens: Lens, field_deg, depth_m, z_ep, a, b):
+    """Origins, directions of rays aimed at (a, b) on each entry's launch plane.
+
+    Batched: ``field_deg``, ``depth_m``, ``z_ep`` have shape (B,), ``a`` and
+    ``b`` (B, n). The launch plane passes through the paraxial entrance-pupil
+    centre perpendicular to the chief direction; a is sagittal (x), b
+    meridional. Finite objects radiate from one point (OPL 0 there); objects
+    at infinity send a plane wave whose OPL is 0 on the launch plane.
+    """
+    th = np.radians(np.asarray(field_deg, dtype=np.float64))[:, None, None]
+    zero = np.zeros_like(th)
+    u_c = np.concatenate([zero, -np.sin(th), np.cos(th)], axis=-1)
+    e1 = np.concatenate([np.ones_like(th), zero, zero], axis=-1)
+    e2 = np.concatenate([zero, np.cos(th), np.sin(th)], axis=-1)
+    centre = np.concatenate([zero, zero, np.asarray(z_ep, dtype=np.float64)[:, None, None]], axis=-1)
+    target = centre + np.asarray(a)[..., None] * e1 + np.asarray(b)[..., None] * e2
+    depth = np.asarray(depth_m, dtype=np.float64)[:, None, None]
+    finite = np.isfinite(depth)
+    back = 4.0 * (np.abs(centre[..., 2:]) + max(s.semi_diameter_mm for s in lens.surfaces)) + 10.0
+    stop = np.array([0.0, 0.0, lens.stop_z_mm])
+    obj = stop - np.where(finite, depth, 1.0) * 1e3 * u_c
+    towards = target - obj
+    towards /= np.linalg.norm(towards, axis=-1, keepdims=True)
+    origin = np.where(finite, obj, target - back * u_c)
+    direction = np.where(finite, towards, u_c)
+    origin, direction = np.broadcast_arrays(origin, direction)
+    return origin, direction
+
+
+def _crossing(x, y, level):
+    """x where the sampled curve y(x) crosses ``level``, nearest the fan centre (nan if never)."""
+    ok = np.isfinite(y)
+    x, y = x[ok], y[ok]
+    if len(x) < 2:
+        return math.nan
+    s = np.sign(y - level)
+    idx = np.nonzero(s[:-1] * s[1:] <= 0)[0]
+    if len(idx) == 0:
+        return math.nan
+    i = idx[np.argmin(np.abs(idx - len(x) / 2))]
+    y0, y1 = y[i], y[i + 1]
+    if y1 == y0:
+        return float(x[i])
+    return float(x[i] + (level - y0) * (x[i + 1] - x[i]) / (y1 - y0))
+
+
+def stop_radius_mm(lens: Lens, wavelength_um: float = 0.5876) -> float:
+    """Physical stop radius set by the (paraxial) entrance-pupil diameter at the d line.
+
+    The EPD is a prescription parameter; it fixes the stop's size. Real rays
+    of any wavelength and field are then clipped by that physical stop.
+    """
+    _, per_ep = entrance_pupil(lens, indices(lens, wavelength_um))
+    return abs(per_ep) * lens.entrance_pupil_diameter_mm / 2
+
+
+def _aim(lens, field_deg, depth_m, lam_um, z_ep, r_ep, r_stop):
+    """Per entry: launch-plane chief position b_c, meridional extent, sagittal half extent."""
+    n_entries = len(field_deg)
+    out = np.full((n_entries, 4), np.nan)
+    todo = np.arange(n_entries)
+    for widen in (1.6, 4.0, 12.0):
+        if len(todo) == 0:
+            break
+        span = widen * r_ep[todo]
+        frac = np.linspace(-1.0, 1.0, FAN_MERIDIONAL)
+        b = span[:, None] * frac[None, :]
+        o, d = _launch(lens, field_deg[todo], depth_m[todo], z_ep[todo], np.zeros_like(b), b)
+        rays = trace(lens, lam_um[todo][:, None], o, d, stop_only=True)
+        ys = np.where(rays.alive, rays.stop_xy_mm[..., 1], np.nan)
+        for k, e in enumerate(todo):
+            b_c = _crossing(b[k], ys[k], 0.0)
+            lo, hi = _crossing(b[k], ys[k], -r_stop), _crossing(b[k], ys[k], r_stop)
+            out[e, :3] = b_c, min(lo, hi), max(lo, hi)
+        todo = todo[~np.all(np.isfinite(out[todo, :3]), axis=1)]
+        if len(todo):
+            r_ep = r_ep.copy()
+    if len(todo):
+        e = todo[0]
+        raise RayTraceError(
+            f"no real ray reaches the stop for field {field_deg[e]}° at {depth_m[e]} m, {lam_um[e] * 1e3:.1f} nm "
+            "(the field is vignetted or beyond the lens's coverage)"
+        )
+    span = 12.0 * r_ep
+    a = span[:, None] * np.linspace(0.0, 1.0, 4 * FAN_SAGITTAL)[None, :]
+    o, d = _launch(lens, field_deg, depth_m, z_ep, a, np.broadcast_to(out[:, :1], a.shape))
+    rays = trace(lens, lam_um[:, None], o, d, stop_only=True)
+    xs = np.where(rays.alive, np.hypot(rays.stop_xy_mm[..., 0], rays.stop_xy_mm[..., 1]), np.nan)
+    for e in range(n_entries):
+        a_hi = _crossing(a[e], xs[e], r_stop)
+        out[e, 3] = a_hi if math.isfinite(a_hi) else span[e]
+    return out.T
+
+
+def _chief(lens, field_deg, depth_m, lam_um, z_ep, b_c, r_stop):
+    """Refine each chief ray to pass the stop centre (secant iterations on the real trace)."""
+    h = 1e-4 * max(r_stop, 1e-3)
+    b = b_c.copy()
+    for _ in range(6):
+        bb = np.stack([b, b + h], axis=1)
+        o, d = _launch(lens, field_deg, depth_m, z_ep, np.zeros_like(bb), bb)
+        rays = trace(lens, lam_um[:, None], o, d, stop_only=True)
+        if not rays.alive[:, 0].all():
+            e = int(np.nonzero(~rays.alive[:, 0])[0][0])
+            raise RayTraceError(f"the chief ray of field {field_deg[e]}° is blocked (surface {rays.fail_surface[e, 0] + 1})")
+        y0, y1 = rays.stop_xy_mm[:, 0, 1], rays.stop_xy_mm[:, 1, 1]
+        if np.max(np.abs(y0)) < 1e-12:
+            break
+        b = b - y0 * h / np.where(y1 != y0, y1 - y0, 1.0)
+    o, d = _launch(lens, field_deg, depth_m, z_ep, np.zeros_like(b)[:, None], b[:, None])
+    rays = trace(lens, lam_um[:, None], o, d)
+    if not rays.alive.all():
+        e = int(np.nonzero(~rays.alive[:, 0])[0][0])
+        raise RayTraceError(
+            f"the chief ray of field {field_deg[e]}° does not reach the image surface (surface {rays.fail_surface[e, 0] + 1})"
+        )
+    return b, rays.position[:, 0], rays.direction[:, 0], rays.opl_mm[:, 0]
+
+
+def _pairs(degree):
+    return [(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)]
+
+
+def _fit_batched(xi, eta, values, weights, degree):
+    """Weighted least-squares polynomial fit per entry, from moments.
+
+    xi, eta, weights (B, n); values (B, n, k). The normal matrix of a monomial
+    basis only needs the moments Σ w ξᵖ ηᑫ (p + q ≤ 2D), which costs B·n·(2D+1)²
+    instead of B·n·T²; Jacobi scaling keeps the solve accurate in float64
+    (checked against numpy.linalg.lstsq in the tests). Returns coefficients
+    (B, D+1, D+1, k) and the residuals of the first column (B, n).
+    """
+    pairs = _pairs(degree)
+    xp = [np.ones_like(xi)]
+    ep = [np.ones_like(eta)]
+    for _ in range(2 * degree):
+        xp.append(xp[-1] * xi)
+        ep.append(ep[-1] * eta)
+    xp, ep = np.stack(xp, axis=1), np.stack(ep, axis=1)  # (B, 2D+1, n)
+    moments = np.matmul(xp * weights[:, None, :], ep.transpose(0, 2, 1))  # (B, 2D+1, 2D+1)
+    i_idx = np.array([i for i, _ in pairs])
+    j_idx = np.array([j for _, j in pairs])
+    ata = moments[:, i_idx[:, None] + i_idx[None, :], j_idx[:, None] + j_idx[None, :]]
+    # Σ_n w ξ^i η^j y_k for every (i, j) at once, then keep the basis pairs.
+    wy = values * weights[..., None]  # (B, n, k)
+    cross = np.einsum("bin,bjn,bnk->bijk", xp[:, : degree + 1], ep[:, : degree + 1], wy, optimize=True)
+    aty = cross[:, i_idx, j_idx]  # (B, T, k)
+    scale = np.sqrt(np.einsum("btt->bt", ata)) + 1e-300
+    sol = np.linalg.solve(ata / scale[:, :, None] / scale[:, None, :], aty / scale[..., None]) / scale[..., None]
+    coeffs = np.zeros(sol.shape[:1] + (degree + 1, degree + 1) + sol.shape[2:])
+    coeffs[:, i_idx, j_idx] = sol
+    fitted0 = np.einsum("bin,bij,bjn->bn", xp[:, : degree + 1], coeffs[..., 0], ep[:, : degree + 1], optimize=True)
+    return coeffs, values[..., 0] - fitted0
+
+
+def fit_pupils(lens: Lens, field_deg, depth_m, wavelength_um, grid: int = 20, degree: int = 10) -> list[PupilFit]:
+    """Trace every (θ, d, λ) entry exactly and fit its converging wave (see module doc).
+
+    The arguments broadcast to one batch; all entries are traced together.
+    """
+    field_deg, depth_m, wavelength_um = (np.atleast_1d(np.asarray(x, dtype=np.float64)).ravel()
+                                         for x in np.broadcast_arrays(field_deg, depth_m, wavelength_um))
+    if np.any(field_deg < 0):
+        raise ValueError(f"field_deg must be ≥ 0 (the lens is rotationally symmetric), got {field_deg.min()}")
+    if np.any(~(depth_m > 0)):
+        raise ValueError(f"depth_m must be > 0 (use math.inf for infinity), got {depth_m.min()}")
+    lam_values, lam_index = np.unique(wavelength_um, return_inverse=True)
+    n_by_lam = np.stack([indices(lens, v) for v in lam_values])
+    ep = [entrance_pupil(lens, n) for n in n_by_lam]
+    z_ep = np.array([e[0] for e in ep])[lam_index]
+    per_ep = np.abs(np.array([e[1] for e in ep]))[lam_index]
+    n_img = n_by_lam[lam_index, -1]
+    r_stop = stop_radius_mm(lens)
+    r_ep = r_stop / per_ep
+    b_c, b_lo, b_hi, a_hi = _aim(lens, field_deg, depth_m, wavelength_um, z_ep, r_ep, r_stop)
+    b_c, chief_p, chief_s, chief_opl = _chief(lens, field_deg, depth_m, wavelength_um, z_ep, b_c, r_stop)
+    # Launch grids over-filling each real pupil.
+    unit = np.linspace(-1.0, 1.0, grid)
+    ua, ub = (x.ravel() for x in np.meshgrid(unit, unit, indexing="ij"))
+    half_b = 0.5 * (b_hi - b_lo) * 1.15
+    mid_b = 0.5 * (b_hi + b_lo)
+    half_a = a_hi * 1.15
+    aa = half_a[:, None] * ua[None, :]
+    bb = mid_b[:, None] + half_b[:, None] * ub[None, :]
+    o, d = _launch(lens, field_deg, depth_m, z_ep, aa, bb)
+    rays = trace(lens, wavelength_um[:, None], o, d)
+    normal = image_normal(lens, chief_p)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    away = np.array([0.0, -1.0, 0.0])
+    e_rad = away - np.einsum("bi,i->b", normal, away)[:, None] * normal
+    e_rad /= np.linalg.norm(e_rad, axis=-1, keepdims=True)
+    e_sag = np.cross(normal, e_rad)
+    s = rays.direction
+    v = rays.opl_mm + n_img[:, None] * np.einsum("bni,bni->bn", s, chief_p[:, None, :] - rays.position)
+    w_waves = (chief_opl[:, None] - v) / (wavelength_um[:, None] * 1e-3)
+    ell = np.einsum("bni,bi->bn", s, e_rad)
+    emm = np.einsum("bni,bi->bn", s, e_sag)
+    l_c = np.einsum("bi,bi->b", chief_s, e_rad)
+    m_c = np.einsum("bi,bi->b", chief_s, e_sag)
+    rho2_stop = np.sum(rays.stop_xy_mm**2, axis=-1) / r_stop**2
+    use = rays.alive & (rho2_stop <= FIT_MARGIN**2)
+    inside = use & (rho2_stop <= 1.0)
+    n_terms = len(_pairs(degree))
+    if np.any(use.sum(axis=1) < 3 * n_terms // 2) or np.any(inside.sum(axis=1) == 0):
+        e = int(np.argmin(use.sum(axis=1)))
+        raise RayTraceError(f"too few rays pass the lens for field {field_deg[e]}° at {depth_m[e]} m to fit its pupil")
+    l_half = np.max(np.where(inside, np.abs(ell - l_c[:, None]), 0.0), axis=1) * 1.08
+    m_half = np.max(np.where(inside, np.abs(emm - m_c[:, None]), 0.0), axis=1) * 1.08
+    xi = np.where(use, (ell - l_c[:, None]) / l_half[:, None], 0.0)
+    eta = np.where(use, (emm - m_c[:, None]) / m_half[:, None], 0.0)
+    # Pupil amplitude: power per launch area is uniform, so the power per dL dM is the
+    # Jacobian |∂(a, b)/∂(L, M)|; the Debye integrand over dL dM carries a/s_n with
+    # |a|² ∝ power per solid angle, hence amplitude = sqrt(|∂(a,b)/∂(L,M)| / s_n).
+    shape = (len(field_deg), grid, grid)
+    da = np.gradient(aa.reshape(shape), axis=1)
+    db = np.gradient(bb.reshape(shape), axis=2)
+    dl_da, dl_db = np.gradient(ell.reshape(shape), axis=1) / da, np.gradient(ell.reshape(shape), axis=2) / db
+    dm_da, dm_db = np.gradient(emm.reshape(shape), axis=1) / da, np.gradient(emm.reshape(shape), axis=2) / db
+    det = np.abs(dl_da * dm_db - dl_db * dm_da).reshape(len(field_deg), -1)
+    s_n = np.einsum("bni,bi->bn", s, normal)
+    amp = np.sqrt(1.0 / np.maximum(det * s_n, 1e-300))
+    amp /= np.sum(np.where(inside, amp, 0.0), axis=1, keepdims=True) / inside.sum(axis=1, keepdims=True)
+    columns = {"w_waves": w_waves, "stop": rho2_stop, "amplitude": amp}
+    heights2 = np.where(inside[None], rays.rel_height**2, 0.0).max(axis=2)  # (n_surf, B)
+    for j in range(len(lens.surfaces)):
+        if j != lens.stop_index and heights2[j].max() > 0.9:  # could vignette somewhere in the batch
+            columns[f"surface_{j + 1}"] = rays.rel_height[j] ** 2
+    names = list(columns)
+    values = np.stack([np.where(use, columns[k], 0.0) for k in names], axis=-1)
+    coeffs, residual = _fit_batched(xi, eta, values, use.astype(np.float64), degree)
+    fit_rms = np.sqrt(np.sum(np.where(inside, residual**2, 0.0), axis=1) / inside.sum(axis=1))
+    fits = []
+    for e in range(len(field_deg)):
+        apertures = ["stop"] + [k for k in names if k.startswith("surface_") and heights2[int(k[8:]) - 1, e] > 0.9]
+        fits.append(PupilFit(
+            field_deg=float(field_deg[e]), depth_m=float(depth_m[e]), wavelength_um=float(wavelength_um[e]),
+            chief_point_mm=chief_p[e], chief_direction=chief_s[e], e_rad=e_rad[e], e_sag=e_sag[e],
+            normal=normal[e], l_centre=float(l_c[e]), m_centre=float(m_c[e]), l_half=float(l_half[e]),
+            m_half=float(m_half[e]), degree=degree, coeffs={k: coeffs[e, :, :, i] for i, k in enumerate(names)},
+            apertures=apertures, fit_rms_waves=float(fit_rms[e]), n_rays=int(use[e].sum()),
+        ))
+    return fits
+
+
+def fit_pupil(lens: Lens, field_deg: float, depth_m: float, wavelength_um: float,
+              grid: int = 20, degree: int = 10) -> PupilFit:
+    """One entry of :func:`fit_pupils`."""
+    return fit_pupils(lens, field_deg, depth_m, wavelength_um, grid, degree)[0]

@@ -1,0 +1,237 @@
+"""The PSF tensor PSF(c, θ, d): lazily built, cached on disk, saved as npz + JSON.
+
+Layout: ``psf[c, i_theta, i_depth, row, col]`` float32 (float16 at rest as an
+option), rows sagittal, columns radial with +col pointing away from the
+optical centre; each kernel odd-sized, centred on the chief ray, unit sum per
+channel. Default grid (paper §3.3): θ 0–60° every 0.6° (101), d 0.7–10 m
+every 0.1 m (94), 3 channels at 656.3 / 587.6 / 486.1 nm.
+
+Only the entries a request touches are computed (:meth:`PsfTensor.ensure`);
+computed entries go to a disk cache keyed by the lens's optical hash and every
+setting that changes a kernel, one shard per field angle, written atomically.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..io_atomic import atomic_path, write_json
+from . import spectral
+from .prescription import Lens, load_lens
+from .psf import DEFAULT_GUARD, DEFAULT_OVERSAMPLE, psf_from_pupil
+from .pupil import fit_pupils
+
+SCHEMA = "bmi-psf-tensor/1"
+DEFAULT_KERNEL_PX = 41
+ENERGY_CRITERION = 0.99
+BATCH_ENTRIES = 600
+
+
+def default_field_deg() -> tuple:
+    return tuple(np.round(np.arange(0, 101) * 0.6, 6).tolist())
+
+
+def default_depth_m() -> tuple:
+    return tuple(np.round(0.7 + np.arange(0, 94) * 0.1, 6).tolist())
+
+
+@dataclass(frozen=True)
+class TensorSpec:
+    """Everything besides the lens that changes the kernels."""
+
+    field_deg: tuple = field(default_factory=default_field_deg)
+    depth_m: tuple = field(default_factory=default_depth_m)
+    channels: tuple = field(default_factory=lambda: tuple(tuple(c) for c in spectral.representative()))
+    kernel_px: int = DEFAULT_KERNEL_PX
+    pitch_um: float = 2.0
+    oversample: int = DEFAULT_OVERSAMPLE
+    guard: float = DEFAULT_GUARD
+    fit_grid: int = 20
+    fit_degree: int = 10
+
+    def __post_init__(self):
+        if self.kernel_px % 2 == 0 or self.kernel_px < 1:
+            raise ValueError(f"kernel_px must be odd, got {self.kernel_px}")
+        if any(not (d > 0) for d in self.depth_m):
+            raise ValueError("depths must be > 0 m (math.inf allowed)")
+        if any(not (0 <= t <= 90) for t in self.field_deg):
+            raise ValueError("field angles must lie in [0, 90] degrees")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["depth_m"] = [None if math.isinf(x) else x for x in self.depth_m]
+        d["channels"] = [[list(p) for p in c] for c in self.channels]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TensorSpec":
+        d = dict(d)
+        d["field_deg"] = tuple(d["field_deg"])
+        d["depth_m"] = tuple(math.inf if x is None else x for x in d["depth_m"])
+        d["channels"] = tuple(tuple(tuple(p) for p in c) for c in d["channels"])
+        return cls(**d)
+
+    def cache_key(self, lens: Lens) -> str:
+        text = json.dumps({"lens": lens.sha256(), "spec": self.to_dict(), "schema": SCHEMA}, sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def compute_kernels(lens: Lens, spec: TensorSpec, field_deg, depth_m) -> np.ndarray:
+    """Kernels (C, n, K, K) for n (θ, d) pairs, batched through the exact pupil trace."""
+    field_deg = np.atleast_1d(np.asarray(field_deg, dtype=np.float64))
+    depth_m = np.atleast_1d(np.asarray(depth_m, dtype=np.float64))
+    lam_nm = sorted({lam for ch in spec.channels for lam, _ in ch})
+    pairs = [(i, lam) for i in range(len(field_deg)) for lam in lam_nm]
+    mono = {}
+    for start in range(0, len(pairs), BATCH_ENTRIES):
+        chunk = pairs[start:start + BATCH_ENTRIES]
+        idx = np.array([i for i, _ in chunk])
+        lam = np.array([lam for _, lam in chunk]) * 1e-3
+        fits = fit_pupils(lens, field_deg[idx], depth_m[idx], lam, grid=spec.fit_grid, degree=spec.fit_degree)
+        for (i, lam_i), fit in zip(chunk, fits):
+            mono[i, lam_i] = psf_from_pupil(fit, spec.kernel_px, spec.pitch_um, spec.oversample, spec.guard).kernel
+    out = np.zeros((len(spec.channels), len(field_deg), spec.kernel_px, spec.kernel_px), dtype=np.float64)
+    for c, channel in enumerate(spec.channels):
+        for i in range(len(field_deg)):
+            out[c, i] = sum(weight * mono[i, lam] for lam, weight in channel)
+    out /= out.sum(axis=(2, 3), keepdims=True)
+    return out.astype(np.float32)
+
+
+def default_cache_dir() -> Path:
+    return Path(os.environ.get("BMI_CACHE_DIR", Path.home() / ".cache" / "bmi_sdk")) / "psf"
+
+
+class PsfTensor:
+    """A lazily filled PSF tensor for one lens and spec (see module doc)."""
+
+    def __init__(self, lens: Lens | str = "bmi_monocentric", spec: TensorSpec | None = None,
+                 cache_dir: str | os.PathLike | None = None, use_cache: bool = True):
+        self.lens = load_lens(lens) if isinstance(lens, str) else lens
+        self.spec = spec or TensorSpec()
+        shape = (len(self.spec.channels), len(self.spec.field_deg), len(self.spec.depth_m))
+        self.data = np.zeros(shape + (self.spec.kernel_px,) * 2, dtype=np.float32)
+        self.filled = np.zeros(shape, dtype=bool)
+        self.cache_dir = None
+        if use_cache:
+            root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+            self.cache_dir = root / self.spec.cache_key(self.lens)
+        self._shards_loaded: set[int] = set()
+
+    # -- access -------------------------------------------------------------
+    @property
+    def field_deg(self) -> np.ndarray:
+        return np.asarray(self.spec.field_deg)
+
+    @property
+    def depth_m(self) -> np.ndarray:
+        return np.asarray(self.spec.depth_m)
+
+    def kernel(self, channel: int, field_index: int, depth_index: int) -> np.ndarray:
+        self.ensure([field_index], [depth_index])
+        return self.data[channel, field_index, depth_index]
+
+    def ensure(self, field_indices, depth_indices) -> int:
+        """Make every (θ, d) in the outer product available; returns how many were computed."""
+        fi = np.unique(np.atleast_1d(np.asarray(field_indices, dtype=int)))
+        di = np.unique(np.atleast_1d(np.asarray(depth_indices, dtype=int)))
+        for i in fi:
+            self._load_shard(int(i))
+        missing = [(i, j) for i in fi for j in di if not self.filled[:, i, j].all()]
+        if not missing:
+            return 0
+        theta = self.field_deg[[i for i, _ in missing]]
+        depth = self.depth_m[[j for _, j in missing]]
+        kernels = compute_kernels(self.lens, self.spec, theta, depth)
+        for n, (i, j) in enumerate(missing):
+            self.data[:, i, j] = kernels[:, n]
+            self.filled[:, i, j] = True
+        for i in sorted({i for i, _ in missing}):
+            self._store_shard(int(i))
+        return len(missing)
+
+    def ensure_all(self, progress: bool = False) -> None:
+        iterator = range(len(self.spec.field_deg))
+        if progress:
+            from tqdm import tqdm
+
+            iterator = tqdm(iterator, desc="PSF tensor", unit="field")
+        for i in iterator:
+            self.ensure([i], range(len(self.spec.depth_m)))
+
+    # -- disk cache -----------------------------------------------------------
+    def _shard_path(self, i: int) -> Path:
+        return self.cache_dir / f"theta_{i:04d}.npz"
+
+    def _load_shard(self, i: int) -> None:
+        if self.cache_dir is None or i in self._shards_loaded:
+            return
+        self._shards_loaded.add(i)
+        path = self._shard_path(i)
+        if path.exists():
+            with np.load(path, allow_pickle=False) as z:
+                filled = z["filled"]
+                self.data[:, i][filled] = z["psf"][filled]
+                self.filled[:, i] |= filled
+
+    def _store_shard(self, i: int) -> None:
+        if self.cache_dir is None:
+            return
+        self.cache_dir.mkdir(parents=True, exist_ok=True)
+        with atomic_path(self._shard_path(i), suffix=".npz") as tmp:
+            np.savez(tmp, psf=self.data[:, i], filled=self.filled[:, i])
+
+    # -- files ----------------------------------------------------------------
+    def metadata(self) -> dict:
+        return {
+            "schema": SCHEMA,
+            "layout": "psf[channel, theta_index, depth_index, row (sagittal), col (radial, +col away from centre)]",
+            "units": {"field_deg": "degree", "depth_m": "metre (range from the lens centre)", "pitch_um": "micrometre"},
+            "lens": {"name": self.lens.name, "sha256": self.lens.sha256(), "prescription": self.lens.to_dict()},
+            "spec": self.spec.to_dict(),
+            "channel_names": list(spectral.CHANNELS),
+            "code_version": __version__,
+            "complete": bool(self.filled.all()),
+        }
+
+    def save(self, path: str | os.PathLike, float16: bool = False) -> Path:
+        """Write ``path`` (.npz: psf, filled) and its JSON metadata beside it, atomically."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_suffix(".npz")
+        arr = self.data.astype(np.float16) if float16 else self.data
+        with atomic_path(path, suffix=".npz") as tmp:
+            np.savez(tmp, psf=arr, filled=self.filled)
+        meta = self.metadata()
+        meta["dtype_at_rest"] = str(arr.dtype)
+        meta["npz_sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
+        write_json(path.with_suffix(".json"), meta)
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "PsfTensor":
+        """Read a saved tensor, checking schema and the npz hash recorded in its JSON."""
+        path = Path(path)
+        meta_path = path.with_suffix(".json")
+        if not meta_path.exists():
+            raise FileNotFoundError(f"{meta_path}: PSF tensor metadata missing")
+        meta = json.loads(meta_path.read_text())
+        if meta.get("schema") != SCHEMA:
+            raise ValueError(f"{meta_path}: schema {meta.get('schema')!r}, expected {SCHEMA!r}")
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()
+        if digest != meta.get("npz_sha256"):
+            raise ValueError(f"{path}: content hash does not match its metadata (file changed or corrupt)")
+        lens = Lens.from_dict(meta["lens"]["prescription"])
+        tensor = cls(lens, TensorSpec.from_dict(meta["spec"]), use_cache=False)
+        with np.load(path, allow_pickle=False) as z:
+            tensor.data[...] = z["psf"].astype(np.float32)
+            tensor.filled[...] = z["filled"]
+        return tensor
