@@ -1,0 +1,155 @@
+"""Host camera API of the BMI camera.
+
+    from devices import open_camera
+    with open_camera("sim://") as cam:            # or "tcp://127.0.0.1:PORT", "replay://FOLDER"
+        cam.settings.exposure_us = 5000
+        frame = cam.capture()                      # RawFrame: uint16 H×W + metadata
+        frame.save_dng("frame.dng")
+
+URIs:
+
+* ``sim://[NAME][?scene=SPEC&seed=N&faults=SPEC&serial=N]`` — a simulated camera
+  in this process (``firmware_sim``), served over an in-process socket pair with
+  the same protocol as TCP. A named device lives as long as the process, like a
+  plugged-in camera (its registers persist between opens); giving ``seed``,
+  ``faults`` or ``serial`` builds it anew, ``scene`` (see
+  ``firmware_sim.make_source``) loads a scene into it. ``open_camera(uri,
+  device=FirmwareDevice(...))`` serves a device you built.
+* ``tcp://HOST:PORT`` — a device served by ``bmi firmware-sim serve`` (or hardware).
+* ``replay://FOLDER[?loop=1]`` — a folder of DNGs written by ``RawFrame.save_dng``.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import parse_qs, urlsplit
+
+from .camera import STRATEGIES, StreamCamera
+from .dng import load_raw, save_dng
+from .errors import (CameraError, ConfigurationError, DeviceBusyError, DeviceNotFoundError, DeviceRemovedError,
+                     GrabTimeoutError, IncompleteFrameError, ProtocolError, RawFileError)
+from .frame import FrameStatus, RawFrame, Roi
+from .replay import ReplayCamera
+
+__all__ = [
+    "open_camera", "list_devices", "DeviceInfo", "StreamCamera", "ReplayCamera", "RawFrame", "FrameStatus", "Roi",
+    "load_raw", "save_dng", "STRATEGIES", "CameraError", "ConfigurationError", "DeviceBusyError",
+    "DeviceNotFoundError", "DeviceRemovedError", "GrabTimeoutError", "IncompleteFrameError", "ProtocolError",
+    "RawFileError",
+]
+
+_SIM_DEVICES: dict = {}
+_SIM_LOCK = threading.Lock()
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    uri: str
+    model: str
+    serial: str
+    busy: bool
+
+
+def _sim_device(name: str, query: dict):
+    from firmware_sim import FaultPlan, FirmwareDevice, make_source
+
+    unknown = set(query) - {"scene", "seed", "faults", "serial"}
+    if unknown:
+        raise ConfigurationError(f"sim:// takes scene, seed, faults, serial; not {', '.join(sorted(unknown))}")
+    try:
+        with _SIM_LOCK:
+            dev = _SIM_DEVICES.get(name)
+            if dev is None or {"seed", "faults", "serial"} & set(query):
+                if dev is not None and not dev.claim():
+                    raise DeviceBusyError(f"sim://{name} is open elsewhere; close it before rebuilding it")
+                if dev is not None:
+                    dev.release()
+                dev = FirmwareDevice(seed=int(query.get("seed", 0)), serial=int(query.get("serial", 1)),
+                                     faults=FaultPlan.parse(query["faults"]) if "faults" in query else None)
+                _SIM_DEVICES[name] = dev
+            if "scene" in query:
+                dev.load_source(make_source(query["scene"]))
+    except ValueError as exc:
+        raise ConfigurationError(f"sim://{name}: {exc}") from exc
+    return dev
+
+
+def _connector_in_process(device):
+    from firmware_sim import InProcessLink
+
+    def connect():
+        link = InProcessLink(device)
+        return link.sock, link.close
+    return connect
+
+
+def _connector_tcp(host: str, port: int, timeout_s: float):
+    def connect():
+        try:
+            sock = socket.create_connection((host, port), timeout=timeout_s)
+        except OSError as exc:
+            raise DeviceNotFoundError(f"no camera answers at tcp://{host}:{port} ({exc})") from exc
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        return sock, lambda: None
+    return connect
+
+
+def open_camera(uri: str = "sim://", *, device=None, on_frame=None, on_disconnect=None,
+                timeout_s: float = 5.0):
+    """Open the camera at ``uri`` (see the module doc); use it as a context manager."""
+    parts = urlsplit(uri)
+    query = {k: v[-1] for k, v in parse_qs(parts.query).items()}
+    if parts.scheme == "sim":
+        name = parts.netloc or "sim0"
+        dev = device if device is not None else _sim_device(name, query)
+        return StreamCamera(uri, _connector_in_process(dev), on_frame, on_disconnect, io_timeout_s=timeout_s)
+    if device is not None:
+        raise ConfigurationError("device= only applies to sim:// URIs")
+    if parts.scheme == "tcp":
+        if query:
+            raise ConfigurationError(f"tcp:// takes no options (the server chooses scene and faults), got {query}")
+        try:
+            host, port = parts.hostname, parts.port
+        except ValueError as exc:
+            raise ConfigurationError(f"bad port in {uri!r}: {exc}") from None
+        if not host or not port:
+            raise ConfigurationError(f"tcp URIs look like tcp://127.0.0.1:PORT, got {uri!r}")
+        return StreamCamera(uri, _connector_tcp(host, port, timeout_s), on_frame, on_disconnect,
+                            io_timeout_s=timeout_s)
+    if parts.scheme == "replay":
+        folder = Path(parts.netloc + parts.path)
+        return ReplayCamera(uri, folder, loop=query.get("loop") in ("1", "true"), on_frame=on_frame,
+                            on_disconnect=on_disconnect)
+    raise DeviceNotFoundError(f"unknown camera URI scheme in {uri!r}; use sim://, tcp://HOST:PORT or replay://DIR")
+
+
+def list_devices(tcp_ports: tuple[int, ...] = (), host: str = "127.0.0.1", timeout_s: float = 1.0) \
+        -> list[DeviceInfo]:
+    """Cameras this host can open: the in-process simulated ones (``sim://`` always) and any
+    device answering on the given TCP ports of ``host``."""
+    from firmware_sim.device import MODEL_NAME
+
+    found = []
+    with _SIM_LOCK:
+        sims = dict(_SIM_DEVICES)
+    if "sim0" not in sims:
+        found.append(DeviceInfo("sim://", MODEL_NAME, "BMI-00000001", False))
+    for name, dev in sims.items():
+        busy = not dev.claim()
+        if not busy:
+            dev.release()
+        found.append(DeviceInfo("sim://" if name == "sim0" else f"sim://{name}", MODEL_NAME,
+                                dev.describe()["serial"], busy))
+    for port in tcp_ports:
+        uri = f"tcp://{host}:{port}"
+        try:
+            with open_camera(uri, timeout_s=timeout_s) as cam:
+                found.append(DeviceInfo(uri, cam.info["model"], cam.info["serial"], False))
+        except DeviceBusyError:
+            found.append(DeviceInfo(uri, "?", "?", True))
+        except (DeviceNotFoundError, DeviceRemovedError):
+            continue
+    return found

@@ -1,0 +1,147 @@
+"""Raw frames as DNG (uncompressed, written with tifffile, read back with rawpy) plus a JSON sidecar.
+
+The DNG carries what DNG has tags for: CFA pattern (RGGB), black and white
+level, camera make/model/serial, exposure. The sidecar ``<name>.json`` carries
+the rest (curved-sensor geometry, lens identity, ROI, frame metadata,
+calibration id) and the SHA-256 of the pixels, so a sidecar that belongs to
+another file is detected. Both are written atomically (temp name + rename),
+DNG first: an interrupted save leaves at worst a DNG without sidecar, which
+``load_raw`` flags.
+
+``load_raw`` refuses (``RawFileError``) a DNG that is not from a BMI camera
+(UniqueCameraModel tag), has no sidecar, or whose sidecar does not match, unless
+``require_bmi=False``: then it returns the raw data with ``is_bmi=False``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
+from bmi_sdk.io_atomic import atomic_path, write_json
+from firmware_sim.device import MODEL_NAME
+
+from .errors import RawFileError
+from .frame import SIDECAR_SCHEMA, FrameStatus, RawFrame, Roi
+
+MAKE = "BMI"
+_CFA_CODES = {"R": 0, "G": 1, "B": 2}
+_TAG_UNIQUE_MODEL = 50708
+
+
+def sidecar_path(path) -> Path:
+    return Path(path).with_suffix(".json")
+
+
+def pixel_sha256(data: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(data, dtype="<u2").tobytes()).hexdigest()
+
+
+def save_dng(frame: RawFrame, path) -> None:
+    """Write ``frame`` to ``path`` (a .dng) and its sidecar, atomically."""
+    import tifffile
+
+    path = Path(path)
+    if path.suffix.lower() != ".dng":
+        raise ValueError(f"DNG files end in .dng, got {path}")
+    data = np.ascontiguousarray(frame.data, dtype=np.uint16)
+    if data.ndim != 2:
+        raise ValueError(f"a raw frame is H×W, got shape {data.shape}")
+    if len(frame.cfa) != 4 or set(frame.cfa) - set(_CFA_CODES):
+        raise ValueError(f"CFA must be a 2×2 pattern like 'RGGB', got {frame.cfa!r}")
+    model = f"{MODEL_NAME} {frame.device.get('serial', '')}".strip() if frame.is_bmi else "unknown"
+    exposure = max(1, int(frame.exposure_us))
+    extratags = [
+        (271, "s", 0, MAKE, True),                                  # Make
+        (272, "s", 0, MODEL_NAME, True),                            # Model
+        (50706, "B", 4, (1, 4, 0, 0), True),                        # DNGVersion
+        (50707, "B", 4, (1, 1, 0, 0), True),                        # DNGBackwardVersion
+        (_TAG_UNIQUE_MODEL, "s", 0, model, True),                   # UniqueCameraModel
+        (50735, "s", 0, str(frame.device.get("serial", "")), True),  # CameraSerialNumber
+        (33421, "H", 2, (2, 2), True),                              # CFARepeatPatternDim
+        (33422, "B", 4, tuple(_CFA_CODES[c] for c in frame.cfa), True),  # CFAPattern
+        (50710, "B", 3, (0, 1, 2), True),                           # CFAPlaneColor
+        (50714, "H", 1, (int(frame.black_level_dn),), True),        # BlackLevel
+        (50717, "H", 1, (int(frame.white_level_dn),), True),        # WhiteLevel
+        (50721, "2i", 9, (1, 1, 0, 1, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 1), True),  # ColorMatrix1 = I
+        (50778, "H", 1, (21,), True),                               # CalibrationIlluminant1 = D65
+        (33434, "2I", 1, (exposure, 1_000_000), True),              # ExposureTime (s)
+    ]
+    with atomic_path(path) as tmp:
+        tifffile.imwrite(tmp, data, photometric=32803, subfiletype=0, compression=None,
+                         metadata=None, extratags=extratags)
+    write_json(sidecar_path(path), frame.metadata() | {"dng": path.name, "pixel_sha256": pixel_sha256(data)})
+
+
+def _cfa_string(raw) -> str:
+    desc = raw.color_desc.decode()
+    pattern = np.asarray(raw.raw_pattern)
+    if pattern.shape != (2, 2):
+        raise RawFileError(f"not a 2×2 Bayer raw file (CFA pattern shape {pattern.shape})")
+    return "".join(desc[i] for i in pattern.reshape(-1))  # LibRaw names the second green 'G' too
+
+
+def load_raw(path, require_bmi: bool = True) -> RawFrame:
+    """Read a raw file through rawpy (pixels, levels, CFA) and its sidecar (everything else).
+
+    A file that is not a BMI raw frame raises ``RawFileError`` naming why, or with
+    ``require_bmi=False`` comes back with ``is_bmi=False`` and nominal geometry.
+    """
+    import rawpy
+    import tifffile
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no raw file at {path}")
+    try:
+        with rawpy.imread(str(path)) as raw:
+            data = raw.raw_image_visible.copy()
+            cfa = _cfa_string(raw)
+            black = [int(b) for b in raw.black_level_per_channel]
+            white = int(raw.white_level)
+    except rawpy.LibRawError as exc:
+        raise RawFileError(f"{path}: rawpy cannot read it as a raw file ({exc})") from exc
+    try:
+        with tifffile.TiffFile(path) as tif:
+            tag = tif.pages[0].tags.get(_TAG_UNIQUE_MODEL)
+            camera_model = str(tag.value) if tag is not None else ""
+    except tifffile.TiffFileError:
+        camera_model = ""  # not a TIFF-based raw: certainly not ours
+    problem = None
+    side = sidecar_path(path)
+    meta: dict = {}
+    if not camera_model.startswith(MODEL_NAME):
+        problem = f"it comes from another camera (UniqueCameraModel {camera_model or 'missing'!r})"
+    elif not side.is_file():
+        problem = f"its sidecar {side.name} is missing (geometry and lens identity unknown)"
+    else:
+        meta = json.loads(side.read_text())
+        if meta.get("schema") != SIDECAR_SCHEMA:
+            problem = f"sidecar {side.name} has schema {meta.get('schema')!r}, expected {SIDECAR_SCHEMA!r}"
+        elif meta.get("pixel_sha256") != pixel_sha256(data):
+            problem = f"sidecar {side.name} does not belong to these pixels (SHA-256 mismatch)"
+    if problem is not None:
+        if require_bmi:
+            raise RawFileError(f"{path} is not a BMI raw frame: {problem}")
+        h, w = data.shape
+        return RawFrame(data=data, frame_id=-1, status=FrameStatus.COMPLETE, black_level_dn=black[0],
+                        white_level_dn=white, exposure_us=0, analog_gain=float("nan"),
+                        temperature_c=float("nan"), device_timestamp_ns=0, readout_timestamp_ns=0,
+                        host_timestamp_ns=0, roi=Roi(0, 0, w, h), geometry=BMI_SENSOR, lens={},
+                        device={"model": camera_model}, cfa=cfa, is_bmi=False,
+                        source={"foreign_raw_reason": problem})
+    if cfa != meta["cfa"] or black[0] != meta["black_level_dn"] or white != meta["white_level_dn"]:
+        raise RawFileError(f"{path}: DNG tags (CFA {cfa}, black {black[0]}, white {white}) disagree with the "
+                           f"sidecar ({meta['cfa']}, {meta['black_level_dn']}, {meta['white_level_dn']})")
+    return RawFrame(
+        data=data, frame_id=meta["frame_id"], status=FrameStatus(meta["status"]), black_level_dn=black[0],
+        white_level_dn=white, exposure_us=meta["exposure_us"], analog_gain=meta["analog_gain"],
+        temperature_c=meta["temperature_c"], device_timestamp_ns=meta["device_timestamp_ns"],
+        readout_timestamp_ns=meta["readout_timestamp_ns"], host_timestamp_ns=meta["host_timestamp_ns"],
+        roi=Roi(**meta["roi"]), geometry=SensorGeometry.from_dict(meta["geometry"]), lens=meta["lens"],
+        device=meta["device"], cfa=cfa, skipped_frames=meta["skipped_frames"], test_pattern=meta["test_pattern"],
+        source=meta["source"], calibration_id=meta["calibration_id"])

@@ -1,0 +1,194 @@
+"""Host end of a device stream (TCP or in-process socket pair): control requests and a frame reader thread.
+
+The reader thread owns the socket's receive side. It sorts messages into
+control replies (handed to the waiting request) and frames, which it decodes
+into a buffer the ``FrameSink`` provides: every length is checked against the
+protocol limits before a byte is allocated or read, a short FRAME message is
+reported as incomplete, a payload CRC mismatch as corrupt, and a stream that
+ends or goes silent mid-message as a disconnect. Nothing blocks forever: socket
+reads poll a stop flag, requests and partial messages have timeouts.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import socket
+import threading
+import zlib
+from typing import Protocol
+
+import numpy as np
+
+from firmware_sim.registers import RegError
+from firmware_sim.wire import (ACK, CRC, ENVELOPE, HEADER, REG_ACCESS, REG_REPLY, U32, FrameHeader, Msg, WireError,
+                               envelope, parse_envelope, unpack12)
+
+from .errors import CameraError, DeviceBusyError, DeviceRemovedError, ProtocolError
+from .frame import FrameStatus
+
+POLL_S = 0.2
+
+
+class FrameSink(Protocol):
+    def buffer_for(self, header: FrameHeader) -> np.ndarray | None:
+        """An H×W uint16 buffer for this frame, or None to discard it (no free buffer)."""
+
+    def deliver(self, header: FrameHeader, buf: np.ndarray, status: FrameStatus) -> None: ...
+
+    def link_closed(self, reason: str) -> None: ...
+
+
+class _Closed(Exception):
+    pass
+
+
+class StreamLink:
+    def __init__(self, sock: socket.socket, sink: FrameSink, io_timeout_s: float = 5.0,
+                 request_timeout_s: float = 5.0):
+        self.sock = sock
+        self.sink = sink
+        self.io_timeout_s = io_timeout_s
+        self.request_timeout_s = request_timeout_s
+        self._replies: queue.Queue = queue.Queue()
+        self._send_lock = threading.Lock()
+        self._stop = threading.Event()
+        self.closed_reason: str | None = None
+        self._rx = bytearray()
+        sock.settimeout(POLL_S)
+        self._thread = threading.Thread(target=self._read_loop, name="bmi-host-link", daemon=True)
+        self._thread.start()
+
+    # -- control ------------------------------------------------------------------
+    def request(self, msg: Msg, body: bytes, expect: Msg) -> bytes:
+        if self.closed_reason is not None:
+            raise DeviceRemovedError(f"link is down: {self.closed_reason}")
+        with self._send_lock:
+            try:
+                self.sock.sendall(envelope(msg, body) + body)
+            except OSError as exc:
+                raise DeviceRemovedError(f"cannot send {msg.name}: {exc}") from exc
+            try:
+                reply, reply_body = self._replies.get(timeout=self.request_timeout_s)
+            except queue.Empty:
+                raise DeviceRemovedError(f"device did not answer {msg.name} within {self.request_timeout_s} s") \
+                    from None
+        if reply is None:
+            raise DeviceRemovedError(f"link dropped while waiting for {msg.name}: {reply_body}")
+        if reply == Msg.BUSY:
+            raise DeviceBusyError(json.loads(reply_body).get("reason", "device busy"))
+        if reply != expect:
+            raise ProtocolError(f"device answered {msg.name} with {reply.name}, expected {expect.name}")
+        return reply_body
+
+    def hello(self) -> dict:
+        return json.loads(self.request(Msg.HELLO, b"", Msg.HELLO))
+
+    def read_register(self, address: int) -> tuple[RegError, int]:
+        _, err, value = REG_REPLY.unpack(self.request(Msg.READ_REG, U32.pack(address), Msg.REG_REPLY))
+        return RegError(err), value
+
+    def write_register(self, address: int, value: int) -> tuple[RegError, int]:
+        _, err, current = REG_REPLY.unpack(self.request(Msg.WRITE_REG, REG_ACCESS.pack(address, value),
+                                                        Msg.REG_REPLY))
+        return RegError(err), current
+
+    def start(self, count: int) -> None:
+        ACK.unpack(self.request(Msg.START, U32.pack(count), Msg.ACK))
+
+    def stop(self) -> None:
+        ACK.unpack(self.request(Msg.STOP, b"", Msg.ACK))
+
+    def close(self) -> None:
+        self._stop.set()
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self._thread.join(timeout=self.io_timeout_s + 1)
+        self.sock.close()
+
+    # -- reader ---------------------------------------------------------------------
+    def _recv_into(self, view: memoryview, idle_ok: bool) -> int:
+        """Fill ``view``; returns bytes read (< len only at end of stream). Between messages
+        (``idle_ok``) it waits as long as the link lives; mid-message it allows io_timeout_s of silence."""
+        got, silent = 0, 0.0
+        while got < len(view):
+            if self._stop.is_set():
+                raise _Closed("closed by host")
+            try:
+                k = self.sock.recv_into(view[got:])
+            except (TimeoutError, socket.timeout):
+                if not (idle_ok and got == 0):
+                    silent += POLL_S
+                    if silent >= self.io_timeout_s:
+                        raise _Closed(f"device went silent for {self.io_timeout_s} s mid-message") from None
+                continue
+            except OSError as exc:
+                raise _Closed(f"link error: {exc}") from None
+            if k == 0:
+                return got
+            got += k
+            silent = 0.0
+        return got
+
+    def _read_exact(self, n: int, what: str, idle_ok: bool = False) -> bytes:
+        buf = bytearray(n)
+        got = self._recv_into(memoryview(buf), idle_ok)
+        if got < n:
+            raise _Closed(f"stream ended after {got} of {n} bytes of {what}")
+        return bytes(buf)
+
+    def _read_loop(self) -> None:
+        reason = "closed by host"
+        try:
+            while not self._stop.is_set():
+                msg, length = parse_envelope(self._read_exact(ENVELOPE.size, "a message envelope", idle_ok=True))
+                if msg == Msg.FRAME:
+                    self._read_frame(length)
+                else:
+                    self._replies.put((msg, self._read_exact(length, msg.name) if length else b""))
+        except _Closed as exc:
+            reason = str(exc)
+        except WireError as exc:
+            reason = f"protocol error: {exc}"
+        except CameraError as exc:
+            reason = str(exc)
+        finally:
+            self.closed_reason = reason
+            self._replies.put((None, reason))
+            if not self._stop.is_set():
+                self.sink.link_closed(reason)
+
+    def _read_frame(self, length: int) -> None:
+        if length < HEADER.size:
+            raise WireError(f"FRAME message of {length} bytes is shorter than a frame header ({HEADER.size})")
+        header = FrameHeader.parse(self._read_exact(HEADER.size, "a frame header"))
+        full = HEADER.size + header.payload_len + CRC.size
+        if length > full:
+            raise WireError(f"FRAME message of {length} bytes is longer than its {header.width_px}×"
+                            f"{header.height_px} frame ({full})")
+        sent = length - HEADER.size  # payload (+ CRC) bytes the device sends for this frame
+        if len(self._rx) < sent:
+            self._rx = bytearray(sent)
+        view = memoryview(self._rx)[:sent]
+        buf = self.sink.buffer_for(header)  # after validation, before the payload: a discard still drains it
+        got = self._recv_into(view, idle_ok=False)
+        if buf is None:
+            if got < sent:
+                raise _Closed(f"stream ended after {got} of {sent} payload bytes of frame {header.frame_id}")
+            return
+        payload_got = min(got, header.payload_len)
+        if got == full - HEADER.size:
+            crc_ok = zlib.crc32(view[:header.payload_len]) == CRC.unpack(view[header.payload_len:])[0]
+            unpack12(view[:header.payload_len], buf)
+            self.sink.deliver(header, buf, FrameStatus.COMPLETE if crc_ok else FrameStatus.CORRUPT)
+        else:
+            pairs = payload_got // 3
+            flat = buf.reshape(-1)
+            unpack12(view[:3 * pairs], flat[:2 * pairs])
+            flat[2 * pairs:] = 0
+            self.sink.deliver(header, buf, FrameStatus.INCOMPLETE)
+        if got < sent:
+            raise _Closed(f"stream ended after {got} of {sent} payload bytes of frame {header.frame_id}")
+
