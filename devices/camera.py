@@ -55,7 +55,7 @@ class StreamCamera:
         self._oneshot: list[RawFrame] | None = None
         self._removed: str | None = None
         self._last_header_id: int | None = None
-        self._last_delivered_id: int | None = None
+        self._last_handed_id: int | None = None
         self.stats = dict.fromkeys(_STAT_KEYS, 0)
         self._link: StreamLink | None = None
         self._cleanup = lambda: None
@@ -208,14 +208,14 @@ class StreamCamera:
                 if left <= 0:
                     raise GrabTimeoutError(f"no frame from {self.uri} within {timeout_s} s")
                 self._cond.wait(left)
-            return self._queue.popleft()
+            return self._hand_out(self._queue.popleft())
 
     def try_grab(self) -> RawFrame | None:
         """A queued frame or None; raises DeviceRemovedError if the link is down and nothing is queued."""
         self._check_open()
         with self._cond:
             if self._queue:
-                return self._queue.popleft()
+                return self._hand_out(self._queue.popleft())
             if self._removed is not None:
                 raise DeviceRemovedError(f"{self.uri}: {self._removed} (call reconnect())")
             return None
@@ -245,6 +245,13 @@ class StreamCamera:
                 self._oneshot = None
         return frame.check()
 
+    def _hand_out(self, frame: RawFrame) -> RawFrame:
+        """Stamp how many frame ids the user missed since the previous frame they got."""
+        if self._last_handed_id is not None:
+            frame.skipped_frames = (frame.frame_id - self._last_handed_id - 1) % (1 << 32)
+        self._last_handed_id = frame.frame_id
+        return frame
+
     # -- FrameSink (called on the link thread) --------------------------------------------------
     def buffer_for(self, header: FrameHeader) -> np.ndarray | None:
         with self._cond:
@@ -268,9 +275,6 @@ class StreamCamera:
 
     def deliver(self, header: FrameHeader, buf: np.ndarray, status: FrameStatus) -> None:
         with self._cond:
-            skipped = 0 if self._last_delivered_id is None else \
-                (header.frame_id - self._last_delivered_id - 1) % (1 << 32)
-            self._last_delivered_id = header.frame_id
             frame = RawFrame(
                 data=buf, frame_id=header.frame_id, status=status, black_level_dn=header.black_level_dn,
                 white_level_dn=header.white_level_dn, exposure_us=header.exposure_us,
@@ -279,12 +283,12 @@ class StreamCamera:
                 host_timestamp_ns=time.time_ns(),
                 roi=Roi(header.roi_x_px, header.roi_y_px, header.width_px, header.height_px),
                 geometry=self.geometry, lens=self.lens, device=self.device, cfa=header.cfa,
-                skipped_frames=skipped, test_pattern=bool(header.flags & FLAG_TEST_PATTERN),
+                test_pattern=bool(header.flags & FLAG_TEST_PATTERN),
                 source=self.info.get("source"))
             self.stats["delivered"] += 1
             self.stats[status.value] += 1
             if self._oneshot is not None:
-                self._oneshot.append(frame)
+                self._oneshot.append(self._hand_out(frame))
                 self._cond.notify_all()
                 return
             self._pool.attach(frame, buf)
@@ -296,7 +300,7 @@ class StreamCamera:
                 self._queue.append(frame)
                 self._cond.notify_all()
                 return
-        self.on_frame(frame)  # the buffer returns once the callback keeps no reference to the frame
+        self.on_frame(self._hand_out(frame))  # the buffer returns once the callback keeps no reference to the frame
 
     def link_closed(self, reason: str) -> None:
         with self._cond:

@@ -64,15 +64,15 @@ class StreamLink:
         if self.closed_reason is not None:
             raise DeviceRemovedError(f"link is down: {self.closed_reason}")
         with self._send_lock:
+            timeout_s = self.request_timeout_s
             try:
                 self.sock.sendall(envelope(msg, body) + body)
-            except OSError as exc:
-                raise DeviceRemovedError(f"cannot send {msg.name}: {exc}") from exc
+            except OSError:
+                timeout_s = 1.0  # the device may have said why (BUSY) before closing: look for it
             try:
-                reply, reply_body = self._replies.get(timeout=self.request_timeout_s)
+                reply, reply_body = self._replies.get(timeout=timeout_s)
             except queue.Empty:
-                raise DeviceRemovedError(f"device did not answer {msg.name} within {self.request_timeout_s} s") \
-                    from None
+                raise DeviceRemovedError(f"device did not answer {msg.name} within {timeout_s} s") from None
         if reply is None:
             raise DeviceRemovedError(f"link dropped while waiting for {msg.name}: {reply_body}")
         if reply == Msg.BUSY:

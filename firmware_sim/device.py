@@ -83,6 +83,11 @@ class FirmwareDevice:
         with self._lock:
             self._source = source
 
+    def set_faults(self, plan: FaultPlan | None) -> None:
+        """Replace the fault plan (a fresh injector and ledger)."""
+        with self._lock:
+            self.injector = FaultInjector(plan or FaultPlan())
+
     @property
     def source(self) -> IrradianceSource:
         return self._source
