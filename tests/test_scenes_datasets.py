@@ -182,6 +182,9 @@ def test_flyingthings_errors(flyingthings_root, tmp_path):
     write_pfm(root / "disparity" / "TRAIN" / "A" / "0001" / "left" / "0006.pfm", np.ones((5, 5), np.float32))
     with pytest.raises(ValueError, match="does not match image"):
         FlyingThings3D(root)[1]
+    write_pfm(root / "disparity" / "TRAIN" / "A" / "0001" / "left" / "0006.pfm", np.ones((54, 96, 3), np.float32))
+    with pytest.raises(ValueError, match="single-channel"):
+        FlyingThings3D(root)[1]
 
 
 # -- Middlebury 2014 ------------------------------------------------------------

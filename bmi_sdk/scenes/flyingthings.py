@@ -96,8 +96,9 @@ class FlyingThings3D:
             raise FileNotFoundError(f"disparity for {image_path} not found: {disparity_path}")
         rgb = read_srgb_png_linear(image_path)
         disparity = read_pfm(disparity_path)
-        if disparity.ndim == 3:  # some releases store disparity in 3-channel PFMs; the channels are equal
-            disparity = disparity[:, :, 0]
+        if disparity.ndim != 2:
+            raise ValueError(f"{disparity_path}: expected a single-channel ('Pf') disparity PFM, got "
+                             f"shape {disparity.shape}")
         if disparity.shape != rgb.shape[:2]:
             raise ValueError(f"{disparity_path}: disparity {disparity.shape} does not match image "
                              f"{rgb.shape[:2]} of {image_path}")

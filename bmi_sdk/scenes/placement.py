@@ -249,7 +249,8 @@ def resample_to_sensor(scene: Scene, mapping: PatchMapping, on_edge: str = "rais
         rgb[block] = sampled
         iu = np.clip(np.rint(u), 0, w - 1).astype(np.intp)
         iv = np.clip(np.rint(v), 0, h - 1).astype(np.intp)
-        rng_block = (z_image[iv, iu] / cos_alpha).astype(np.float32)
+        with np.errstate(divide="ignore", invalid="ignore"):  # cos α ≤ 0 only outside the image
+            rng_block = (z_image[iv, iu] / cos_alpha).astype(np.float32)
         rng_block[~inside] = np.nan
         range_m[block] = rng_block
         valid[block] = inside

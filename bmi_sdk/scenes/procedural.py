@@ -98,7 +98,7 @@ class _Painter:
         rng = self.rng
         lh, lw = max(2, -(-h // _LOW_RES_FACTOR)), max(2, -(-w // _LOW_RES_FACTOR))
         low = pink_noise((lh, lw), rng)
-        colour = pink_noise((lh, lw * 3), rng).reshape(lh, 3, lw).transpose(0, 2, 1)
+        colour = np.stack([pink_noise((lh, lw), rng) for _ in range(3)], axis=2)
         low3 = (contrast * self.low_weight) * low[:, :, None] + chroma * colour
         field = cv2.resize(np.ascontiguousarray(low3), (w, h), dst=out, interpolation=cv2.INTER_LINEAR)
         _add_periodic(field, self.tile, contrast * self.detail_weight, *rng.integers(0, _DETAIL_TILE_PX, size=2))
