@@ -55,7 +55,10 @@ class Readout:
     def test_pattern(self, pattern: TestPattern, roi: tuple[int, int, int, int], frame_id: int) -> np.ndarray:
         """Digital pattern in full-sensor coordinates, bit-exact (bypasses the analog chain)."""
         x, y, w, h = roi
-        ramp = np.arange(y, y + h, dtype=np.int64)[:, None] + np.arange(x, x + w, dtype=np.int64)[None, :]
-        if pattern == TestPattern.WALKING:
-            ramp += frame_id
-        return (ramp % (self.model.white_level_dn + 1)).astype(np.uint16)
+        offset = frame_id if pattern == TestPattern.WALKING else 0
+        rows = (np.arange(y, y + h, dtype=np.uint32) + np.uint32(offset % 4096))[:, None]
+        cols = np.arange(x, x + w, dtype=np.uint32)[None, :]
+        out = np.empty((h, w), np.uint16)
+        np.add(rows, cols, out=out, dtype=np.uint16, casting="unsafe")  # wraps mod 65536, a multiple of 4096
+        out &= np.uint16(self.model.white_level_dn)
+        return out
