@@ -282,3 +282,19 @@ def test_broken_streams_get_clear_errors(script, match):
     assert peak < 50 << 20  # a huge length field allocated nothing
     assert reasons and match.split()[0] in reasons[0]
 
+
+
+def test_bmi_acquire_writes_dngs_rawpy_opens(tmp_path):
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", "acquire", "--device", "sim://", "--scene", "flat:0.3",
+                          "--count", "2", "--out", str(tmp_path), "--roi", "100,200,64,32", "--exposure-us", "2000"],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+    files = sorted(tmp_path.glob("*.dng"))
+    assert len(files) == 2
+    for path in files:
+        with rawpy.imread(str(path)) as raw:
+            assert raw.raw_image_visible.shape == (32, 64)
+        assert load_raw(path).exposure_us == 2000
