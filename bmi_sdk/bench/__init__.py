@@ -1,7 +1,54 @@
 """Benchmarks behind ``bmi bench TARGET``.
 
 Each module here that defines ``register(subparsers)`` adds one target
-(``bmi bench psf``, ``bmi bench render``…). Benchmarks print a table and can
-append it to ``docs/benchmarks.md`` with the exact command that made it; speed
-never lives in tests.
+(``bmi bench psf``, ``bmi bench render``…). Benchmarks print markdown tables;
+with ``--write-docs`` they replace their own section of docs/benchmarks.md,
+headed by the exact command that made it. Speed never lives in tests.
 """
+
+from __future__ import annotations
+
+import platform
+import re
+import resource
+import sys
+from pathlib import Path
+
+from ..io_atomic import write_bytes
+
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "benchmarks.md"
+
+
+def machine_line() -> str:
+    import os
+
+    return f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far (Linux reports KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def markdown_table(header: list[str], rows: list[list]) -> str:
+    def fmt(x):
+        if isinstance(x, float):
+            return f"{x:.3g}" if abs(x) < 1e4 else f"{x:.0f}"
+        return str(x)
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(fmt(x) for x in r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def update_section(title: str, body: str, path: Path = DOCS) -> None:
+    """Replace (or append) the ``## title`` section of docs/benchmarks.md atomically."""
+    command = "bmi " + " ".join(a for a in sys.argv[1:] if a != "--write-docs")
+    section = f"## {title}\n\nMade by `{command}` on {machine_line()}.\n\n{body.strip()}\n"
+    text = path.read_text() if path.exists() else "# Benchmarks\n\nEvery number here comes from the command above it.\n"
+    pattern = re.compile(rf"^## {re.escape(title)}\n.*?(?=^## |\Z)", re.S | re.M)
+    if pattern.search(text):
+        text = pattern.sub(lambda _: section + "\n", text)
+    else:
+        text = text.rstrip("\n") + "\n\n" + section
+    write_bytes(path, text.encode())

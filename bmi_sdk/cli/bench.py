@@ -16,6 +16,8 @@ def register(subparsers) -> None:
     )
     targets = parser.add_subparsers(dest="target", metavar="TARGET")
     for info in sorted(pkgutil.iter_modules(bench_pkg.__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue
         module = importlib.import_module(f"{bench_pkg.__name__}.{info.name}")
         if hasattr(module, "register"):
             module.register(targets)

@@ -229,7 +229,7 @@ def _fit_batched(xi, eta, values, weights, degree):
     return coeffs, values[..., 0] - fitted0
 
 
-def fit_pupils(lens: Lens, field_deg, depth_m, wavelength_um, grid: int = 20, degree: int = 10) -> list[PupilFit]:
+def fit_pupils(lens: Lens, field_deg, depth_m, wavelength_um, grid: int = 24, degree: int = 10) -> list[PupilFit]:
     """Trace every (θ, d, λ) entry exactly and fit its converging wave (see module doc).
 
     The arguments broadcast to one batch; all entries are traced together.
@@ -319,6 +319,6 @@ def fit_pupils(lens: Lens, field_deg, depth_m, wavelength_um, grid: int = 20, de
 
 
 def fit_pupil(lens: Lens, field_deg: float, depth_m: float, wavelength_um: float,
-              grid: int = 20, degree: int = 10) -> PupilFit:
+              grid: int = 24, degree: int = 10) -> PupilFit:
     """One entry of :func:`fit_pupils`."""
     return fit_pupils(lens, field_deg, depth_m, wavelength_um, grid, degree)[0]

@@ -54,7 +54,7 @@ class TensorSpec:
     pitch_um: float = 2.0
     oversample: int = DEFAULT_OVERSAMPLE
     guard: float = DEFAULT_GUARD
-    fit_grid: int = 20
+    fit_grid: int = 24
     fit_degree: int = 10
 
     def __post_init__(self):
@@ -104,6 +104,29 @@ def compute_kernels(lens: Lens, spec: TensorSpec, field_deg, depth_m) -> np.ndar
             out[c, i] = sum(weight * mono[i, lam] for lam, weight in channel)
     out /= out.sum(axis=(2, 3), keepdims=True)
     return out.astype(np.float32)
+
+
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _spawn_single_threaded_pool(workers: int):
+    """A spawn-context process pool whose workers start with one BLAS thread each."""
+    import concurrent.futures as cf
+    import multiprocessing
+
+    saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+    os.environ.update({k: "1" for k in _THREAD_VARS})
+    try:
+        pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+        for _ in range(workers):  # start the processes now, while the environment says one thread
+            pool.submit(int, 0).result()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return pool
 
 
 def default_cache_dir() -> Path:
@@ -158,14 +181,42 @@ class PsfTensor:
             self._store_shard(int(i))
         return len(missing)
 
-    def ensure_all(self, progress: bool = False) -> None:
-        iterator = range(len(self.spec.field_deg))
+    def ensure_all(self, progress: bool = False, workers: int | None = None) -> None:
+        """Fill every entry, one field angle per task, spread over ``workers`` processes.
+
+        Each process runs numpy single-threaded on its own shard, which uses
+        the cores better than BLAS threads on these small transforms.
+        """
+        for i in range(len(self.spec.field_deg)):
+            self._load_shard(i)
+        todo = [i for i in range(len(self.spec.field_deg)) if not self.filled[:, i].all()]
+        workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))
+        bar = None
         if progress:
             from tqdm import tqdm
 
-            iterator = tqdm(iterator, desc="PSF tensor", unit="field")
-        for i in iterator:
-            self.ensure([i], range(len(self.spec.depth_m)))
+            bar = tqdm(total=len(todo), desc=f"PSF tensor ({workers} processes)", unit="field")
+        depths = np.asarray(self.spec.depth_m)
+        if workers == 1:
+            results = (compute_kernels(self.lens, self.spec, np.full(len(depths), self.spec.field_deg[i]), depths)
+                       for i in todo)
+            pool = None
+        else:
+            pool = _spawn_single_threaded_pool(workers)
+            results = pool.map(compute_kernels, [self.lens] * len(todo), [self.spec] * len(todo),
+                               [np.full(len(depths), self.spec.field_deg[i]) for i in todo], [depths] * len(todo))
+        try:
+            for i, kernels in zip(todo, results):
+                self.data[:, i] = kernels
+                self.filled[:, i] = True
+                self._store_shard(i)
+                if bar is not None:
+                    bar.update()
+        finally:
+            if pool is not None:
+                pool.shutdown(cancel_futures=True)
+            if bar is not None:
+                bar.close()
 
     # -- disk cache -----------------------------------------------------------
     def _shard_path(self, i: int) -> Path:
