@@ -53,7 +53,7 @@ def _lens(name: str):
     return load_lens() if name == "monocentric" else matched_fisheye()
 
 
-def _plot(rows: list[dict], path: str) -> None:
+def _plot(rows: list[dict], path: str, conventions: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -76,7 +76,7 @@ def _plot(rows: list[dict], path: str) -> None:
     ax.set_yscale("log")
     ax.set_xlabel("depth (m, range from the lens centre)")
     ax.set_ylabel("CRLB σ_d (mm)")
-    ax.set_title("Depth CRLB: 1/f^0.8 scene, 8-bit quantisation noise, T = cos θ", fontsize=9)
+    ax.set_title(f"Depth CRLB ({conventions})", fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
@@ -112,7 +112,11 @@ def _run(args) -> int:
                       f"{p.energy_captured_min:.3f} of the energy; raise --kernel-px-{name}", file=sys.stderr)
             rows.append(row)
     if args.plot:
-        _plot(rows, args.plot)
+        noise = "8-bit quantisation" if args.noise_sigma is None else f"σ = {settings.noise_sigma:g}"
+        conventions = (f"{settings.spectrum_kind} 1/f^{settings.spectrum_exponent:g}, {settings.patch_px} px patch, "
+                       f"RMS contrast {settings.rms_contrast:g}, {noise} noise, "
+                       f"T = {'1' if args.no_throughput else 'cos θ'}")
+        _plot(rows, args.plot, conventions)
         print(f"wrote {args.plot}", file=sys.stderr)
     if args.json:
         print(json.dumps(rows, indent=1))
