@@ -82,6 +82,11 @@ def _launch(lens: Lens, field_deg, depth_m, z_ep, a, b):
     centre perpendicular to the chief direction; a is sagittal (x), b
     meridional. Finite objects radiate from one point (OPL 0 there); objects
     at infinity send a plane wave whose OPL is 0 on the launch plane.
+
+    Rays from a finite object start on a plane just before the lens, with the
+    exact free-space path as their starting OPL: intersecting a sphere from a
+    point kilometres away would cancel away all significant digits.
+    Returns (origin, direction, opl0_mm).
     """
     th = np.radians(np.asarray(field_deg, dtype=np.float64))[:, None, None]
     zero = np.zeros_like(th)
@@ -97,10 +102,12 @@ def _launch(lens: Lens, field_deg, depth_m, z_ep, a, b):
     obj = stop - np.where(finite, depth, 1.0) * 1e3 * u_c
     towards = target - obj
     towards /= np.linalg.norm(towards, axis=-1, keepdims=True)
-    origin = np.where(finite, obj, target - back * u_c)
     direction = np.where(finite, towards, u_c)
+    z_start = -max(s.semi_diameter_mm for s in lens.surfaces) - 1.0  # before every surface's sag
+    free_mm = np.where(finite, (z_start - obj[..., 2:]) / direction[..., 2:], 0.0)
+    origin = np.where(finite, obj + free_mm * direction, target - back * u_c)
     origin, direction = np.broadcast_arrays(origin, direction)
-    return origin, direction
+    return origin, direction, np.broadcast_to(free_mm[..., 0], origin.shape[:-1])
 
 
 def _crossing(x, y, level):
@@ -130,27 +137,54 @@ def stop_radius_mm(lens: Lens, wavelength_um: float = 0.5876) -> float:
     return abs(per_ep) * lens.entrance_pupil_diameter_mm / 2
 
 
+def _run_around(ok: np.ndarray, start: int):
+    """Ends (inclusive) of the run of True in ``ok`` that contains ``start``."""
+    lo = hi = start
+    while lo > 0 and ok[lo - 1]:
+        lo -= 1
+    while hi < len(ok) - 1 and ok[hi + 1]:
+        hi += 1
+    return lo, hi
+
+
 def _aim(lens, field_deg, depth_m, lam_um, z_ep, r_ep, r_stop):
-    """Per entry: launch-plane chief position b_c, meridional extent, sagittal half extent."""
+    """Per entry: launch-plane chief position b_c, meridional extent [b_lo, b_hi], sagittal half extent.
+
+    The transmitted pupil along a fan is the run of rays around the chief ray
+    that are alive and inside the stop; a run ends at the stop's edge or where
+    the lens vignettes (rays miss a surface or reflect totally). Extents are
+    taken one fan step beyond the run; the fan widens when a run touches its end.
+    """
     n_entries = len(field_deg)
     out = np.full((n_entries, 4), np.nan)
     todo = np.arange(n_entries)
+    frac = np.linspace(-1.0, 1.0, FAN_MERIDIONAL)
     for widen in (1.6, 4.0, 12.0):
         if len(todo) == 0:
             break
         span = widen * r_ep[todo]
-        frac = np.linspace(-1.0, 1.0, FAN_MERIDIONAL)
         b = span[:, None] * frac[None, :]
-        o, d = _launch(lens, field_deg[todo], depth_m[todo], z_ep[todo], np.zeros_like(b), b)
-        rays = trace(lens, lam_um[todo][:, None], o, d, stop_only=True)
+        o, d, opl = _launch(lens, field_deg[todo], depth_m[todo], z_ep[todo], np.zeros_like(b), b)
+        rays = trace(lens, lam_um[todo][:, None], o, d, opl, stop_only=True)
         ys = np.where(rays.alive, rays.stop_xy_mm[..., 1], np.nan)
+        retry = []
         for k, e in enumerate(todo):
             b_c = _crossing(b[k], ys[k], 0.0)
-            lo, hi = _crossing(b[k], ys[k], -r_stop), _crossing(b[k], ys[k], r_stop)
-            out[e, :3] = b_c, min(lo, hi), max(lo, hi)
-        todo = todo[~np.all(np.isfinite(out[todo, :3]), axis=1)]
-        if len(todo):
-            r_ep = r_ep.copy()
+            if not math.isfinite(b_c):
+                retry.append(e)
+                continue
+            step = b[k, 1] - b[k, 0]
+            start = int(np.argmin(np.abs(b[k] - b_c)))
+            ok = rays.alive[k] & (np.abs(np.nan_to_num(ys[k], nan=np.inf)) <= r_stop)
+            if not ok[start]:
+                retry.append(e)
+                continue
+            lo, hi = _run_around(ok, start)
+            if (lo == 0 or hi == FAN_MERIDIONAL - 1) and widen < 12.0:
+                retry.append(e)
+                continue
+            out[e, :3] = b_c, b[k, lo] - step, b[k, hi] + step
+        todo = np.array(retry, dtype=int)
     if len(todo):
         e = todo[0]
         raise RayTraceError(
@@ -159,12 +193,12 @@ def _aim(lens, field_deg, depth_m, lam_um, z_ep, r_ep, r_stop):
         )
     span = 12.0 * r_ep
     a = span[:, None] * np.linspace(0.0, 1.0, 4 * FAN_SAGITTAL)[None, :]
-    o, d = _launch(lens, field_deg, depth_m, z_ep, a, np.broadcast_to(out[:, :1], a.shape))
-    rays = trace(lens, lam_um[:, None], o, d, stop_only=True)
-    xs = np.where(rays.alive, np.hypot(rays.stop_xy_mm[..., 0], rays.stop_xy_mm[..., 1]), np.nan)
+    o, d, opl = _launch(lens, field_deg, depth_m, z_ep, a, np.broadcast_to(out[:, :1], a.shape))
+    rays = trace(lens, lam_um[:, None], o, d, opl, stop_only=True)
+    xs = np.where(rays.alive, np.hypot(rays.stop_xy_mm[..., 0], rays.stop_xy_mm[..., 1]), np.inf)
     for e in range(n_entries):
-        a_hi = _crossing(a[e], xs[e], r_stop)
-        out[e, 3] = a_hi if math.isfinite(a_hi) else span[e]
+        _, hi = _run_around(xs[e] <= r_stop, 0)
+        out[e, 3] = a[e, min(hi + 1, a.shape[1] - 1)]
     return out.T
 
 
@@ -174,8 +208,8 @@ def _chief(lens, field_deg, depth_m, lam_um, z_ep, b_c, r_stop):
     b = b_c.copy()
     for _ in range(6):
         bb = np.stack([b, b + h], axis=1)
-        o, d = _launch(lens, field_deg, depth_m, z_ep, np.zeros_like(bb), bb)
-        rays = trace(lens, lam_um[:, None], o, d, stop_only=True)
+        o, d, opl = _launch(lens, field_deg, depth_m, z_ep, np.zeros_like(bb), bb)
+        rays = trace(lens, lam_um[:, None], o, d, opl, stop_only=True)
         if not rays.alive[:, 0].all():
             e = int(np.nonzero(~rays.alive[:, 0])[0][0])
             raise RayTraceError(f"the chief ray of field {field_deg[e]}° is blocked (surface {rays.fail_surface[e, 0] + 1})")
@@ -183,8 +217,8 @@ def _chief(lens, field_deg, depth_m, lam_um, z_ep, b_c, r_stop):
         if np.max(np.abs(y0)) < 1e-12:
             break
         b = b - y0 * h / np.where(y1 != y0, y1 - y0, 1.0)
-    o, d = _launch(lens, field_deg, depth_m, z_ep, np.zeros_like(b)[:, None], b[:, None])
-    rays = trace(lens, lam_um[:, None], o, d)
+    o, d, opl = _launch(lens, field_deg, depth_m, z_ep, np.zeros_like(b)[:, None], b[:, None])
+    rays = trace(lens, lam_um[:, None], o, d, opl)
     if not rays.alive.all():
         e = int(np.nonzero(~rays.alive[:, 0])[0][0])
         raise RayTraceError(
@@ -229,7 +263,7 @@ def _fit_batched(xi, eta, values, weights, degree):
     return coeffs, values[..., 0] - fitted0
 
 
-def fit_pupils(lens: Lens, field_deg, depth_m, wavelength_um, grid: int = 24, degree: int = 10) -> list[PupilFit]:
+def fit_pupils(lens: Lens, field_deg, depth_m, wavelength_um, grid: int = 20, degree: int = 10) -> list[PupilFit]:
     """Trace every (θ, d, λ) entry exactly and fit its converging wave (see module doc).
 
     The arguments broadcast to one batch; all entries are traced together.
@@ -258,8 +292,8 @@ def fit_pupils(lens: Lens, field_deg, depth_m, wavelength_um, grid: int = 24, de
     half_a = a_hi * 1.15
     aa = half_a[:, None] * ua[None, :]
     bb = mid_b[:, None] + half_b[:, None] * ub[None, :]
-    o, d = _launch(lens, field_deg, depth_m, z_ep, aa, bb)
-    rays = trace(lens, wavelength_um[:, None], o, d)
+    o, d, opl = _launch(lens, field_deg, depth_m, z_ep, aa, bb)
+    rays = trace(lens, wavelength_um[:, None], o, d, opl)
     normal = image_normal(lens, chief_p)
     normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
     away = np.array([0.0, -1.0, 0.0])
@@ -280,8 +314,14 @@ def fit_pupils(lens: Lens, field_deg, depth_m, wavelength_um, grid: int = 24, de
     if np.any(use.sum(axis=1) < 3 * n_terms // 2) or np.any(inside.sum(axis=1) == 0):
         e = int(np.argmin(use.sum(axis=1)))
         raise RayTraceError(f"too few rays pass the lens for field {field_deg[e]}° at {depth_m[e]} m to fit its pupil")
-    l_half = np.max(np.where(inside, np.abs(ell - l_c[:, None]), 0.0), axis=1) * 1.08
-    m_half = np.max(np.where(inside, np.abs(emm - m_c[:, None]), 0.0), axis=1) * 1.08
+    # Half extents of the transmitted pupil: the farthest traced ray inside the stop, plus 1.5 ray
+    # spacings so the transform grid covers the true edge whatever the launch-grid sampling.
+    def _half(q, centre):
+        spacing = (np.max(np.where(use, q, -np.inf), axis=1) - np.min(np.where(use, q, np.inf), axis=1)) / grid
+        return np.max(np.where(inside, np.abs(q - centre[:, None]), 0.0), axis=1) + 1.5 * spacing
+
+    l_half = _half(ell, l_c)
+    m_half = _half(emm, m_c)
     xi = np.where(use, (ell - l_c[:, None]) / l_half[:, None], 0.0)
     eta = np.where(use, (emm - m_c[:, None]) / m_half[:, None], 0.0)
     # Pupil amplitude: power per launch area is uniform, so the power per dL dM is the
@@ -319,6 +359,6 @@ def fit_pupils(lens: Lens, field_deg, depth_m, wavelength_um, grid: int = 24, de
 
 
 def fit_pupil(lens: Lens, field_deg: float, depth_m: float, wavelength_um: float,
-              grid: int = 24, degree: int = 10) -> PupilFit:
+              grid: int = 20, degree: int = 10) -> PupilFit:
     """One entry of :func:`fit_pupils`."""
     return fit_pupils(lens, field_deg, depth_m, wavelength_um, grid, degree)[0]

@@ -54,7 +54,7 @@ class TensorSpec:
     pitch_um: float = 2.0
     oversample: int = DEFAULT_OVERSAMPLE
     guard: float = DEFAULT_GUARD
-    fit_grid: int = 24
+    fit_grid: int = 20
     fit_degree: int = 10
 
     def __post_init__(self):

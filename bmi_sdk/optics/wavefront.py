@@ -53,8 +53,8 @@ def traced_axial_wavefront(lens: Lens, wavelength_nm: float, depth_m: float, n_r
     b_c, b_lo, b_hi, _ = _aim(lens, one(0.0), one(depth_m), one(lam_um), one(z_ep), one(r_stop / abs(per_ep)), r_stop)
     _, chief_p, _, chief_opl = _chief(lens, one(0.0), one(depth_m), one(lam_um), one(z_ep), b_c, r_stop)
     b = np.linspace(0.0, max(abs(b_lo[0]), abs(b_hi[0])) * 1.02, n_rays)
-    o, d = _launch(lens, one(0.0), one(depth_m), one(z_ep), np.zeros((1, n_rays)), b[None, :])
-    rays = trace(lens, lam_um, o, d)
+    o, d, opl = _launch(lens, one(0.0), one(depth_m), one(z_ep), np.zeros((1, n_rays)), b[None, :])
+    rays = trace(lens, lam_um, o, d, opl)
     rho = np.abs(rays.stop_xy_mm[0, :, 1]) / r_stop
     s = rays.direction[0]
     v = rays.opl_mm[0] + n[-1] * np.einsum("ij,ij->i", s, chief_p[0][None, :] - rays.position[0])

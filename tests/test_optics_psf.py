@@ -1,0 +1,170 @@
+"""PSFs and the PSF tensor: analytic Airy case, the centroid theorem, symmetry, energy, caching."""
+
+import json
+import math
+import subprocess
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.special import j1
+
+from bmi_sdk.optics import PsfTensor, TensorSpec, fit_pupil, fit_pupils, get_lens, psf_from_pupil, trace
+from bmi_sdk.optics.paraxial import entrance_pupil, indices
+from bmi_sdk.optics.pupil import _launch, stop_radius_mm
+
+MONO = get_lens("bmi_monocentric")
+
+
+def airy_pixel_integrated(na, lam_um, kernel_px, pitch_um, sub=41):
+    """Airy pattern [2J1(v)/v]², v = 2π NA r / λ, integrated over pixels by brute force."""
+    off = ((np.arange(sub) + 0.5) / sub - 0.5) * pitch_um
+    centres = (np.arange(kernel_px) - kernel_px // 2) * pitch_um
+    x = (centres[:, None] + off[None, :]).ravel()
+    r = np.hypot(x[:, None], x[None, :])
+    v = 2 * np.pi * na * r / lam_um
+    with np.errstate(invalid="ignore", divide="ignore"):
+        intensity = np.where(v > 0, (2 * j1(v) / v) ** 2, 1.0)
+    px = intensity.reshape(kernel_px, sub, kernel_px, sub).sum(axis=(1, 3))
+    return px / px.sum()
+
+
+def test_perfect_pupil_gives_the_pixel_integrated_airy_pattern():
+    fit = fit_pupil(MONO, 0.0, math.inf, 0.5876)
+    na = 0.12  # narrower than the lens so that the disc lies inside the fitted grid
+    size = fit.degree + 1
+    coeffs = {name: np.zeros((size, size)) for name in fit.coeffs}
+    coeffs["amplitude"][0, 0] = 1.0
+    coeffs["stop"][2, 0] = (fit.l_half / na) ** 2  # ρ² = (L² + M²) / NA² in normalised coordinates
+    coeffs["stop"][0, 2] = (fit.m_half / na) ** 2
+    perfect = replace(fit, coeffs=coeffs, apertures=["stop"])
+    reference = airy_pixel_integrated(na, 0.5876, 21, 1.0)
+    # The Airy pattern's 1/r³ tails alias back through the transform's replicas; the error falls
+    # as the replicas move away (guard), which is what the default's error budget is made of.
+    errors = [np.abs(psf_from_pupil(perfect, 21, pitch_um=1.0, guard=g).kernel - reference).sum() for g in (2.0, 5.0)]
+    assert errors[1] < 3e-3 and errors[1] < errors[0] / 3
+
+
+def spot_centroid_um(lens, field_deg, depth_m, lam_um, fit):
+    """Geometric spot centroid relative to the chief ray, from a dense uniform launch grid."""
+    z_ep, per = entrance_pupil(lens, indices(lens, lam_um))
+    r_stop = stop_radius_mm(lens)
+    g = np.linspace(-4, 4, 301) * r_stop / abs(per)
+    a, b = np.meshgrid(g, g, indexing="ij")
+    o, d, opl = _launch(lens, np.array([field_deg]), np.array([depth_m]), np.array([z_ep]),
+                        a.ravel()[None], b.ravel()[None])
+    rays = trace(lens, lam_um, o, d, opl)
+    ok = rays.alive[0] & (np.hypot(*rays.stop_xy_mm[0].T) <= r_stop)
+    for j in range(len(lens.surfaces)):
+        ok &= rays.rel_height[j][0] <= 1.0
+    q = rays.position[0][ok] - fit.chief_point_mm
+    return float((q @ fit.e_rad).mean() * 1e3), float((q @ fit.e_sag).mean() * 1e3)
+
+
+@pytest.mark.parametrize("lens_name, field_deg, depth_m", [("bmi_monocentric", 60.0, 0.7),
+                                                            ("fisheye", 30.0, 2.0)])
+def test_psf_centroid_equals_geometric_spot_centroid(lens_name, field_deg, depth_m):
+    """Diffraction does not move the centroid: the PSF's first moment is the rays' mean landing point.
+
+    This pins the sign and orientation conventions of the whole chain (eikonal, Debye integral,
+    kernel axes) against plain ray tracing.
+    """
+    lens = get_lens(lens_name)
+    fit = fit_pupil(lens, field_deg, depth_m, 0.4861)
+    kernel_px = 41 if lens_name == "bmi_monocentric" else 161  # ≥ 99.7 % of the energy in both
+    psf = psf_from_pupil(fit, kernel_px)
+    x = (np.arange(kernel_px) - kernel_px // 2) * 2.0
+    cx, cy = spot_centroid_um(lens, field_deg, depth_m, 0.4861, fit)
+    assert (psf.kernel.sum(axis=0) * x).sum() == pytest.approx(cx, abs=0.15 + 0.02 * abs(cx))
+    assert (psf.kernel.sum(axis=1) * x).sum() == pytest.approx(cy, abs=0.05)
+    assert abs(cx) > 0.3  # a real asymmetry is being compared, not two zeros
+
+
+def test_on_axis_psf_has_the_symmetry_of_a_square_pixel_grid():
+    k = psf_from_pupil(fit_pupil(MONO, 0.0, 1.0, 0.5876), 41).kernel
+    for other in (k[::-1], k[:, ::-1]):  # mirror symmetries: exact by construction of the ray grid
+        assert np.abs(k - other).max() < 1e-5 * k.max()
+    # Swapping axes compares two independently fitted directions: equal to the fit's accuracy.
+    assert np.abs(k - k.T).max() < 3e-3 * k.max()
+
+
+def test_off_axis_psf_is_mirror_symmetric_and_compressed_radially():
+    k = psf_from_pupil(fit_pupil(MONO, 60.0, 0.7, 0.5876), 41).kernel
+    assert np.abs(k - k[::-1]).max() < 1e-6 * k.max()  # meridional plane of symmetry
+    x = np.arange(41) - 20
+    rad = np.sqrt((k.sum(axis=0) * x**2).sum())
+    sag = np.sqrt((k.sum(axis=1) * x**2).sum())
+    assert 0.45 < rad / sag < 0.75  # the oblique pupil (≈ cos 60°) narrows the radial extent
+
+
+@pytest.mark.parametrize("field_deg, depth_m, lam_um", [(0.0, 0.7, 0.6563), (60.0, 0.7, 0.6563), (60.0, 0.7, 0.4861),
+                                                        (0.0, math.inf, 0.4), (60.0, math.inf, 0.7)])
+def test_energy_and_normalisation_at_the_extremes(field_deg, depth_m, lam_um):
+    psf = psf_from_pupil(fit_pupil(MONO, field_deg, depth_m, lam_um), 41)
+    assert np.all(np.isfinite(psf.kernel)) and psf.kernel.min() >= 0
+    assert psf.kernel.sum() == pytest.approx(1.0, abs=1e-9)
+    assert 0.99 <= psf.energy_captured <= 1.0 + 1e-3  # the 41 px energy criterion holds at 0.7 m
+
+
+def test_pixel_integration_and_pupil_sampling_converge():
+    fit = fit_pupil(MONO, 30.0, 2.0, 0.5876)
+    ref = psf_from_pupil(fit, 41, oversample=9, guard=3.0).kernel
+    errors = {q: np.abs(psf_from_pupil(fit, 41, oversample=q).kernel - ref).sum() for q in (1, 3, 5)}
+    assert errors[5] < 0.01 < errors[1] and errors[5] < errors[3]
+
+
+def test_vignetted_fisheye_pupil_transmits_less():
+    fish = get_lens("fisheye")
+    on_axis, edge = fit_pupils(fish, [0.0, 60.0], 2.0, 0.5876)
+    assert len(edge.apertures) > len(on_axis.apertures)  # surfaces besides the stop clip the edge pupil
+    psf = psf_from_pupil(edge, 61)
+    assert np.all(np.isfinite(psf.kernel))
+
+
+def test_tensor_builds_only_what_is_asked_and_caches(tmp_path):
+    spec = TensorSpec(field_deg=(0.0, 30.0, 60.0), depth_m=(0.7, 2.0, 10.0))
+    tensor = PsfTensor(MONO, spec, cache_dir=tmp_path)
+    assert tensor.ensure([2], [0]) == 1
+    assert tensor.filled.sum() == 3 and tensor.filled[:, 2, 0].all()  # three channels of one entry
+    again = PsfTensor(MONO, spec, cache_dir=tmp_path)
+    assert again.ensure([2], [0]) == 0  # served from the disk cache
+    assert np.array_equal(again.data[:, 2, 0], tensor.data[:, 2, 0])
+    assert np.allclose(tensor.data[:, 2, 0].sum(axis=(1, 2)), 1.0, atol=1e-5)
+
+
+def test_tensor_save_load_and_corruption(tmp_path):
+    spec = TensorSpec(field_deg=(0.0, 60.0), depth_m=(0.7, 5.0))
+    tensor = PsfTensor(MONO, spec, use_cache=False)
+    tensor.ensure_all(workers=1)
+    path = tensor.save(tmp_path / "t.npz", float16=True)
+    meta = json.loads(path.with_suffix(".json").read_text())
+    assert meta["complete"] and meta["dtype_at_rest"] == "float16" and meta["lens"]["sha256"] == MONO.sha256()
+    loaded = PsfTensor.load(path)
+    assert np.abs(loaded.data - tensor.data).max() < 1e-3
+    raw = bytearray(path.read_bytes())
+    raw[-100] ^= 0xFF
+    path.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match="hash does not match"):
+        PsfTensor.load(path)
+
+
+def test_cli_psf_export_and_lens_json(tmp_path):
+    out = tmp_path / "psf.npy"
+    run = [sys.executable, "-m", "bmi_sdk.cli"]
+    subprocess.run(run + ["psf", "export", "--wavelength-nm", "486.1", "--depth-m", "0.7", "--field-deg", "60",
+                          "--out", str(out)], check=True, capture_output=True)
+    k = np.load(out)
+    assert k.shape[0] % 2 == 1 and k.shape[0] == k.shape[1] and k.sum() == pytest.approx(1.0, abs=1e-5)
+    rows = np.arange(k.shape[0]) - k.shape[0] // 2
+    assert abs((k.sum(axis=1) * rows).sum()) < 1e-4  # sagittally centred on the chief ray (mirror symmetry)
+    report = json.loads(subprocess.run(run + ["lens", "--json"], check=True, capture_output=True, text=True).stdout)
+    for key in ("efl_mm", "epd_mm", "f_number", "petzval_radius_mm", "seidel_w040_waves"):
+        assert isinstance(report[key], float)
+    rows = report["wavefront"]
+    assert {r["wavelength_nm"] for r in rows} == {656.3, 587.6, 486.1}
+    assert any(r["depth_m"] is None for r in rows) and min(r["depth_m"] or 99 for r in rows) == 0.7
+    assert set(rows[0]) >= {"wavelength_nm", "depth_m", "w020_waves", "w040_waves", "w060_waves", "rms_waves"}
+    bad = subprocess.run(run + ["psf", "export", "--wavelength-nm", "587.6", "--depth-m", "-1", "--field-deg", "0",
+                                "--out", str(out)], capture_output=True, text=True)
+    assert bad.returncode != 0 and "depth" in bad.stderr
