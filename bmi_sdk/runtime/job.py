@@ -1,0 +1,67 @@
+"""The user-facing job: a raw frame (``RawFrame`` or DNG path) in, output files and a JSON report out."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+from ..bench import peak_rss_mb
+from .model import Model, select_model
+from .outputs import write_outputs, write_report
+from .pipeline import InferenceResult, infer_frame
+
+
+def load_model_for(frame, model_path: str | os.PathLike | None = None, calibration_id: str | None = None,
+                   tile_px: int = 512, threads: int | None = None) -> tuple[Model, str | None]:
+    """The model for ``frame``: ``model_path`` if given, else the packaged model for the calibration in use.
+
+    The calibration is ``calibration_id`` if given, else the frame's own
+    (``RawFrame.calibration_id``). Returns the loaded model and a note when the
+    calibration had no model of its own (the nominal one is used instead).
+    """
+    note = None
+    if model_path is None:
+        model_path, note = select_model(calibration_id or getattr(frame, "calibration_id", None))
+    return Model(model_path, tile_px=tile_px, threads=threads), note
+
+
+def run_job(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None = None,
+            model_path: str | os.PathLike | None = None, calibration_id: str | None = None, tile_px: int = 512,
+            threads: int | None = None, overlap_px: int | None = None, ply_step_px: int = 1,
+            progress: bool = False) -> tuple[InferenceResult, dict]:
+    """Read (if a path), infer, write outputs and ``report.json`` into ``out_dir``; return (result, report)."""
+    from devices import load_raw
+
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    frame = load_raw(frame_or_path) if isinstance(frame_or_path, (str, os.PathLike)) else frame_or_path
+    timings["read_raw_s"] = time.perf_counter() - t0
+    note = None
+    if model is None:
+        t0 = time.perf_counter()
+        model, note = load_model_for(frame, model_path, calibration_id, tile_px, threads)
+        timings["load_model_s"] = model.load_s
+        timings["warmup_s"] = model.warmup_s
+    t0 = time.perf_counter()
+    result = infer_frame(model, frame, overlap_px=overlap_px, progress=progress)
+    timings["infer_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    written = write_outputs(out_dir, result.aif, result.depth_m, frame.geometry, frame.roi.y_px, frame.roi.x_px,
+                            ply_step_px=ply_step_px)
+    timings["write_outputs_s"] = time.perf_counter() - t0
+    report = {
+        "schema": "bmi-infer-report/1",
+        "model": model.describe(),
+        "calibration_id": model.manifest["calibration_id"],
+        "frame_calibration_id": getattr(frame, "calibration_id", None),
+        "calibration_note": note,
+        "frame": {"frame_id": frame.frame_id, "shape": list(frame.data.shape), "roi": vars(frame.roi),
+                  "lens": frame.lens, "device": frame.device, "source": frame.source},
+        **result.summary(),
+        "stage_timings_s": timings,
+        "peak_rss_mb": peak_rss_mb(),
+        **written,
+    }
+    write_report(out_dir, report)
+    return result, report

@@ -1,0 +1,208 @@
+"""Loading a verified ONNX model into one onnxruntime session with one fixed tile shape.
+
+The model's bytes are checked against its manifest (``bmi_sdk.model_manifest``)
+before onnxruntime sees them. Session options are explicit: intra-op threads
+(default: the machine's cores), one inter-op thread, sequential execution,
+full graph optimisation, memory pattern and arena on. The session is only ever
+fed ``1 × 6 × tile × tile`` (onnxruntime grows its arena for every new input
+shape), and a warm-up run at load time pays the first-run allocation and
+kernel selection outside the timed frame.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..model_io import INPUT_CHANNELS, INPUT_NAME, OUTPUT_NAMES
+from ..model_manifest import ModelError, verify_model
+
+MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
+DEFAULT_MODEL = MODELS_DIR / "default.onnx"
+
+
+def session_options(threads: int | None = None, optimization: str = "all"):
+    """onnxruntime SessionOptions with every knob that matters here set explicitly."""
+    import onnxruntime as ort
+
+    levels = {"none": ort.GraphOptimizationLevel.ORT_DISABLE_ALL, "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+              "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+              "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL}
+    if optimization not in levels:
+        raise ValueError(f"graph optimisation must be one of {sorted(levels)}, got {optimization!r}")
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = int(threads or os.cpu_count() or 1)
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = levels[optimization]
+    opts.enable_mem_pattern = True
+    opts.enable_cpu_mem_arena = True
+    opts.log_severity_level = 3
+    return opts
+
+
+class Model:
+    """A verified model, its manifest and one onnxruntime session for ``tile_px`` × ``tile_px`` tiles.
+
+    ``Model(path)`` raises ``ModelError`` for a missing, unknown (no manifest),
+    corrupted (SHA-256 mismatch) or unreadable model, or one whose graph does
+    not have the contract's input/outputs. A model exported with a fixed input
+    size fixes ``tile_px`` to that size; asking for another one is an error.
+    """
+
+    def __init__(self, path: str | os.PathLike = DEFAULT_MODEL, *, tile_px: int | None = 512,
+                 threads: int | None = None, optimization: str = "all", warmup: bool = True):
+        import onnxruntime as ort
+
+        self.path = Path(path)
+        if not self.path.is_file() and self.path == DEFAULT_MODEL:
+            raise ModelError(f"no shipped model at {DEFAULT_MODEL} yet; pass --model PATH.onnx "
+                             "(with its .manifest.json) or export one with bmi_sdk.nn")
+        t0 = time.perf_counter()
+        self.manifest = verify_model(self.path)
+        try:
+            self.session = ort.InferenceSession(str(self.path), sess_options=session_options(threads, optimization),
+                                                providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own exception types for unreadable graphs
+            raise ModelError(f"onnxruntime cannot load {self.path}: {exc}") from exc
+        inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
+        names_in, names_out = [i.name for i in inputs], [o.name for o in outputs]
+        if names_in != [INPUT_NAME] or sorted(names_out) != sorted(OUTPUT_NAMES):
+            raise ModelError(f"{self.path.name}: graph has inputs {names_in} and outputs {names_out}; "
+                             f"the contract is {INPUT_NAME!r} → {list(OUTPUT_NAMES)}")
+        shape = inputs[0].shape
+        if len(shape) != 4 or shape[1] != INPUT_CHANNELS:
+            raise ModelError(f"{self.path.name}: input {INPUT_NAME!r} has shape {shape}, expected N×{INPUT_CHANNELS}×H×W")
+        fixed = [s for s in shape[2:] if isinstance(s, int)]
+        multiple = int(self.manifest["size_multiple"])
+        if fixed:
+            if len(fixed) != 2 or fixed[0] != fixed[1]:
+                raise ModelError(f"{self.path.name}: fixed input size {shape[2:]}; the runtime needs square tiles")
+            if tile_px is not None and tile_px != fixed[0]:
+                raise ModelError(f"{self.path.name} was exported for {fixed[0]}×{fixed[0]} tiles, not {tile_px}")
+            tile_px = fixed[0]
+        if tile_px is None or tile_px <= 0 or tile_px % multiple:
+            raise ValueError(f"tile_px must be a positive multiple of {multiple}, got {tile_px}")
+        self.tile_px = int(tile_px)
+        self.threads = int(threads or os.cpu_count() or 1)
+        self.optimization = optimization
+        self._batch_fixed = isinstance(shape[0], int)
+        self.load_s = time.perf_counter() - t0
+        self.warmup_s = 0.0
+        if warmup:
+            t1 = time.perf_counter()
+            self.run(np.zeros((1, INPUT_CHANNELS, self.tile_px, self.tile_px), np.float32))
+            self.warmup_s = time.perf_counter() - t1
+
+    @property
+    def sha256(self) -> str:
+        return self.manifest["sha256"]
+
+    @property
+    def receptive_field_px(self) -> int:
+        return int(self.manifest["receptive_field_px"])
+
+    @property
+    def size_multiple(self) -> int:
+        return int(self.manifest["size_multiple"])
+
+    @property
+    def largest_psf_px(self) -> int:
+        """Largest PSF support the model was trained with (manifest ``largest_psf_px``, else the nominal tensor's kernel)."""
+        if "largest_psf_px" in self.manifest:
+            return int(self.manifest["largest_psf_px"])
+        from ..optics import TensorSpec
+
+        return int(TensorSpec().kernel_px)
+
+    def run(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``1 × 6 × tile × tile`` float32 → (aif ``1 × 3 × tile × tile``, depth_m ``1 × 1 × tile × tile``)."""
+        expected = (1, INPUT_CHANNELS, self.tile_px, self.tile_px)
+        if x.shape != expected or x.dtype != np.float32:
+            raise ValueError(f"the session runs one tile shape {expected} float32, got {x.shape} {x.dtype}")
+        aif, depth = self.session.run(list(OUTPUT_NAMES), {INPUT_NAME: x})
+        return aif, depth
+
+    def describe(self) -> dict:
+        return {"path": str(self.path), "sha256": self.sha256, "preset": self.manifest["preset"],
+                "lens": self.manifest["lens"], "psf_tensor_key": self.manifest["psf_tensor_key"],
+                "calibration_id": self.manifest["calibration_id"], "receptive_field_px": self.receptive_field_px,
+                "tile_px": self.tile_px, "threads": self.threads, "graph_optimization": self.optimization,
+                "load_s": self.load_s, "warmup_s": self.warmup_s}
+
+
+def select_model(calibration_id: str | None = None, models_dir: str | os.PathLike = MODELS_DIR,
+                 preset: str | None = None) -> tuple[Path, str | None]:
+    """Pick the model file for a camera's calibration: (path, note).
+
+    Among the manifests in ``models_dir``: a model trained on the calibration's
+    corrected PSF tensor (manifest ``calibration_id`` equal to the one asked
+    for) wins; otherwise the nominal model (``calibration_id`` null), and the
+    note says that the calibration had no model of its own. ``preset`` narrows
+    the choice. Manifests are read, not hash-checked: ``Model`` checks the one
+    chosen.
+    """
+    from ..model_manifest import read_manifest
+
+    models_dir = Path(models_dir)
+    candidates = []
+    for onnx in sorted(models_dir.glob("*.onnx")):
+        try:
+            m = read_manifest(onnx)
+        except ModelError:
+            continue
+        if preset is None or m["preset"] == preset:
+            candidates.append((onnx, m))
+    if not candidates:
+        raise ModelError(f"no model with a manifest in {models_dir}" + (f" for preset {preset!r}" if preset else ""))
+    if calibration_id is not None:
+        for onnx, m in candidates:
+            if m["calibration_id"] == calibration_id:
+                return onnx, None
+    nominal = [(o, m) for o, m in candidates if m["calibration_id"] is None]
+    if not nominal:
+        raise ModelError(f"no nominal (uncalibrated) model in {models_dir} and none for calibration {calibration_id!r}")
+    default = [o for o, _ in nominal if o.name == DEFAULT_MODEL.name]
+    chosen = default[0] if default else nominal[0][0]
+    note = None if calibration_id is None else \
+        f"no model trained for calibration {calibration_id!r}; using the nominal-PSF model {chosen.name}"
+    return chosen, note
+
+
+def count_macs(onnx_path: str | os.PathLike, tile_px: int) -> int:
+    """Multiply-accumulates of one ``tile_px`` × ``tile_px`` tile in the graph's Conv, ConvTranspose, MatMul and Gemm nodes.
+
+    Shapes come from ONNX shape inference with the input fixed to the tile;
+    elementwise operators are not counted (they are memory-bound, not FLOPs
+    the machine's peak refers to). Used to state achieved GFLOP/s.
+    """
+    import onnx
+    from onnx import shape_inference
+
+    m = onnx.load(str(onnx_path))
+    dims = m.graph.input[0].type.tensor_type.shape.dim
+    for d, v in zip(dims, (1, INPUT_CHANNELS, tile_px, tile_px)):
+        d.Clear()
+        d.dim_value = v
+    m = shape_inference.infer_shapes(m)
+    shapes = {vi.name: [d.dim_value for d in vi.type.tensor_type.shape.dim]
+              for vi in list(m.graph.value_info) + list(m.graph.output) + list(m.graph.input)}
+    shapes.update({t.name: list(t.dims) for t in m.graph.initializer})
+    macs = 0
+    for node in m.graph.node:
+        if node.op_type in ("Conv", "ConvTranspose"):
+            w = shapes.get(node.input[1])
+            src = shapes.get(node.input[0]) if node.op_type == "ConvTranspose" else shapes.get(node.output[0])
+            if not w or not src or 0 in src:
+                continue
+            # Conv: output elements × (C_in/groups · kh · kw); ConvTranspose (weight C_in × C_out/groups × kh × kw):
+            # input elements × (C_out/groups · kh · kw). Both are prod(src) × prod(w[1:]).
+            macs += int(np.prod(src)) * int(np.prod(w[1:]))
+        elif node.op_type in ("MatMul", "Gemm"):
+            a, out = shapes.get(node.input[0]), shapes.get(node.output[0])
+            if a and out and 0 not in out:
+                macs += int(np.prod(out)) * a[-1]
+    return macs

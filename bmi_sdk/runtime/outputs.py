@@ -1,0 +1,142 @@
+"""Writing an inference result: images, depth files, a coloured point cloud and the JSON report.
+
+Every file is written atomically (``bmi_sdk.io_atomic``): an interrupted run
+never leaves half a file under its final name.
+
+* ``aif.npy``      H×W×3 float32 linear RGB (the space of ``bmi simulate``'s input)
+* ``aif.png``      16-bit sRGB-encoded, for viewing; ``aif_preview.png`` 8-bit, at most ``preview_px`` wide
+* ``depth.npy``    H×W float32 range in metres along each pixel's chief ray, NaN where invalid
+* ``depth_mm.png`` 16-bit range in millimetres, 0 where invalid (saturates at 65.535 m)
+* ``depth_preview.png`` colourised inverse range with a colour bar labelled in metres
+* ``points.ply``   binary PLY, x y z (metres, camera frame x right, y down, z forward) + RGB (sRGB 8-bit),
+  one point per ``ply_step_px``-th valid pixel: range × that pixel's chief-ray direction
+* ``report.json``  the report dict given
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..geometry import SensorGeometry
+from ..io_atomic import atomic_path, save_npy, write_json
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 transfer curve on values clipped to [0, 1]."""
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+def _imwrite(path: Path, image: np.ndarray) -> None:
+    import cv2
+
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), image):
+            raise OSError(f"OpenCV could not write {path}")
+
+
+def _downscale(image: np.ndarray, max_px: int) -> np.ndarray:
+    import cv2
+
+    h, w = image.shape[:2]
+    scale = max_px / max(h, w)
+    if scale >= 1:
+        return image
+    return cv2.resize(image, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
+
+
+def depth_preview(depth_m: np.ndarray, max_px: int = 1500, near_m: float | None = None,
+                  far_m: float | None = None) -> np.ndarray:
+    """BGR uint8 image: inverse range through the turbo colour map, invalid pixels black, a labelled colour bar."""
+    import cv2
+
+    d = _downscale(np.nan_to_num(depth_m, nan=0.0).astype(np.float32), max_px)
+    ok = d > 0
+    finite = d[ok]
+    near = near_m if near_m is not None else (float(np.percentile(finite, 1)) if finite.size else 0.7)
+    far = far_m if far_m is not None else (float(np.percentile(finite, 99)) if finite.size else 10.0)
+    far = max(far, near * 1.01)
+    inv = np.where(ok, 1.0 / np.maximum(d, 1e-6), 0.0)
+    t = np.clip((inv - 1 / far) / (1 / near - 1 / far), 0, 1)
+    img = cv2.applyColorMap((t * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    img[~ok] = 0
+    h = img.shape[0]
+    bar_w, label_w = max(12, h // 40), 90
+    ramp = np.linspace(1, 0, h)[:, None]  # top: near
+    bar = cv2.applyColorMap((np.repeat(ramp, bar_w, 1) * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    labels = np.full((h, label_w, 3), 255, np.uint8)
+    for frac in np.linspace(0, 1, 6):
+        inv_v = 1 / near - frac * (1 / near - 1 / far)
+        y = int(np.clip(frac * (h - 1), 10, h - 4))
+        cv2.putText(labels, f"{1 / inv_v:.2f} m", (4, y), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.concatenate([img, np.full((h, 6, 3), 255, np.uint8), bar, labels], axis=1)
+
+
+def write_ply(path: str | os.PathLike, depth_m: np.ndarray, aif: np.ndarray, geometry: SensorGeometry,
+              row0: int = 0, col0: int = 0, step_px: int = 1, rows_per_block: int = 256) -> int:
+    """Stream a binary little-endian PLY of every ``step_px``-th valid pixel; return the point count.
+
+    Point = range × unit chief-ray direction of the pixel's absolute sensor
+    position (``row0``, ``col0``: the frame's ROI offset). Rays are computed per
+    block of rows, so memory stays bounded for a full frame.
+    """
+    if step_px < 1:
+        raise ValueError(f"ply step must be ≥ 1 px, got {step_px}")
+    sub_d = depth_m[::step_px, ::step_px]
+    count = int(np.count_nonzero(np.isfinite(sub_d) & (sub_d > 0)))
+    header = ("ply\nformat binary_little_endian 1.0\ncomment bmi-sdk point cloud: range along chief rays, metres\n"
+              f"element vertex {count}\nproperty float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n").encode()
+    dtype = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    cols = np.arange(0, depth_m.shape[1], step_px)
+    written = 0
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(header)
+        for b0 in range(0, depth_m.shape[0], step_px * rows_per_block):
+            rows = np.arange(b0, min(b0 + step_px * rows_per_block, depth_m.shape[0]), step_px)
+            d = depth_m[np.ix_(rows, cols)]
+            ok = np.isfinite(d) & (d > 0)
+            if not ok.any():
+                continue
+            rr, cc = np.nonzero(ok)
+            dirs = geometry.ray_directions(row0 + rows[rr], col0 + cols[cc])
+            xyz = dirs * d[rr, cc][:, None]
+            rgb = (linear_to_srgb(aif[rows[rr], cols[cc]]) * 255 + 0.5).astype(np.uint8)
+            block = np.empty(len(rr), dtype)
+            block["x"], block["y"], block["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+            block["red"], block["green"], block["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+            f.write(block.tobytes())
+            written += len(rr)
+    if written != count:
+        raise RuntimeError(f"PLY point count changed while writing ({written} != {count})")
+    return count
+
+
+def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarray, geometry: SensorGeometry,
+                  row0: int = 0, col0: int = 0, *, ply_step_px: int = 1, preview_px: int = 1500) -> dict:
+    """Write the image, depth and point-cloud files into ``out_dir``; return {name: path} and the point count."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    srgb = linear_to_srgb(aif)
+    save_npy(out / "aif.npy", aif.astype(np.float32))
+    _imwrite(out / "aif.png", (srgb[..., ::-1] * 65535 + 0.5).astype(np.uint16))
+    _imwrite(out / "aif_preview.png", _downscale((srgb[..., ::-1] * 255 + 0.5).astype(np.uint8), preview_px))
+    del srgb
+    save_npy(out / "depth.npy", depth_m.astype(np.float32))
+    mm = np.where(np.isfinite(depth_m), np.clip(np.round(depth_m * 1000), 1, 65535), 0).astype(np.uint16)
+    _imwrite(out / "depth_mm.png", mm)
+    del mm
+    _imwrite(out / "depth_preview.png", depth_preview(depth_m, preview_px))
+    points = write_ply(out / "points.ply", depth_m, aif, geometry, row0, col0, ply_step_px)
+    files = {name: str(out / name) for name in ("aif.npy", "aif.png", "aif_preview.png", "depth.npy",
+                                                  "depth_mm.png", "depth_preview.png", "points.ply")}
+    return {"files": files, "ply_points": points, "ply_step_px": ply_step_px}
+
+
+def write_report(out_dir: str | os.PathLike, report: dict) -> Path:
+    path = Path(out_dir) / "report.json"
+    write_json(path, report)
+    return path

@@ -1,0 +1,149 @@
+"""Raw frame → all-in-focus RGB + range map, tile by tile, with bounded memory.
+
+Per tile (see ``tiling``): gather the raw window with a 2-px demosaic margin
+(mirror reflection past the frame edges keeps the Bayer phase), preprocess it
+with the one contract path (``model_io.raw_to_rgb``: demosaic, black level,
+normalisation; the simulated sensor applies no white balance, so neither does
+this), append the field channels of the tile's *absolute* sensor position
+(``model_io.field_channels`` with the frame's ROI offset), run the network,
+and add the weighted outputs into a band of ``tile_px`` rows. Rows no later
+tile can touch are normalised by the weight sum and moved into the output
+arrays, so the working memory is one band plus one tile whatever the frame
+size. Tiles whose kept pixels all lie outside the image circle are skipped;
+outside the circle the depth is NaN and the AiF image 0.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..geometry import SensorGeometry
+from ..model_io import field_channels, raw_to_rgb, window_cfa
+from .model import Model
+from .tiling import TilePlan, reflect_indices
+
+_DEMOSAIC_MARGIN_PX = 2  # bilinear demosaic reads one neighbour; 2 keeps the window's phase
+
+
+@dataclass
+class InferenceResult:
+    aif: np.ndarray                  # H × W × 3 float32, linear RGB (0 outside the image circle)
+    depth_m: np.ndarray              # H × W float32, range along each pixel's chief ray, NaN where invalid
+    valid: np.ndarray                # H × W bool, inside the image circle
+    plan: TilePlan
+    tiles_run: int
+    tiles_skipped: int
+    timings_s: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        return {"tiles_run": self.tiles_run, "tiles_skipped": self.tiles_skipped, "tiling": self.plan.to_dict(),
+                "valid_fraction": float(self.valid.mean()), "timings_s": dict(self.timings_s)}
+
+
+def check_frame(frame, model: Model) -> None:
+    """Refuse a frame the model cannot decode, naming why (foreign camera, incomplete, other lens, odd ROI)."""
+    if not getattr(frame, "is_bmi", True):
+        reason = (frame.source or {}).get("foreign_raw_reason", "not a BMI frame")
+        raise ValueError(f"this raw frame is not from a BMI camera ({reason}); the network only decodes BMI captures")
+    frame.check()
+    lens = (frame.lens or {}).get("name")
+    if lens is not None and lens != model.manifest["lens"]:
+        raise ValueError(f"frame was taken through lens {lens!r}; model {model.path.name} was trained for "
+                         f"{model.manifest['lens']!r}")
+    if frame.roi.x_px % 2 or frame.roi.y_px % 2:
+        raise ValueError(f"ROI offset ({frame.roi.x_px}, {frame.roi.y_px}) is odd: not whole RGGB cells")
+
+
+def infer_frame(model: Model, frame, *, overlap_px: int | None = None, progress: bool = False) -> InferenceResult:
+    """Decode a ``devices.RawFrame`` (camera capture or ``load_raw``) after ``check_frame``."""
+    check_frame(frame, model)
+    return infer_raw(model, frame.data, black_level_dn=frame.black_level_dn, white_level_dn=frame.white_level_dn,
+                     cfa=frame.cfa, geometry=frame.geometry, row0=frame.roi.y_px, col0=frame.roi.x_px,
+                     overlap_px=overlap_px, progress=progress)
+
+
+def infer_raw(model: Model, raw: np.ndarray, *, black_level_dn: float, white_level_dn: float, cfa: str = "RGGB",
+              geometry: SensorGeometry, row0: int = 0, col0: int = 0, overlap_px: int | None = None,
+              progress: bool = False) -> InferenceResult:
+    """Decode an H × W Bayer window whose top-left pixel sits at (row0, col0) of the full sensor."""
+    if raw.ndim != 2:
+        raise ValueError(f"a raw frame is H × W, got shape {raw.shape}")
+    height, width = raw.shape
+    if height % 2 or width % 2:
+        raise ValueError(f"raw frame {height}×{width} is not whole RGGB cells (even sizes)")
+    plan = TilePlan.for_model(height, width, model.tile_px, model.receptive_field_px, model.largest_psf_px,
+                              step_px=model.size_multiple, overlap_px=overlap_px)
+    tile = plan.tile_px
+    timings = dict.fromkeys(("demosaic_s", "field_s", "network_s", "blend_s", "finalise_s"), 0.0)
+    aif = np.zeros((height, width, 3), np.float32)
+    depth = np.full((height, width), np.nan, np.float32)
+    valid = np.zeros((height, width), bool)
+    band = np.zeros((tile, width, 5), np.float32)  # Σ w·rgb, Σ w·depth, Σ w over the band's rows
+    band_top = 0                                    # frame row of band[0]
+
+    def finalise(stop_row: int) -> None:
+        """Move frame rows [band_top, stop_row) from the band into the outputs."""
+        n = stop_row - band_top
+        if n <= 0:
+            return
+        t0 = time.perf_counter()
+        acc = band[:n]
+        wsum = acc[..., 4]
+        ok = geometry.valid_mask(row0 + band_top, col0, n, width) & (wsum > 0)
+        safe = np.where(ok, wsum, 1.0)
+        aif[band_top:stop_row] = np.where(ok[..., None], acc[..., :3] / safe[..., None], 0.0)
+        depth[band_top:stop_row] = np.where(ok, acc[..., 3] / safe, np.nan)
+        valid[band_top:stop_row] = ok
+        band[:tile - n] = band[n:].copy()
+        band[tile - n:] = 0
+        timings["finalise_s"] += time.perf_counter() - t0
+
+    run = skipped = 0
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=plan.n_tiles, unit="tile", desc="infer")
+    m = _DEMOSAIC_MARGIN_PX
+    try:
+        for r, c, weight in plan.tiles():
+            top = max(r, 0)
+            if top > band_top:
+                finalise(top)
+                band_top = top
+            # the rows and columns of this tile that land in the frame, and where they sit in the tile
+            fr0, fr1, fc0, fc1 = top, min(r + tile, height), max(c, 0), min(c + tile, width)
+            w = weight[fr0 - r:fr1 - r, fc0 - c:fc1 - c]
+            kept = geometry.valid_mask(row0 + fr0, col0 + fc0, fr1 - fr0, fc1 - fc0) & (w > 0)
+            if bar is not None:
+                bar.update(1)
+            if not kept.any():
+                skipped += 1
+                continue
+            t0 = time.perf_counter()
+            window = raw[np.ix_(reflect_indices(r - m, tile + 2 * m, height), reflect_indices(c - m, tile + 2 * m, width))]
+            rgb = raw_to_rgb(window, black_level_dn, white_level_dn, window_cfa(cfa, r - m, c - m))[m:-m, m:-m]
+            t1 = time.perf_counter()
+            fields = field_channels(geometry, row0 + r, col0 + c, tile, tile)
+            x = np.concatenate([rgb.transpose(2, 0, 1), fields])[None]
+            t2 = time.perf_counter()
+            out_rgb, out_depth = model.run(np.ascontiguousarray(x, np.float32))
+            t3 = time.perf_counter()
+            sl = (slice(fr0 - r, fr1 - r), slice(fc0 - c, fc1 - c))
+            dst = band[fr0 - band_top:fr1 - band_top, fc0:fc1]
+            dst[..., :3] += out_rgb[0][(slice(None), *sl)].transpose(1, 2, 0) * w[..., None]
+            dst[..., 3] += out_depth[0, 0][sl] * w
+            dst[..., 4] += w
+            timings["demosaic_s"] += t1 - t0
+            timings["field_s"] += t2 - t1
+            timings["network_s"] += t3 - t2
+            timings["blend_s"] += time.perf_counter() - t3
+            run += 1
+        finalise(height)
+    finally:
+        if bar is not None:
+            bar.close()
+    return InferenceResult(aif, depth, valid, plan, run, skipped, timings)
