@@ -1,0 +1,70 @@
+"""`bmi train`: train a network preset on cached forward-simulator pairs, then export ONNX + manifest."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "train", help="train the dual-head network (resumable) and export it to ONNX with a manifest",
+        description="Render (and cache) training pairs through the forward simulator, train a preset with the "
+                    "paper's losses, and export DIR/model.onnx + manifest. Re-running the same command resumes.")
+    p.add_argument("--preset", default="tiny",
+                   help="tiny | small | paper, optionally with -no_field or -single_scale (ablations)")
+    p.add_argument("--steps", type=int, default=6000, help="total optimiser steps of the run")
+    p.add_argument("--out", required=True, help="run folder: checkpoint, logs, model.onnx")
+    p.add_argument("--lens", default="bmi_monocentric", choices=["bmi_monocentric", "fisheye"])
+    p.add_argument("--samples", type=int, default=768, help="rendered pairs in the cache")
+    p.add_argument("--crop", type=int, default=128, help="training crop size in pixels (multiple of 4)")
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--cache", default=None, help="render cache folder (default .bmi_cache/train/<lens>-<samples>-<crop>-s<seed>)")
+    p.add_argument("--render-workers", type=int, default=2, help="processes that render the cache")
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--save-every", type=int, default=250)
+    p.add_argument("--no-export", action="store_true", help="skip the ONNX export at the end")
+    p.set_defaults(handler=_run)
+
+
+def _run(args) -> int:
+    import time
+
+    import torch
+
+    from bmi_sdk.nn.data import CacheSpec, build_cache
+    from bmi_sdk.nn.export import export_with_manifest
+    from bmi_sdk.nn.train import TrainConfig, load_weights, train
+
+    if args.crop % 4:
+        raise ValueError(f"--crop must be a multiple of 4, got {args.crop}")
+    torch.set_num_threads(args.threads)
+    spec = CacheSpec(lens=args.lens, samples=args.samples, crop_px=args.crop, seed=args.seed)
+    config = TrainConfig(preset=args.preset, steps=args.steps, batch_size=args.batch, seed=args.seed, cache=spec)
+    cache = Path(args.cache or f".bmi_cache/train/{args.lens}-{args.samples}-{args.crop}-s{args.seed}")
+    t0 = time.perf_counter()
+    build_cache(cache, spec, workers=args.render_workers)
+    t_render = time.perf_counter() - t0
+    ckpt = train(config, args.out, cache, save_every=args.save_every)
+    if args.no_export:
+        return 0
+    net, _ = load_weights(ckpt)
+    log = json.loads((Path(args.out) / "train_log.json").read_text())
+    training = {"command": "bmi train " + " ".join(_argv(args)), "config": config.to_dict(),
+                "train_seconds": sum(s["seconds"] for s in log["sessions"]),
+                "cache_seconds_this_call": round(t_render, 1), "final_loss": log["curve"][-1] if log["curve"] else None}
+    manifest = export_with_manifest(net, Path(args.out) / "model.onnx", preset=args.preset, lens=args.lens,
+                                    training=training)
+    print(f"exported {Path(args.out) / 'model.onnx'} ({manifest.name})")
+    return 0
+
+
+def _argv(args) -> list[str]:
+    out = [f"--preset {args.preset}", f"--steps {args.steps}", f"--out {args.out}"]
+    if args.lens != "bmi_monocentric":
+        out.append(f"--lens {args.lens}")
+    for name, default in (("samples", 768), ("crop", 128), ("batch", 8), ("seed", 0)):
+        if getattr(args, name) != default:
+            out.append(f"--{name} {getattr(args, name)}")
+    return out

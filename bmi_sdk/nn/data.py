@@ -1,0 +1,319 @@
+"""Training pairs from the forward simulator, cached on disk, with sensor noise drawn fresh each step.
+
+The pipeline of one pair (model_io is the contract it ends in):
+
+  scene window (procedural ``generate_scene`` by default, or a NYUv2 /
+  FlyingThings3D image placed with the paper's 12° ``place_patch``) at a
+  random sensor position → ``render_coded`` (spatially varying PSF,
+  occlusion-aware layers) → × ``relative_illumination`` → **cache** →
+  random crop (even offsets: the Bayer phase is kept) → dihedral augmentation
+  → Gaussian noise σ → ``bayer_mosaic`` → 12-bit ADC with a black level →
+  ``raw_to_rgb`` → ``network_input`` channels. Targets: the scene's linear RGB
+  (AiF) and range (m); the valid mask is θ ≤ 60° and a finite range.
+
+Rendering a 192² window costs ~0.7 s, a training step on a CPU preset
+~0.2 s, so the renders are cached (npz shards, written atomically, a build
+resumes where it stopped) and everything after the cache — crop, flips,
+noise, mosaic, ADC, demosaic — runs per step (a few ms), so noise is never
+reused.
+
+Placement: the window's centre is drawn with θ uniform in [0, θ_max] and φ
+uniform (redrawn until the window lies on the sensor), so the field edge is
+seen as often as the centre; a uniform draw over pixels would show 50–60° in
+under 5 % of the pairs. Each window carries ``margin_px`` ≥ half a kernel of
+extra scene on every side, rendered and then cut away, so light from just
+outside a crop is in it; the stored part is the crop size plus 2 ×
+``jitter_px`` for random crops.
+
+Augmentation consistent with the radial geometry: a lens symmetric about its
+axis images a mirrored (or 90°-rotated) scene into the mirrored (rotated)
+optical image, PSFs included. So a flip or transpose T of the crop's pixels,
+applied to the optical image, the targets and the θ map, with the direction
+(cos φ, sin φ) transformed by the same T as a vector, is the pair of the
+mirrored scene at the mirrored sensor position. The 8 elements of the
+dihedral group are used.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
+from bmi_sdk.io_atomic import atomic_path, write_json
+from bmi_sdk.model_io import field_channels, raw_to_rgb, window_cfa
+from bmi_sdk.sensor import CFA_PATTERN, add_gaussian_noise, bayer_mosaic, relative_illumination
+
+BLACK_LEVEL_DN = 256
+WHITE_LEVEL_DN = 4095
+STANDARD_SIGMA = 0.005
+SHARD_SAMPLES = 32
+CACHE_SCHEMA = "bmi-train-cache/1"
+FAR_FILL_M = 10.0
+"""Range given to pixels without ground truth (dataset holes) for rendering only; they are masked in losses."""
+
+
+# -- lenses and their sensors ---------------------------------------------------------------------------
+
+LENS_KERNEL_PX = {"bmi_monocentric": 41, "fisheye": 161}
+"""PSF kernel size per lens: the fisheye's near-range blur spreads ~15 % of its energy beyond 41 px."""
+
+
+def lens_geometry(lens_name: str) -> SensorGeometry:
+    """The sensor a lens images on: the BMI curved sensor, or for the fisheye a plane 6000×4500 sensor
+    at 2 µm whose pixel → field mapping is the fisheye's traced chief-ray table (0–60°)."""
+    if lens_name == "bmi_monocentric":
+        return BMI_SENSOR
+    if lens_name == "fisheye":
+        from bmi_sdk.optics import chief_ray_table, get_lens
+
+        field, radial = chief_ray_table(get_lens("fisheye"), np.linspace(0.0, 60.0, 121))
+        return SensorGeometry(radius_mm=None, field_table_deg=tuple(np.abs(field)),
+                              radial_table_mm=tuple(np.abs(radial)))
+    raise ValueError(f"unknown lens {lens_name!r}; one of {sorted(LENS_KERNEL_PX)}")
+
+
+def lens_tensor(lens_name: str):
+    """The lazily filled nominal PSF tensor of a lens (shared disk cache)."""
+    from bmi_sdk.optics import PsfTensor, TensorSpec, get_lens
+
+    return PsfTensor(get_lens(lens_name), TensorSpec(kernel_px=LENS_KERNEL_PX[lens_name]))
+
+
+# -- the sensor half of the chain (per step) -----------------------------------------------------------
+
+def simulate_sensor(optical: np.ndarray, sigma: float, rng: np.random.Generator, row0: int = 0, col0: int = 0,
+                    black_level_dn: int = BLACK_LEVEL_DN, white_level_dn: int = WHITE_LEVEL_DN) -> np.ndarray:
+    """Optical image at the sensor (H×W×3, relative illumination applied) → demosaiced RGB the network sees.
+
+    Gaussian noise σ (the paper's model) → RGGB mosaic at the window's phase →
+    ADC (black level, 12-bit rounding and clipping) → ``raw_to_rgb``.
+    """
+    noisy = add_gaussian_noise(optical, sigma, rng)
+    mosaic = bayer_mosaic(noisy, row0, col0)
+    dn = np.rint(np.float32(black_level_dn) + mosaic * np.float32(white_level_dn - black_level_dn))
+    raw = np.clip(dn, 0, white_level_dn).astype(np.uint16)
+    return raw_to_rgb(raw, black_level_dn, white_level_dn, window_cfa(CFA_PATTERN, row0, col0))
+
+
+def dihedral(arr: np.ndarray, k: int) -> np.ndarray:
+    """Element k ∈ 0..7 of the dihedral group on the first two axes: bit 0 flips columns, bit 1 flips rows,
+    bit 2 transposes (applied in that order)."""
+    if k & 1:
+        arr = arr[:, ::-1]
+    if k & 2:
+        arr = arr[::-1]
+    if k & 4:
+        arr = arr.swapaxes(0, 1)
+    return np.ascontiguousarray(arr)
+
+
+def dihedral_field(field: np.ndarray, k: int) -> np.ndarray:
+    """Field channels (3×H×W: θ/60°, cos φ, sin φ) of the transformed crop: the maps move with the pixels
+    and the direction (x, y) = (cos φ, sin φ) is transformed as a vector (x → −x, y → −y, x ↔ y)."""
+    theta, x, y = (dihedral(c, k) for c in field)
+    if k & 1:
+        x = -x
+    if k & 2:
+        y = -y
+    if k & 4:
+        x, y = y, x
+    return np.stack([theta, x, y])
+
+
+# -- window placement ----------------------------------------------------------------------------------
+
+def sample_window(geometry: SensorGeometry, size_px: int, rng: np.random.Generator,
+                  theta_range_deg: tuple[float, float] = (0.0, 60.0)) -> tuple[int, int]:
+    """(row0, col0), both even, of a size_px² window on the sensor whose centre's θ is uniform in the range."""
+    for _ in range(10000):
+        theta = rng.uniform(*theta_range_deg)
+        phi = rng.uniform(-180.0, 180.0)
+        r, c = geometry.pixel_of_field(theta, phi)
+        row0 = int(round((float(r) - size_px / 2) / 2)) * 2
+        col0 = int(round((float(c) - size_px / 2) / 2)) * 2
+        if 0 <= row0 <= geometry.height_px - size_px and 0 <= col0 <= geometry.width_px - size_px:
+            return row0, col0
+    raise ValueError(f"no {size_px}² window with θ in {theta_range_deg} fits on the sensor")
+
+
+# -- the cache -----------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class CacheSpec:
+    """What a cache holds: ``samples`` renders of ``crop_px + 2 jitter_px`` pixels through ``lens``."""
+
+    lens: str = "bmi_monocentric"
+    samples: int = 768
+    crop_px: int = 128
+    jitter_px: int = 8
+    seed: int = 0
+    source: str = "procedural"
+
+    @property
+    def margin_px(self) -> int:
+        return LENS_KERNEL_PX[self.lens] // 2 + 4
+
+    @property
+    def stored_px(self) -> int:
+        return self.crop_px + 2 * self.jitter_px
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _dataset_window(scenes: Sequence, geometry: SensorGeometry, size_px: int, rng: np.random.Generator):
+    """A size_px² window of a dataset image placed as a 12° patch at a random sensor position."""
+    from bmi_sdk.scenes import place_patch
+
+    for _ in range(100):
+        placed = place_patch(scenes[int(rng.integers(len(scenes)))], geometry, rng=rng)
+        r0, c0, h, w = placed.roi
+        if h < size_px + 2 or w < size_px + 2:
+            raise ValueError(f"a placed patch of {h}×{w} px cannot hold a {size_px}² window")
+        # offsets that put the window at an even sensor row/column (the Bayer phase of the cache)
+        dr = r0 % 2 + 2 * int(rng.integers(0, (h - size_px - r0 % 2) // 2 + 1))
+        dc = c0 % 2 + 2 * int(rng.integers(0, (w - size_px - c0 % 2) // 2 + 1))
+        sl = (slice(dr, dr + size_px), slice(dc, dc + size_px))
+        valid = placed.valid[sl] & np.isfinite(placed.range_m[sl])
+        if valid.mean() > 0.5:
+            return placed.rgb[sl], placed.range_m[sl], r0 + dr, c0 + dc
+    raise ValueError("could not find a mostly valid window in 100 placed patches")
+
+
+def render_sample(spec: CacheSpec, index: int, tensor, geometry: SensorGeometry,
+                  scenes: Sequence | None = None) -> dict:
+    """One cached sample (seeded by (spec.seed, index)): optical image, targets and window position."""
+    from bmi_sdk.render import render_coded
+    from bmi_sdk.scenes import generate_scene
+
+    rng = np.random.default_rng([spec.seed, index])
+    size = spec.stored_px + 2 * spec.margin_px
+    if scenes is None:
+        row0, col0 = sample_window(geometry, size, rng)
+        scene = generate_scene(size, size, rng)
+        rgb, range_m = scene.rgb, scene.range_m
+    else:
+        rgb, range_m, row0, col0 = _dataset_window(scenes, geometry, size, rng)
+    render_range = np.where(np.isfinite(range_m), range_m, FAR_FILL_M).astype(np.float32)
+    optical = render_coded(rgb, render_range, tensor, geometry, row0=row0, col0=col0)
+    optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
+    m = slice(spec.margin_px, spec.margin_px + spec.stored_px)
+    return {"optical": optical[m, m].astype(np.float16), "rgb": rgb[m, m].astype(np.float16),
+            "range_m": range_m[m, m].astype(np.float32),
+            "origin": np.array([row0 + spec.margin_px, col0 + spec.margin_px], dtype=np.int32)}
+
+
+def _render_shard(cache_dir: Path, spec: CacheSpec, shard: int, scenes: Sequence | None) -> int:
+    """Render and write one shard (atomically); returns its sample count."""
+    tensor, geometry = lens_tensor(spec.lens), lens_geometry(spec.lens)
+    items = [render_sample(spec, i, tensor, geometry, scenes)
+             for i in range(shard * SHARD_SAMPLES, min(spec.samples, (shard + 1) * SHARD_SAMPLES))]
+    with atomic_path(cache_dir / f"shard_{shard:05d}.npz", suffix=".npz") as tmp:
+        np.savez(tmp, **{k: np.stack([it[k] for it in items]) for k in items[0]})
+    return len(items)
+
+
+def build_cache(cache_dir: str | Path, spec: CacheSpec, scenes: Sequence | None = None,
+                progress: bool = True, workers: int = 1) -> Path:
+    """Render every missing shard of ``spec`` into ``cache_dir`` (resumable; a spec mismatch is refused).
+
+    ``workers`` > 1 renders shards in that many processes (one numpy thread
+    each); samples are seeded by index, so the cache is the same either way.
+    """
+    cache_dir = Path(cache_dir)
+    meta_path = cache_dir / "cache.json"
+    meta = {"schema": CACHE_SCHEMA, "spec": spec.to_dict()}
+    if meta_path.exists():
+        old = json.loads(meta_path.read_text())
+        if old != meta:
+            raise ValueError(f"{cache_dir} holds another cache ({old.get('spec')}); choose another --cache")
+    else:
+        write_json(meta_path, meta)
+    n_shards = math.ceil(spec.samples / SHARD_SAMPLES)
+    todo = [s for s in range(n_shards) if not (cache_dir / f"shard_{s:05d}.npz").exists()]
+    if not todo:
+        return cache_dir
+    lens_tensor(spec.lens).ensure_all(progress=progress, workers=workers)  # every θ is touched: build once
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=sum(min(SHARD_SAMPLES, spec.samples - s * SHARD_SAMPLES) for s in todo),
+                   desc=f"rendering {spec.lens} pairs ({workers} processes)", unit="pair")
+    pool = None
+    try:
+        if workers > 1:
+            from bmi_sdk.optics.tensor import _spawn_single_threaded_pool
+
+            pool = _spawn_single_threaded_pool(workers)
+            done = pool.map(_render_shard, [cache_dir] * len(todo), [spec] * len(todo), todo, [scenes] * len(todo))
+        else:
+            done = (_render_shard(cache_dir, spec, s, scenes) for s in todo)
+        for n in done:
+            if bar is not None:
+                bar.update(n)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+        if bar is not None:
+            bar.close()
+    return cache_dir
+
+
+class PairCache:
+    """The rendered pairs of a cache in memory, and the per-step batch assembly."""
+
+    def __init__(self, cache_dir: str | Path):
+        cache_dir = Path(cache_dir)
+        meta = json.loads((cache_dir / "cache.json").read_text())
+        if meta.get("schema") != CACHE_SCHEMA:
+            raise ValueError(f"{cache_dir}: not a training cache (schema {meta.get('schema')!r})")
+        self.spec = CacheSpec(**meta["spec"])
+        self.geometry = lens_geometry(self.spec.lens)
+        shards = sorted(cache_dir.glob("shard_*.npz"))
+        expected = math.ceil(self.spec.samples / SHARD_SAMPLES)
+        if len(shards) != expected:
+            raise ValueError(f"{cache_dir}: {len(shards)} of {expected} shards; run build_cache to finish it")
+        parts = {}
+        for path in shards:
+            with np.load(path, allow_pickle=False) as z:
+                for k in z.files:
+                    parts.setdefault(k, []).append(z[k])
+        self.arrays = {k: np.concatenate(v) for k, v in parts.items()}
+
+    def __len__(self) -> int:
+        return len(self.arrays["origin"])
+
+    def pair(self, index: int, rng: np.random.Generator, sigma: float = STANDARD_SIGMA,
+             augment: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(input 6×S×S, AiF 3×S×S, range 1×S×S, valid 1×S×S) float32 for one cached render."""
+        spec, a = self.spec, self.arrays
+        s, j = spec.crop_px, spec.jitter_px
+        dr, dc = (2 * int(rng.integers(0, j + 1)) for _ in range(2)) if augment else (j - j % 2, j - j % 2)
+        row0, col0 = int(a["origin"][index, 0]) + dr, int(a["origin"][index, 1]) + dc
+        sl = (slice(dr, dr + s), slice(dc, dc + s))
+        optical = a["optical"][index][sl].astype(np.float32)
+        rgb = a["rgb"][index][sl].astype(np.float32)
+        range_m = a["range_m"][index][sl]
+        field = field_channels(self.geometry, row0, col0, s, s)
+        valid = self.geometry.valid_mask(row0, col0, s, s) & np.isfinite(range_m)
+        k = int(rng.integers(8)) if augment else 0
+        optical, rgb, range_m, valid = (dihedral(x, k) for x in (optical, rgb, range_m, valid))
+        field = dihedral_field(field, k)
+        # the augmented crop is a virtual window; its mosaic keeps the even-offset (RGGB) phase
+        seen = simulate_sensor(optical, sigma, rng, row0 - row0 % 2, col0 - col0 % 2)
+        x = np.concatenate([seen.transpose(2, 0, 1), field])
+        return (x, rgb.transpose(2, 0, 1), np.nan_to_num(range_m, nan=1.0)[None],
+                valid[None].astype(np.float32))
+
+    def batch(self, seed: int, step: int, batch_size: int, sigma: float = STANDARD_SIGMA):
+        """The batch of ``step``: a pure function of (seed, step), so a resumed run sees the same data."""
+        rng = np.random.default_rng([seed, step])
+        items = [self.pair(int(rng.integers(len(self))), rng, sigma) for _ in range(batch_size)]
+        return tuple(np.stack(parts) for parts in zip(*items))

@@ -1,0 +1,176 @@
+"""The training loop behind ``bmi train``: seeded, resumable, on a GPU when there is one.
+
+Optimiser as in the paper (§4.1): Adam, β = (0.9, 0.99), initial learning rate
+5e-4, batch 8; the learning rate follows a cosine from 5e-4 to 1e-6 over the
+run's ``steps`` (the paper does not state its schedule). Losses: ``losses``.
+
+Reproducibility: weights are initialised from ``torch.manual_seed(seed)`` and
+the batch of step t is a pure function of (seed, t) (``PairCache.batch``), so a
+run resumed from its checkpoint takes exactly the steps the uninterrupted run
+would have. Checkpoints hold only tensors, numbers and strings and are read
+with ``torch.load(weights_only=True)`` (no pickle of code); they are written
+atomically every ``save_every`` steps, at the end, and on Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bmi_sdk.io_atomic import atomic_path, write_json
+from bmi_sdk.nn.data import STANDARD_SIGMA, CacheSpec, PairCache, build_cache
+from bmi_sdk.nn.losses import SILOG_LAMBDA, total_loss
+from bmi_sdk.nn.model import DualHeadMimoUNet, preset_config
+
+CHECKPOINT = "checkpoint.pt"
+LR_FINAL = 1e-6
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    preset: str = "tiny"
+    steps: int = 6000
+    batch_size: int = 8
+    lr: float = 5e-4
+    betas: tuple = (0.9, 0.99)
+    sigma: float = STANDARD_SIGMA
+    silog_lambda: float = SILOG_LAMBDA
+    seed: int = 0
+    cache: CacheSpec = field(default_factory=CacheSpec)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["betas"] = list(self.betas)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        d = dict(d)
+        d["betas"] = tuple(d["betas"])
+        d["cache"] = CacheSpec(**d["cache"])
+        return cls(**d)
+
+
+def default_device() -> torch.device:
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def learning_rate(config: TrainConfig, step: int) -> float:
+    """Cosine decay from ``config.lr`` at step 0 to ``LR_FINAL`` at the last step."""
+    t = step / max(config.steps - 1, 1)
+    return LR_FINAL + 0.5 * (config.lr - LR_FINAL) * (1 + math.cos(math.pi * min(t, 1.0)))
+
+
+class Trainer:
+    """One run: model, optimiser, data; ``step()`` advances by one batch, ``save``/``load`` checkpoint it."""
+
+    def __init__(self, config: TrainConfig, cache_dir: str | Path, device: torch.device | None = None):
+        self.config = config
+        self.device = device or default_device()
+        self.data = PairCache(cache_dir)
+        if self.data.spec != config.cache:
+            raise ValueError(f"cache {cache_dir} holds {self.data.spec}, the run asks for {config.cache}")
+        torch.manual_seed(config.seed)
+        self.net = DualHeadMimoUNet(preset_config(config.preset)).to(self.device)
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=config.lr, betas=config.betas)
+        self.step_index = 0
+        self.history: list[dict] = []
+
+    def step(self) -> dict:
+        """One optimiser step on the batch of ``step_index``; returns the loss terms."""
+        c = self.config
+        x, aif, depth_m, valid = (torch.from_numpy(a).to(self.device)
+                                  for a in self.data.batch(c.seed, self.step_index, c.batch_size, c.sigma))
+        for group in self.opt.param_groups:
+            group["lr"] = learning_rate(c, self.step_index)
+        self.net.train()
+        aif_preds, depth_pred = self.net(x)
+        loss, terms = total_loss(aif_preds, depth_pred, aif, depth_m, valid, c.silog_lambda)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        self.step_index += 1
+        record = {"step": self.step_index, "loss": float(loss.detach()), **terms}
+        self.history.append(record)
+        return record
+
+    def save(self, path: str | Path) -> None:
+        state = {"model": self.net.state_dict(), "optimizer": self.opt.state_dict(),
+                 "step": self.step_index, "config": json.dumps(self.config.to_dict()),
+                 "history": json.dumps(self.history)}
+        with atomic_path(path, suffix=".pt") as tmp:
+            torch.save(state, tmp)
+
+    def load(self, path: str | Path) -> None:
+        state = torch.load(path, map_location=self.device, weights_only=True)
+        saved = TrainConfig.from_dict(json.loads(state["config"]))
+        if saved != self.config:
+            raise ValueError(f"{path} was trained with {saved}, not {self.config}; use another --out")
+        self.net.load_state_dict(state["model"])
+        self.opt.load_state_dict(state["optimizer"])
+        self.step_index = int(state["step"])
+        self.history = json.loads(state["history"])
+
+
+def load_weights(checkpoint: str | Path) -> tuple[DualHeadMimoUNet, TrainConfig]:
+    """The network (eval mode, CPU) and config of a checkpoint."""
+    state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    config = TrainConfig.from_dict(json.loads(state["config"]))
+    net = DualHeadMimoUNet(preset_config(config.preset))
+    net.load_state_dict(state["model"])
+    return net.eval(), config
+
+
+def train(config: TrainConfig, out_dir: str | Path, cache_dir: str | Path, save_every: int = 250,
+          progress: bool = True, device: torch.device | None = None) -> Path:
+    """Build the render cache if needed, then train (resuming from ``out_dir``'s checkpoint); returns it."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    build_cache(cache_dir, config.cache, progress=progress)
+    trainer = Trainer(config, cache_dir, device)
+    ckpt = out_dir / CHECKPOINT
+    if ckpt.exists():
+        trainer.load(ckpt)
+    write_json(out_dir / "train_config.json", {**config.to_dict(), "device": str(trainer.device),
+                                                "torch": torch.__version__})
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=config.steps, initial=trainer.step_index, desc=f"train {config.preset}", unit="step")
+    t0, s0 = time.perf_counter(), trainer.step_index
+    try:
+        while trainer.step_index < config.steps:
+            rec = trainer.step()
+            rate = (trainer.step_index - s0) * config.batch_size / (time.perf_counter() - t0)
+            if bar is not None:
+                bar.update()
+                bar.set_postfix(loss=f"{rec['loss']:.4f}", silog=f"{rec['silog']:.4f}",
+                                l1=f"{rec['content']:.4f}", pairs_per_s=f"{rate:.1f}")
+            if trainer.step_index % save_every == 0:
+                trainer.save(ckpt)
+    finally:  # Ctrl-C or an error: keep what was learnt
+        trainer.save(ckpt)
+        if bar is not None:
+            bar.close()
+        _write_log(out_dir, trainer, time.perf_counter() - t0, s0)
+    return ckpt
+
+
+def _write_log(out_dir: Path, trainer: Trainer, seconds: float, first_step: int) -> None:
+    """train_log.json: loss history (means per 50 steps) and the wall time of this session."""
+    h = trainer.history
+    chunks = [h[i:i + 50] for i in range(0, len(h), 50)]
+    curve = [{"step": c[-1]["step"], **{k: float(np.mean([r[k] for r in c])) for k in ("loss", "content", "fft", "silog")}}
+             for c in chunks]
+    log_path = out_dir / "train_log.json"
+    sessions = json.loads(log_path.read_text())["sessions"] if log_path.exists() else []
+    sessions.append({"from_step": first_step, "to_step": trainer.step_index, "seconds": round(seconds, 1),
+                     "device": str(trainer.device), "threads": torch.get_num_threads()})
+    write_json(log_path, {"sessions": sessions, "curve": curve})

@@ -1,0 +1,247 @@
+"""Network, losses, metrics, export, training resume and data augmentation (bmi_sdk.nn), on small inputs."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
+from bmi_sdk.model_io import field_channels
+from bmi_sdk.nn.data import CACHE_SCHEMA, SHARD_SAMPLES, CacheSpec, dihedral, dihedral_field, simulate_sensor
+from bmi_sdk.nn.losses import content_loss, fft_loss, silog_loss
+from bmi_sdk.nn.metrics import SSIM_K1, SSIM_K2, depth_metrics, psnr_db, ssim
+from bmi_sdk.nn.model import DualHeadMimoUNet, parameter_count, preset_config
+
+
+# -- network ------------------------------------------------------------------------------------------
+
+def test_paper_preset_has_the_papers_parameter_count():
+    assert parameter_count(DualHeadMimoUNet(preset_config("paper"))) / 1e6 == pytest.approx(10.08, abs=0.005)
+
+
+def test_output_shapes_and_positive_depth():
+    torch.manual_seed(0)
+    net = DualHeadMimoUNet(preset_config("tiny")).eval()
+    with torch.no_grad():
+        aif, depth_m = net(torch.rand(2, 6, 32, 48))
+    assert [tuple(a.shape) for a in aif] == [(2, 3, 8, 12), (2, 3, 16, 24), (2, 3, 32, 48)]
+    assert depth_m.shape == (2, 1, 32, 48) and bool((depth_m > 0).all())
+
+
+def test_no_field_ablation_ignores_the_field_channels_and_full_model_does_not():
+    torch.manual_seed(0)
+    x = torch.rand(1, 6, 32, 32)
+    y = x.clone()
+    y[:, 3:] = torch.rand(1, 3, 32, 32)
+    for name, same in (("tiny-no_field", True), ("tiny", False)):
+        net = DualHeadMimoUNet(preset_config(name)).eval()
+        with torch.no_grad():
+            a, b = net(x)[1], net(y)[1]
+        assert torch.equal(a, b) is same
+
+
+def test_single_scale_ablation_has_no_coarse_input_branches():
+    full = DualHeadMimoUNet(preset_config("small"))
+    single = DualHeadMimoUNet(preset_config("small-single_scale"))
+    assert hasattr(full, "scm") and not hasattr(single, "scm")
+    assert parameter_count(single) < parameter_count(full)
+
+
+# -- losses --------------------------------------------------------------------------------------------
+
+def _preds(value, n=1, c=3, h=16, w=16):
+    return [torch.full((n, c, h // 4, w // 4), value), torch.full((n, c, h // 2, w // 2), value),
+            torch.full((n, c, h, w), value)]
+
+
+def test_content_loss_is_sum_of_per_scale_mean_abs_error_on_valid_pixels():
+    target = torch.ones(1, 3, 16, 16)
+    mask = torch.ones(1, 1, 16, 16)
+    assert float(content_loss(_preds(0.25), target, mask)) == pytest.approx(3 * 0.75)
+    # garbage in the masked half must not count
+    preds = _preds(0.25)
+    preds[-1][..., 8:] = 100.0
+    mask[..., 8:] = 0
+    assert float(content_loss(preds, target, mask)) == pytest.approx(3 * 0.75)
+
+
+def test_fft_loss_of_a_constant_error_is_half_the_error_per_scale():
+    # F(d·1)[0,0] = d·H·W, all other bins 0 → Σ|Re|+|Im| = d·H·W over 2·C·H·W values → d / (2C) · C = d/2
+    target = torch.zeros(1, 3, 16, 16)
+    loss = fft_loss(_preds(0.4), target, torch.ones(1, 1, 16, 16))
+    assert float(loss) == pytest.approx(3 * 0.4 / 2, rel=1e-6)
+
+
+def test_fft_loss_hand_computed_single_frequency():
+    # d = cos(2π x / 4) on 4×4 (one channel): DFT has two bins of value 8 (real) → Σ = 16 over 2·16 values = 0.5
+    x = torch.arange(4.0)
+    d = torch.cos(2 * math.pi * x / 4)[None, None, None, :].expand(1, 1, 4, 4)
+    loss = fft_loss([d], torch.zeros(1, 1, 4, 4), torch.ones(1, 1, 4, 4))
+    assert float(loss) == pytest.approx(0.5, abs=1e-6)
+
+
+@pytest.mark.parametrize("scale", [0.5, 1.0, 2.0, 3.7])
+def test_silog_scale_behaviour(scale):
+    torch.manual_seed(1)
+    target = 0.7 + 9.3 * torch.rand(2, 1, 8, 8)
+    mask = torch.ones_like(target)
+    pred = scale * target
+    assert float(silog_loss(pred, target, mask, lam=1.0)) == pytest.approx(0.0, abs=1e-6)  # the paper's printed form
+    expected = (1 - 0.85) * math.log(scale) ** 2  # the variance-weighted form keeps a scale term
+    assert float(silog_loss(pred, target, mask)) == pytest.approx(expected, abs=1e-6)
+
+
+def test_silog_hand_computed_two_pixels_and_mask():
+    target = torch.tensor([[[[1.0, 1.0, 5.0]]]])
+    pred = torch.tensor([[[[math.e, 1.0, 123.0]]]])
+    mask = torch.tensor([[[[1.0, 1.0, 0.0]]]])
+    # g = (1, 0): mean g² = 0.5, mean g = 0.5 → 0.5 − 0.85·0.25
+    assert float(silog_loss(pred, target, mask)) == pytest.approx(0.5 - 0.85 * 0.25, abs=1e-6)
+
+
+# -- metrics -------------------------------------------------------------------------------------------
+
+def test_depth_metrics_hand_computed():
+    true = np.array([1.0, 2.0, 4.0, 5.0, 1.0])
+    pred = np.array([1.2, 2.0, 2.0, 10.0, 7.0])
+    valid = np.array([True, True, True, True, False])
+    m = depth_metrics(pred, true, valid)
+    # ratios 1.2, 1, 2, 2 → δ1 = 2/4, δ2 (<1.5625) = 2/4, δ3 (<1.953) = 2/4
+    assert m["delta1"] == 0.5 and m["delta2"] == 0.5 and m["delta3"] == 0.5
+    assert m["rmse_m"] == pytest.approx(math.sqrt((0.04 + 0 + 4 + 25) / 4))
+    assert m["absrel"] == pytest.approx((0.2 + 0 + 0.5 + 1.0) / 4)
+
+
+def test_psnr_and_ssim_hand_computed():
+    a = np.full((32, 32, 3), 0.5)
+    assert psnr_db(a + 0.1, a) == pytest.approx(20.0)
+    assert ssim(a, a) == pytest.approx(1.0)
+    # constant images: σ terms vanish, SSIM = (2ab + C1) / (a² + b² + C1)
+    c1 = SSIM_K1 ** 2
+    assert ssim(np.full((32, 32, 3), 0.3), a) == pytest.approx((2 * 0.15 + c1) / (0.09 + 0.25 + c1))
+    assert SSIM_K2 == 0.03
+    valid = np.zeros((32, 32), bool)
+    valid[:, :16] = True
+    b = a.copy()
+    b[:, 16:] = 0.0
+    assert psnr_db(b, a, valid) == math.inf
+
+
+# -- export ---------------------------------------------------------------------------------------------
+
+def test_onnx_export_matches_torch(tmp_path):
+    import onnxruntime as ort
+
+    from bmi_sdk.nn.export import export_onnx
+    from bmi_sdk.nn.model import InferenceWrapper
+
+    torch.manual_seed(0)
+    net = DualHeadMimoUNet(preset_config("tiny")).eval()
+    path = tmp_path / "m.onnx"
+    assert export_onnx(net, path) <= 1e-4
+    x = torch.rand(1, 6, 40, 52)  # a size the exporter never saw
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"coded": x.numpy()})
+    with torch.no_grad():
+        ref = InferenceWrapper(net)(x)
+    for g, r in zip(got, ref):
+        assert g.shape == tuple(r.shape)
+        assert np.max(np.abs(g - r.numpy())) <= 1e-4
+
+
+# -- data -----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_flips_give_the_field_channels_of_the_mirrored_window(k):
+    g = BMI_SENSOR
+    row0, col0, h, w = 700, 2300, 24, 40
+    field = field_channels(g, row0, col0, h, w)
+    mrow0 = g.height_px - row0 - h if k & 2 else row0
+    mcol0 = g.width_px - col0 - w if k & 1 else col0
+    expected = field_channels(g, mrow0, mcol0, h, w)
+    got = dihedral_field(field, k)
+    np.testing.assert_allclose(got, expected, atol=1e-6)
+
+
+def test_transpose_gives_the_field_channels_of_the_transposed_window():
+    g = SensorGeometry(width_px=3000, height_px=3000)
+    field = field_channels(g, 400, 1100, 32, 32)
+    np.testing.assert_allclose(dihedral_field(field, 4), field_channels(g, 1100, 400, 32, 32), atol=1e-6)
+
+
+def test_sensor_chain_is_unbiased_and_quantised():
+    rng = np.random.default_rng(0)
+    optical = np.full((32, 32, 3), 0.4, np.float32)
+    clean = simulate_sensor(optical, 0.0, rng)
+    assert np.max(np.abs(clean - 0.4)) <= 0.5 / (4095 - 256) + 1e-6
+    noisy = simulate_sensor(optical, 0.02, rng)
+    assert abs(float(noisy.mean()) - 0.4) < 2e-3 and 0.005 < float(noisy.std()) < 0.03
+
+
+def _synthetic_cache(path, spec):
+    """A cache in the on-disk format with random content (the renderer is tested elsewhere)."""
+    path.mkdir()
+    (path / "cache.json").write_text(json.dumps({"schema": CACHE_SCHEMA, "spec": spec.to_dict()}))
+    rng = np.random.default_rng(0)
+    n, s = spec.samples, spec.stored_px
+    np.savez(path / "shard_00000.npz", optical=rng.random((n, s, s, 3)).astype(np.float16),
+             rgb=rng.random((n, s, s, 3)).astype(np.float16),
+             range_m=(0.7 + 9 * rng.random((n, s, s))).astype(np.float32),
+             origin=np.array([[1000 + 2 * i, 1500] for i in range(n)], dtype=np.int32))
+    assert n <= SHARD_SAMPLES
+
+
+def test_checkpoint_resume_reproduces_the_next_step(tmp_path):
+    from bmi_sdk.nn.train import TrainConfig, Trainer
+
+    spec = CacheSpec(samples=4, crop_px=16, jitter_px=2)
+    _synthetic_cache(tmp_path / "cache", spec)
+    config = TrainConfig(preset="tiny", steps=3, batch_size=2, cache=spec)
+    straight = Trainer(config, tmp_path / "cache")
+    straight.step()
+    straight.save(tmp_path / "ckpt.pt")
+    expected = straight.step()
+    resumed = Trainer(config, tmp_path / "cache")
+    resumed.load(tmp_path / "ckpt.pt")
+    got = resumed.step()
+    assert got == expected
+    for a, b in zip(straight.net.state_dict().values(), resumed.net.state_dict().values()):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="trained with"):
+        Trainer(TrainConfig(preset="tiny", steps=4, batch_size=2, cache=spec), tmp_path / "cache").load(
+            tmp_path / "ckpt.pt")
+
+
+def test_dihedral_roundtrip():
+    a = np.arange(12).reshape(3, 4)
+    assert np.array_equal(dihedral(dihedral(a, 3), 3), a)
+    assert dihedral(a, 4).shape == (4, 3)
+
+
+def test_hardware_perturbations_move_and_magnify_kernels_as_defined():
+    from bmi_sdk.nn.evaluate import perturb
+    from bmi_sdk.optics import PsfTensor, TensorSpec
+
+    spec = TensorSpec(field_deg=(0.0, 30.0), depth_m=(1.0, 2.0), kernel_px=21)
+    tensor = PsfTensor("bmi_monocentric", spec, use_cache=False)
+    yy, xx = np.mgrid[-10:11, -10:11].astype(float)
+    kernel = np.exp(-(xx ** 2 + yy ** 2) / (2 * 2.0 ** 2))
+    tensor.data[...] = (kernel / kernel.sum()).astype(np.float32)
+    tensor.filled[...] = True
+
+    def centroid_col(k):
+        return float((k * xx).sum() / k.sum())
+
+    def second_moment(k):
+        return float((k * (xx ** 2 + yy ** 2)).sum() / k.sum())
+
+    shifted = perturb(tensor, shift_px=0.5)
+    assert centroid_col(shifted.data[1, 1, 0]) == pytest.approx(0.5, abs=0.01)
+    assert np.allclose(shifted.data.sum(axis=(-2, -1)), 1.0, atol=1e-5)
+    scaled = perturb(tensor, scale=0.05, seed=3)
+    ratios = np.array([second_moment(scaled.data[0, i, j]) / second_moment(kernel)
+                       for i in range(2) for j in range(2)])
+    assert np.all(np.isclose(np.sqrt(ratios), 1.05, atol=0.005) | np.isclose(np.sqrt(ratios), 0.95, atol=0.005))
+    # the three channels of an entry share one scale factor
+    assert np.allclose(scaled.data[0], scaled.data[2])
