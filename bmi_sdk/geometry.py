@@ -54,6 +54,21 @@ class SensorGeometry:
         if len(self.radial_table_mm) and np.any(np.diff(self.radial_table_mm) <= 0):
             raise ValueError("chief-ray table must be strictly increasing (the lens folds the field)")
 
+    @classmethod
+    def for_lens(cls, lens, max_field_deg: float = 60.0, **kwargs) -> "SensorGeometry":
+        """The sensor behind ``lens``: its image surface's radius and the real chief-ray table.
+
+        ``lens`` is a :class:`bmi_sdk.optics.Lens` (imported lazily: geometry sits below optics).
+        """
+        import math
+
+        from .optics.report import chief_ray_table
+
+        field, radial = chief_ray_table(lens, np.linspace(0.0, max_field_deg, 121))
+        radius = None if math.isinf(lens.image.radius_mm) else abs(lens.image.radius_mm)
+        return cls(radius_mm=radius, max_field_deg=max_field_deg, field_table_deg=tuple(field.tolist()),
+                   radial_table_mm=tuple(radial.tolist()), **kwargs)
+
     # -- centre -------------------------------------------------------------
     @property
     def centre_px(self) -> tuple[float, float]:

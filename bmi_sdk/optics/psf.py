@@ -72,6 +72,24 @@ def _phase_matrix(n_sub: int, step_mm: float, n_pupil: int, d_l: float, lam_mm: 
     return np.exp(1j * (2 * np.pi / lam_mm) * np.outer(x, l_off)).astype(np.complex64)
 
 
+def _rotated_pupil(fit: PupilFit, u_off: np.ndarray, v_off: np.ndarray, rotation_deg: float):
+    """P on a grid whose axes (u, v) are the pupil axes (L, M) turned by ``rotation_deg``.
+
+    With u = L cos φ − M sin φ and v = L sin φ + M cos φ, the transform over (u, v)
+    lands the PSF's radial axis along (cos φ, sin φ) of the output (col, row) axes.
+    """
+    phi = np.radians(rotation_deg)
+    uu, vv = np.meshgrid(u_off, v_off, indexing="ij")
+    ell = fit.l_centre + uu * np.cos(phi) + vv * np.sin(phi)
+    emm = fit.m_centre - uu * np.sin(phi) + vv * np.cos(phi)
+    w = fit.evaluate_points("w_waves", ell, emm)
+    amp = np.maximum(fit.evaluate_points("amplitude", ell, emm), 0.0)
+    transmission = np.ones_like(w)
+    for name in fit.apertures:
+        transmission *= _soft_aperture(fit.evaluate_points(name, ell, emm))
+    return transmission * amp * np.exp(-2j * np.pi * w)
+
+
 def pupil_function(fit: PupilFit, l_grid: np.ndarray, m_grid: np.ndarray, aperture_l_scale: float = 1.0):
     """Complex pupil P(L, M) on a separable grid (len(l_grid), len(m_grid)).
 
@@ -88,8 +106,13 @@ def pupil_function(fit: PupilFit, l_grid: np.ndarray, m_grid: np.ndarray, apertu
 
 
 def psf_from_pupil(fit: PupilFit, kernel_px: int, pitch_um: float = 2.0, oversample: int = DEFAULT_OVERSAMPLE,
-                   guard: float = DEFAULT_GUARD, aperture_l_scale: float = 1.0) -> Psf:
-    """The K × K pixel-integrated PSF of one fitted pupil (see module doc)."""
+                   guard: float = DEFAULT_GUARD, aperture_l_scale: float = 1.0, rotation_deg: float = 0.0) -> Psf:
+    """The K × K pixel-integrated PSF of one fitted pupil (see module doc).
+
+    ``rotation_deg`` = φ computes the PSF of a pixel at azimuth φ exactly (its radial
+    axis along (cos φ, sin φ) of (col, row)) by turning the pupil grid instead of
+    resampling the kernel; it costs a non-separable pupil evaluation.
+    """
     if kernel_px < 1 or kernel_px % 2 == 0:
         raise ValueError(f"kernel_px must be odd and ≥ 1, got {kernel_px}")
     if oversample < 1 or oversample % 2 == 0:
@@ -98,11 +121,20 @@ def psf_from_pupil(fit: PupilFit, kernel_px: int, pitch_um: float = 2.0, oversam
     pitch_mm = pitch_um * 1e-3
     d_l = lam_mm / (guard * kernel_px * pitch_mm)
     l_half = fit.l_half * aperture_l_scale
+    if rotation_deg % 360.0 != 0.0:
+        if aperture_l_scale != 1.0:
+            raise ValueError("rotation_deg and aperture_l_scale cannot be combined")
+        l_half = m_half = max(l_half, fit.m_half)
+    else:
+        m_half = fit.m_half
     n_l = 2 * int(np.ceil(l_half / d_l)) + 1
-    n_m = 2 * int(np.ceil(fit.m_half / d_l)) + 1
+    n_m = 2 * int(np.ceil(m_half / d_l)) + 1
     l_off = (np.arange(n_l) - n_l // 2) * d_l
     m_off = (np.arange(n_m) - n_m // 2) * d_l
-    pupil = pupil_function(fit, fit.l_centre + l_off, fit.m_centre + m_off, aperture_l_scale)
+    if rotation_deg % 360.0 != 0.0:
+        pupil = _rotated_pupil(fit, l_off, m_off, rotation_deg)
+    else:
+        pupil = pupil_function(fit, fit.l_centre + l_off, fit.m_centre + m_off, aperture_l_scale)
     n_sub = kernel_px * oversample
     step_mm = pitch_mm / oversample  # pixel centres are samples
     ex = _phase_matrix(n_sub, step_mm, n_l, d_l, lam_mm)  # (n_sub, n_l)

@@ -65,7 +65,19 @@ class PupilFit:
     n_rays: int
 
     def _powers(self, x):
-        return x[:, None] ** np.arange(self.degree + 1)[None, :]
+        """Columns 1, x, x², … x^degree (by products: float ** is slow)."""
+        out = np.empty((len(x), self.degree + 1))
+        out[:, 0] = 1.0
+        for i in range(1, self.degree + 1):
+            np.multiply(out[:, i - 1], x, out=out[:, i])
+        return out
+
+    def evaluate_points(self, name: str, ell: np.ndarray, emm: np.ndarray) -> np.ndarray:
+        """Fitted quantity at arbitrary (L, M) points (any shape, not separable)."""
+        shape = np.broadcast(ell, emm).shape
+        xi = self._powers(((np.broadcast_to(ell, shape)) - self.l_centre).ravel() / self.l_half)
+        eta = self._powers(((np.broadcast_to(emm, shape)) - self.m_centre).ravel() / self.m_half)
+        return np.einsum("pi,pi->p", xi, eta @ self.coeffs[name].T).reshape(shape)
 
     def evaluate(self, name: str, l_grid: np.ndarray, m_grid: np.ndarray) -> np.ndarray:
         """Fitted quantity on the separable grid (len(l_grid), len(m_grid))."""

@@ -15,9 +15,11 @@ only the layers present in a zone (within a kernel width of its support) are
 convolved there, and each layer only over its own bounding box.
 
 The result is the optical image of the window (irradiance in the scene's
-units, before relative illumination and noise). Light from scene points
-outside the window is not included: render a margin of half a kernel and
-crop when a window's edge matters.
+units, before relative illumination and noise). Scene points outside the
+window are not known; E_k is computed over the window too, so near the
+window's edge the layers are renormalised to the light that is there (a
+flat field stays flat up to the edge instead of darkening). Render a margin
+of half a kernel and crop when the exact edge matters.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ def _check(rgb: np.ndarray, range_m: np.ndarray) -> None:
         raise ValueError(f"rgb must be H × W × 3, got {rgb.shape}")
     if range_m.shape != rgb.shape[:2]:
         raise ValueError(f"range_m {range_m.shape} does not match rgb {rgb.shape[:2]}")
-    if rgb.size and (np.nanmin(rgb) < 0 or not np.all(np.isfinite(rgb))):
+    if rgb.size and (not np.all(np.isfinite(rgb)) or rgb.min() < 0):
         raise ValueError("rgb must be finite and non-negative (linear irradiance)")
 
 
@@ -80,13 +82,17 @@ def _convolve_into(acc, box, images, kernels, rows, cols):
 
 def render_coded(rgb: np.ndarray, range_m: np.ndarray, tensor: PsfTensor, geometry: SensorGeometry = BMI_SENSOR,
                  row0: int = 0, col0: int = 0, *, zone_px: int = DEFAULT_ZONE_PX, interpolation: str = "linear",
-                 progress: bool = False) -> np.ndarray:
-    """Coded optical image (H × W × 3 float32) of a scene window placed at (row0, col0) of the sensor."""
+                 psf_mode: str = "exact", progress: bool = False) -> np.ndarray:
+    """Coded optical image (H × W × 3 float32) of a scene window placed at (row0, col0) of the sensor.
+
+    ``psf_mode`` chooses how zone kernels are made (``render.psf_map``): ``exact`` traces each
+    zone's own (θ, φ); ``tensor`` interpolates and rotates the radial tensor like the paper.
+    """
     _check(rgb, range_m)
     height, width, _ = rgb.shape
     layers = layer_index(range_m, tensor.depth_m)
     n_depths = len(tensor.depth_m)
-    psf_map = PsfMap(tensor, geometry, interpolation)
+    psf_map = PsfMap(tensor, geometry, interpolation, psf_mode)
     kpx = psf_map.kernel_px
     zone_list = zones(height, width, zone_px)
     theta, phi = geometry.field_angles(np.array([row0 + z.row for z in zone_list]),
@@ -147,15 +153,19 @@ def render_coded(rgb: np.ndarray, range_m: np.ndarray, tensor: PsfTensor, geomet
 
 
 def render_reference(rgb: np.ndarray, range_m: np.ndarray, tensor: PsfTensor, geometry: SensorGeometry = BMI_SENSOR,
-                     row0: int = 0, col0: int = 0, interpolation: str = "linear") -> np.ndarray:
-    """Brute-force layered rendering: every source pixel spreads with its own PSF (small windows only)."""
+                     row0: int = 0, col0: int = 0, interpolation: str = "linear", psf_mode: str = "tensor") -> np.ndarray:
+    """Brute-force layered rendering: every source pixel spreads with its own PSF (small windows only).
+
+    Per-pixel kernels in ``exact`` mode cost a trace each; the default ``tensor`` mode checks the
+    spatially varying convolution itself (same kernels as ``render_coded(psf_mode="tensor")``).
+    """
     _check(rgb, range_m)
     height, width, _ = rgb.shape
     if height * width > 128 * 128:
         raise ValueError(f"the per-pixel reference is for small windows (≤ 128²), got {height}×{width}")
     layers = layer_index(range_m, tensor.depth_m)
     n_depths = len(tensor.depth_m)
-    psf_map = PsfMap(tensor, geometry, interpolation)
+    psf_map = PsfMap(tensor, geometry, interpolation, psf_mode)
     rows, cols = np.mgrid[0:height, 0:width]
     theta, phi = geometry.field_angles(row0 + rows, col0 + cols)
     theta = np.nan_to_num(theta, nan=float(tensor.field_deg[-1]))
