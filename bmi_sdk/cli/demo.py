@@ -122,6 +122,8 @@ def _run(args) -> int:
     model_path, model_warning = _model(out, args.model)
     if model_warning:
         print(f"WARNING: {model_warning}")
+        _stage(timings, f"export untrained stand-in model → {model_path}", t0)
+    t0 = time.perf_counter()
     model = Model(model_path, tile_px=args.tile_px)
     _stage(timings, f"load model {model_path.name} (SHA-256 checked, preset {model.manifest['preset']}) "
                     f"+ warm-up {model.warmup_s:.2f} s", t0)
