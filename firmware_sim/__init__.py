@@ -6,6 +6,8 @@ Public API (the rest is private):
 * ``FirmwareServer`` — serves a device over TCP on loopback; ``InProcessLink``
   serves it over an in-process socket pair;
 * ``FaultPlan`` / ``Fault`` — seeded fault injection;
+* optical sources (``RenderedScene``, ``procedural:SEED``): scenes seen
+  through the lens by the forward simulator (``optical``);
 * irradiance sources (``IrradianceSource`` protocol, ``FlatField``,
   ``DarkFrame``, ``PolarChart``, ``InFocusImageStandIn``) and the
   ``register_source`` / ``make_source`` registry the forward simulator plugs into;
@@ -17,11 +19,12 @@ from . import registers, wire
 from .device import MODEL_NAME, FirmwareDevice, lens_identity
 from .endpoint import FirmwareServer, InProcessLink
 from .faults import Fault, FaultPlan
+from .optical import ProceduralOpticalSource, RenderedScene
 from .sources import (DarkFrame, FlatField, InFocusImageStandIn, IrradianceSource, PolarChart, make_source,
                       register_source, source_names)
 
 __all__ = [
     "registers", "wire", "MODEL_NAME", "FirmwareDevice", "lens_identity", "FirmwareServer", "InProcessLink",
     "Fault", "FaultPlan", "DarkFrame", "FlatField", "InFocusImageStandIn", "IrradianceSource", "PolarChart",
-    "make_source", "register_source", "source_names",
+    "make_source", "register_source", "source_names", "RenderedScene", "ProceduralOpticalSource",
 ]

@@ -1,7 +1,8 @@
 """Spatially varying convolution: overlap-add over field zones, and a brute-force reference.
 
-Zones sit on a square grid (``zone_px`` apart, the first at the window's
-corner). Each zone owns a bilinear tent weight w_z (the weights form a
+Zones sit on a square grid ``zone_px`` apart, anchored to absolute sensor
+coordinates (centres at multiples of ``zone_px``), so a window rendered on
+its own uses the same zones, hence the same result, as a larger render. Each zone owns a bilinear tent weight w_z (the weights form a
 partition of unity over the window) and one kernel set, taken at its centre
 pixel's (θ, φ). The output is Σ_z h_z * (w_z · x): every source pixel spreads
 with a blend of its nearest zones' kernels, which conserves energy exactly
@@ -19,29 +20,30 @@ from scipy.signal import fftconvolve
 
 @dataclass(frozen=True)
 class Zone:
-    row: int  # centre, window coordinates
+    row: int  # centre, window coordinates (may lie just outside the window)
     col: int
     rows: slice  # support of its tent weight (window coordinates)
     cols: slice
     weight: np.ndarray  # (h, w) tent weight on that support
 
 
-def _tents(length: int, step: int):
-    """Centres and 1-D tent weights normalised to a partition of unity on [0, length)."""
-    centres = np.arange(0, length - 1 + step, step) if length > 1 else np.array([0])
-    centres = centres[centres < length + step // 2]
+def _tents(length: int, step: int, origin: int):
+    """Centres (window coordinates; absolute multiples of ``step``) and tent weights on [0, length)."""
+    first = -(origin % step)
+    centres = np.arange(first, length - 1 + step, step)
+    centres = centres[(centres > -step) & (centres < length - 1 + step)]
     x = np.arange(length)[None, :]
     w = np.maximum(0.0, 1.0 - np.abs(x - centres[:, None]) / step)
     w /= w.sum(axis=0, keepdims=True)
     return centres, w
 
 
-def zones(height: int, width: int, zone_px: int):
-    """The zones of a window, each with its tent weight support."""
+def zones(height: int, width: int, zone_px: int, row0: int = 0, col0: int = 0):
+    """The zones of a window at (row0, col0) of the sensor, each with its tent weight support."""
     if zone_px < 2:
         raise ValueError(f"zone_px must be ≥ 2, got {zone_px}")
-    rc, rw = _tents(height, zone_px)
-    cc, cw = _tents(width, zone_px)
+    rc, rw = _tents(height, zone_px, row0)
+    cc, cw = _tents(width, zone_px, col0)
     out = []
     for i, r in enumerate(rc):
         rnz = np.nonzero(rw[i])[0]
@@ -49,7 +51,9 @@ def zones(height: int, width: int, zone_px: int):
             cnz = np.nonzero(cw[j])[0]
             rows = slice(rnz[0], rnz[-1] + 1)
             cols = slice(cnz[0], cnz[-1] + 1)
-            out.append(Zone(int(min(r, height - 1)), int(min(c, width - 1)), rows, cols,
+            if len(rnz) == 0 or len(cnz) == 0:
+                continue
+            out.append(Zone(int(r), int(c), rows, cols,
                             np.outer(rw[i, rows], cw[j, cols]).astype(np.float32)))
     return out
 

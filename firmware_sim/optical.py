@@ -1,0 +1,123 @@
+"""Optical irradiance sources: scenes seen through the lens by the forward simulator.
+
+* ``RenderedScene`` — an RGB + range scene placed at (row0, col0) of the
+  sensor, rendered through the lens (``bmi_sdk.render.render_coded``).
+* ``procedural:SEED`` — the embedded default: a full-sensor procedural scene
+  (``bmi_sdk.scenes.generate_scene``) seen through the lens.
+
+The readout asks for strips of any window. A source renders fixed blocks of
+``block_px`` (aligned to the sensor grid) with one kernel width of scene
+margin and caches them, so every window it is asked for is identical to the
+same region of a full-frame render (the renderer anchors its zones to the
+sensor too) and each block is rendered once. Outside the scene the
+irradiance is 0.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
+
+from .sources import register_source
+
+BLOCK_PX = 512
+
+
+@lru_cache(maxsize=4)
+def _tensor(lens_name: str):
+    from bmi_sdk.optics import PsfTensor, get_lens
+
+    return PsfTensor(get_lens(lens_name))
+
+
+class RenderedScene:
+    """An RGB + range scene at (row0, col0) of the sensor, seen through the lens (see module doc)."""
+
+    def __init__(self, rgb: np.ndarray, range_m: np.ndarray, row0: int = 0, col0: int = 0,
+                 lens: str = "bmi_monocentric", geometry: SensorGeometry = BMI_SENSOR, name: str = "scene",
+                 psf_mode: str = "exact", zone_px: int = 256, block_px: int = BLOCK_PX, label: str = ""):
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or range_m.shape != rgb.shape[:2]:
+            raise ValueError(f"scene needs rgb H×W×3 and range_m H×W, got {rgb.shape} and {range_m.shape}")
+        self.rgb = np.asarray(rgb, dtype=np.float32)
+        self.range_m = np.asarray(range_m, dtype=np.float32)
+        self.row0, self.col0 = int(row0), int(col0)
+        self.lens = lens
+        self.geometry = geometry
+        self.name = name
+        self.psf_mode = psf_mode
+        self.zone_px = zone_px
+        self.block_px = block_px
+        self.label = label
+        self._blocks: dict[tuple[int, int], np.ndarray] = {}
+
+    def metadata(self) -> dict:
+        return {"source": self.name, "label": self.label, "lens": self.lens, "psf_mode": self.psf_mode,
+                "scene_window": [self.row0, self.col0, *self.rgb.shape[:2]], "zone_px": self.zone_px}
+
+    def _block(self, br: int, bc: int) -> np.ndarray:
+        key = (br, bc)
+        if key not in self._blocks:
+            from bmi_sdk.render import render_coded
+
+            tensor = _tensor(self.lens)
+            margin = tensor.spec.kernel_px
+            h, w = self.rgb.shape[:2]
+            # block in scene coordinates, then with margin, clipped to the scene
+            r0, c0 = br * self.block_px - self.row0, bc * self.block_px - self.col0
+            r1, c1 = r0 + self.block_px, c0 + self.block_px
+            R0, C0 = max(r0 - margin, 0), max(c0 - margin, 0)
+            R1, C1 = min(r1 + margin, h), min(c1 + margin, w)
+            out = np.zeros((self.block_px, self.block_px, 3), np.float32)
+            if R1 > R0 and C1 > C0:
+                img = render_coded(self.rgb[R0:R1, C0:C1], self.range_m[R0:R1, C0:C1], tensor, self.geometry,
+                                   self.row0 + R0, self.col0 + C0, zone_px=self.zone_px, psf_mode=self.psf_mode)
+                rr0, cc0 = max(r0, 0), max(c0, 0)
+                rr1, cc1 = min(r1, h), min(c1, w)
+                if rr1 > rr0 and cc1 > cc0:
+                    out[rr0 - r0:rr1 - r0, cc0 - c0:cc1 - c0] = img[rr0 - R0:rr1 - R0, cc0 - C0:cc1 - C0]
+            self._blocks[key] = out
+        return self._blocks[key]
+
+    def irradiance(self, row0: int, col0: int, height: int, width: int) -> np.ndarray:
+        out = np.zeros((height, width, 3), np.float32)
+        b = self.block_px
+        for br in range(row0 // b, (row0 + height - 1) // b + 1):
+            for bc in range(col0 // b, (col0 + width - 1) // b + 1):
+                top, left = br * b, bc * b
+                r0, r1 = max(row0, top), min(row0 + height, top + b)
+                c0, c1 = max(col0, left), min(col0 + width, left + b)
+                if not (self.row0 < top + b and top < self.row0 + self.rgb.shape[0]
+                        and self.col0 < left + b and left < self.col0 + self.rgb.shape[1]):
+                    continue  # block outside the scene: no light
+                out[r0 - row0:r1 - row0, c0 - col0:c1 - col0] = self._block(br, bc)[r0 - top:r1 - top,
+                                                                                        c0 - left:c1 - left]
+        return out
+
+
+class ProceduralOpticalSource(RenderedScene):
+    """``procedural:SEED``: the embedded default full-sensor scene through the lens."""
+
+    def __init__(self, seed: int, geometry: SensorGeometry = BMI_SENSOR, **kwargs):
+        from bmi_sdk.scenes import generate_scene
+
+        scene = generate_scene(geometry.height_px, geometry.width_px, seed)
+        super().__init__(scene.rgb, scene.range_m, 0, 0, geometry=geometry, name="procedural",
+                         label=f"procedural seed {seed}", **kwargs)
+        self.seed = seed
+
+    def metadata(self) -> dict:
+        return dict(super().metadata(), seed=self.seed)
+
+
+def _procedural(arg):
+    try:
+        seed = 0 if arg is None else int(arg)
+    except ValueError:
+        raise ValueError(f"procedural:SEED takes an integer seed, got {arg!r}") from None
+    return ProceduralOpticalSource(seed)
+
+
+register_source("procedural", _procedural)
