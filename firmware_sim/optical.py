@@ -38,13 +38,16 @@ class RenderedScene:
 
     def __init__(self, rgb: np.ndarray, range_m: np.ndarray, row0: int = 0, col0: int = 0,
                  lens: str = "bmi_monocentric", geometry: SensorGeometry = BMI_SENSOR, name: str = "scene",
-                 psf_mode: str = "exact", zone_px: int = 256, block_px: int = BLOCK_PX, label: str = ""):
+                 psf_mode: str = "exact", zone_px: int = 256, block_px: int = BLOCK_PX, label: str = "",
+                 tensor=None):
+        """``tensor`` (a PsfTensor) overrides the lens's default one: a calibrated or perturbed lens."""
         if rgb.ndim != 3 or rgb.shape[2] != 3 or range_m.shape != rgb.shape[:2]:
             raise ValueError(f"scene needs rgb H×W×3 and range_m H×W, got {rgb.shape} and {range_m.shape}")
         self.rgb = np.asarray(rgb, dtype=np.float32)
         self.range_m = np.asarray(range_m, dtype=np.float32)
         self.row0, self.col0 = int(row0), int(col0)
-        self.lens = lens
+        self.tensor = tensor
+        self.lens = lens if tensor is None else tensor.lens.name
         self.geometry = geometry
         self.name = name
         self.psf_mode = psf_mode
@@ -62,7 +65,7 @@ class RenderedScene:
         if key not in self._blocks:
             from bmi_sdk.render import render_coded
 
-            tensor = _tensor(self.lens)
+            tensor = self.tensor if self.tensor is not None else _tensor(self.lens)
             margin = tensor.spec.kernel_px
             h, w = self.rgb.shape[:2]
             # block in scene coordinates, then with margin, clipped to the scene
@@ -98,18 +101,32 @@ class RenderedScene:
 
 
 class ProceduralOpticalSource(RenderedScene):
-    """``procedural:SEED``: the embedded default full-sensor scene through the lens."""
+    """``procedural:SEED``: the embedded default full-sensor scene through the lens (generated on first use)."""
 
     def __init__(self, seed: int, geometry: SensorGeometry = BMI_SENSOR, **kwargs):
+        self.seed = seed
+        self._geometry_for_scene = geometry
+        self._kwargs = kwargs
+        self.name = "procedural"
+        self._ready = False
+
+    def _materialise(self) -> None:
         from bmi_sdk.scenes import generate_scene
 
-        scene = generate_scene(geometry.height_px, geometry.width_px, seed)
-        super().__init__(scene.rgb, scene.range_m, 0, 0, geometry=geometry, name="procedural",
-                         label=f"procedural seed {seed}", **kwargs)
-        self.seed = seed
+        g = self._geometry_for_scene
+        scene = generate_scene(g.height_px, g.width_px, self.seed)
+        super().__init__(scene.rgb, scene.range_m, 0, 0, geometry=g, name="procedural",
+                         label=f"procedural seed {self.seed}", **self._kwargs)
+        self._ready = True
+
+    def irradiance(self, row0: int, col0: int, height: int, width: int) -> np.ndarray:
+        if not self._ready:
+            self._materialise()
+        return super().irradiance(row0, col0, height, width)
 
     def metadata(self) -> dict:
-        return dict(super().metadata(), seed=self.seed)
+        meta = super().metadata() if self._ready else {"source": self.name, "label": f"procedural seed {self.seed}"}
+        return dict(meta, seed=self.seed)
 
 
 def _procedural(arg):
