@@ -117,6 +117,7 @@ class SensorModel:
     electrons_per_us: float = 0.6
     adc_bits: int = 12
     poisson_exact_below_e: float = 100.0
+    additive_sigma: float | None = None  # the paper's model: N(0, σ²) on the [0, 1] signal instead of shot + read noise
 
     def __post_init__(self):
         for name in ("full_well_e", "conversion_gain_dn_per_e", "electrons_per_us"):
@@ -126,6 +127,8 @@ class SensorModel:
             raise ValueError(f"SensorModel.read_noise_e must be >= 0, got {self.read_noise_e}")
         if not 8 <= self.adc_bits <= 16:
             raise ValueError(f"SensorModel.adc_bits must be in 8..16, got {self.adc_bits}")
+        if self.additive_sigma is not None and not self.additive_sigma >= 0:
+            raise ValueError(f"SensorModel.additive_sigma must be >= 0, got {self.additive_sigma}")
 
     @property
     def white_level_dn(self) -> int:
@@ -142,9 +145,17 @@ class SensorModel:
         irr = np.asarray(irradiance, dtype=np.float32)
         return np.maximum(irr, 0.0) * np.float32(self.electrons_per_us * exposure_us)
 
-    def electrons(self, mean_e: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Shot noise + full-well clip + read noise: float32 electrons (may be < 0 from read noise)."""
+    def electrons(self, mean_e: np.ndarray, rng: np.random.Generator, full_scale_e: float | None = None) -> np.ndarray:
+        """Shot noise + full-well clip + read noise: float32 electrons (may be < 0 from read noise).
+
+        With ``additive_sigma`` set, the paper's model instead: mean + σ·full_scale_e·N(0, 1),
+        ``full_scale_e`` being the electrons of irradiance 1.0 at the exposure (the [0, 1] signal's 1).
+        """
         mean_e = np.asarray(mean_e, dtype=np.float32)
+        if self.additive_sigma is not None:
+            scale = np.float32(self.additive_sigma * (full_scale_e or self.full_well_e))
+            out = mean_e + scale * rng.standard_normal(mean_e.shape, dtype=np.float32) if scale > 0 else mean_e.copy()
+            return np.minimum(out, np.float32(self.full_well_e), out=out)
         exact = mean_e < self.poisson_exact_below_e
         out = mean_e + np.sqrt(mean_e) * rng.standard_normal(mean_e.shape, dtype=np.float32)
         if exact.any():
@@ -170,4 +181,4 @@ class SensorModel:
                       black_level_dn: int, rng: np.random.Generator) -> np.ndarray:
         """H×W irradiance already filtered by the CFA → H×W uint16 raw DN (the whole chain)."""
         mean_e = self.mean_electrons(mosaic_irradiance, exposure_us)
-        return self.adc(self.electrons(mean_e, rng), analog_gain, black_level_dn)
+        return self.adc(self.electrons(mean_e, rng, self.electrons_per_us * exposure_us), analog_gain, black_level_dn)

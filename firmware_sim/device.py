@@ -29,9 +29,9 @@ MODEL_NAME = "BMI-SIM"
 
 def lens_identity(name: str = "bmi_monocentric") -> dict:
     """Name and optical SHA-256 of the lens the camera carries."""
-    from bmi_sdk.optics.prescription import load_lens
+    from bmi_sdk.optics import get_lens
 
-    lens = load_lens(name)
+    lens = get_lens(name)  # "fisheye" is the baseline matched to the monocentric lens
     return {"name": lens.name, "sha256": lens.sha256()}
 
 
