@@ -1,0 +1,48 @@
+"""Sensor geometry: the one pixel ↔ field ↔ ray mapping."""
+
+import numpy as np
+import pytest
+
+from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
+from bmi_sdk.optics import get_lens
+
+
+def test_corners_reach_the_half_field_and_the_centre_is_the_axis():
+    theta, _ = BMI_SENSOR.field_angles(np.array([0, 4499]), np.array([0, 5999]))
+    assert theta == pytest.approx([59.68, 59.68], abs=0.01)  # 3750 px × 2 µm / 7.199 mm
+    cy, cx = BMI_SENSOR.centre_px
+    assert BMI_SENSOR.field_angles(cy, cx)[0] == 0.0
+    assert BMI_SENSOR.valid_mask().all()  # the 60° circle covers the whole array
+
+
+def test_pixel_field_round_trip_and_azimuth_convention():
+    rng = np.random.default_rng(0)
+    theta, phi = rng.uniform(0, 59, 50), rng.uniform(-180, 180, 50)
+    rows, cols = BMI_SENSOR.pixel_of_field(theta, phi)
+    t2, p2 = BMI_SENSOR.field_angles(rows, cols)
+    assert t2 == pytest.approx(theta, abs=1e-9) and np.cos(np.radians(p2 - phi)) == pytest.approx(1.0)
+    r, c = BMI_SENSOR.pixel_of_field(30.0, 90.0)  # φ = 90°: straight down the image (rows grow)
+    assert r > BMI_SENSOR.centre_px[0] and c == pytest.approx(BMI_SENSOR.centre_px[1])
+
+
+def test_ray_directions_and_depth_conversions():
+    d = BMI_SENSOR.ray_directions(np.array([0, 2250]), np.array([0, 3000]))
+    assert np.linalg.norm(d, axis=-1) == pytest.approx([1.0, 1.0])
+    assert d[0, 0] < 0 and d[0, 1] < 0 and d[0, 2] == pytest.approx(np.cos(np.radians(59.68)), abs=1e-3)
+    assert BMI_SENSOR.z_to_range(BMI_SENSOR.range_to_z(5.0, 60.0), 60.0) == pytest.approx(5.0)
+    assert BMI_SENSOR.range_to_z(5.0, 60.0) == pytest.approx(2.5)
+
+
+def test_lens_mapping_and_serialisation():
+    real = SensorGeometry.for_lens(get_lens())
+    assert real.field_deg_from_radial_mm(np.radians(59.62) * 7.199) == pytest.approx(60.0, abs=0.01)
+    # The printed lens lands 60° at 59.62° on the sensor, so the array's corners (59.68°) lie just
+    # outside its 60° image circle: no field, not valid.
+    assert np.isnan(real.field_angles(0, 0)[0]) and not real.valid_mask(0, 0, 2, 2).any()
+    again = SensorGeometry.from_dict(real.to_dict())
+    assert again.field_angles(100, 100)[0] == pytest.approx(real.field_angles(100, 100)[0])
+    plane = SensorGeometry.for_lens(get_lens("fisheye"))
+    assert plane.radius_mm is None
+    assert plane.field_angles(*plane.pixel_of_field(45.0, 10.0))[0] == pytest.approx(45.0, abs=1e-6)
+    with pytest.raises(ValueError, match="radius_mm must be > 0"):
+        SensorGeometry(radius_mm=0.0)
