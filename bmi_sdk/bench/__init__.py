@@ -8,10 +8,12 @@ headed by the exact command that made it. Speed never lives in tests.
 
 from __future__ import annotations
 
+import math
 import platform
 import re
 import resource
 import sys
+import time
 from pathlib import Path
 
 from ..io_atomic import write_bytes
@@ -52,3 +54,30 @@ def update_section(title: str, body: str, path: Path = DOCS) -> None:
     else:
         text = text.rstrip("\n") + "\n\n" + section
     write_bytes(path, text.encode())
+
+
+def timed(fn, repeat: int = 1):
+    """(result of the last call, best wall time in seconds over ``repeat`` calls)."""
+    best = math.inf
+    out = None
+    for _ in range(repeat):
+        start = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - start)
+    return out, best
+
+
+def register_target(subparsers, name: str, help_text: str, description: str, section: str, run) -> None:
+    """Add ``bmi bench NAME [--full] [--write-docs]`` printing ``run(full)`` (a markdown text)."""
+
+    def handler(args) -> int:
+        text = run(full=args.full)
+        print(text)
+        if args.write_docs:
+            update_section(section, text)
+        return 0
+
+    p = subparsers.add_parser(name, help=help_text, description=description)
+    p.add_argument("--full", action="store_true", help="also run the full-size measurement (minutes)")
+    p.add_argument("--write-docs", action="store_true", help=f"replace the '{section}' section of docs/benchmarks.md")
+    p.set_defaults(handler=handler)

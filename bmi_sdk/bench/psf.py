@@ -9,11 +9,10 @@ guard 3, 9 samples per pixel side), over fields 0/30/60°, depths
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 
-from . import markdown_table, peak_rss_mb, update_section
+from . import markdown_table, peak_rss_mb, register_target, timed
 
 CASES = [(0.0, 0.7), (30.0, 0.7), (60.0, 0.7), (0.0, 2.0), (60.0, 2.0), (0.0, 10.0), (60.0, 10.0), (60.0, math.inf)]
 WAVELENGTHS_UM = (0.5876, 0.4861)
@@ -26,15 +25,6 @@ def _cases():
     depth = np.array([c[1] for c in CASES for _ in WAVELENGTHS_UM])
     lam = np.array([w for _ in CASES for w in WAVELENGTHS_UM])
     return theta, depth, lam
-
-
-def _timed(fn, repeat=1):
-    best = math.inf
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return out, best
 
 
 def run(full: bool = False) -> str:
@@ -53,13 +43,13 @@ def run(full: bool = False) -> str:
     out = []
     rows = []
     for guard in (1.0, 1.25, 1.5, 2.0, 3.0):
-        ks, t = _timed(lambda: [psf_from_pupil(f, KERNEL_PX, guard=guard).kernel for f in default_fits], 2)
+        ks, t = timed(lambda: [psf_from_pupil(f, KERNEL_PX, guard=guard).kernel for f in default_fits], 2)
         rows.append([guard, err(ks), t / len(ks) * 1e3])
     out.append("### Pupil sampling (guard = replica spacing / kernel width; 5 samples per pixel side, default fit)\n\n"
                + markdown_table(["guard", "max L1 error", "ms per PSF (transform)"], rows))
     rows = []
     for q in (1, 3, 5, 7):
-        ks, t = _timed(lambda: [psf_from_pupil(f, KERNEL_PX, oversample=q).kernel for f in default_fits], 2)
+        ks, t = timed(lambda: [psf_from_pupil(f, KERNEL_PX, oversample=q).kernel for f in default_fits], 2)
         rows.append([q, err(ks), t / len(ks) * 1e3])
     out.append("### Pixel integration (samples per pixel side, exact box filter of the band-limited intensity; guard 1.25)\n\n"
                + markdown_table(["oversample", "max L1 error", "ms per PSF (transform)"], rows))
@@ -68,7 +58,7 @@ def run(full: bool = False) -> str:
     for grid, degree in ((12, 6), (16, 8), (20, 8), (20, 10), (24, 10), (32, 12)):
         fits = fit_pupils(lens, theta, depth, lam, grid=grid, degree=degree)
         ks = [psf_from_pupil(f, KERNEL_PX, guard=REF["guard"], oversample=REF["oversample"]).kernel for f in fits]
-        _, t = _timed(lambda: fit_pupils(lens, batch_theta.ravel(), batch_depth.ravel(), 0.5876, grid=grid, degree=degree))
+        _, t = timed(lambda: fit_pupils(lens, batch_theta.ravel(), batch_depth.ravel(), 0.5876, grid=grid, degree=degree))
         rows.append([f"{grid}² rays, degree {degree}", max(f.fit_rms_waves for f in fits), err(ks),
                      t / batch_theta.size * 1e3])
     out.append("### Ray sampling and wavefront fit (exact trace; transform at reference settings)\n\n"
@@ -82,7 +72,7 @@ def run(full: bool = False) -> str:
             continue
         exact = psf_from_pupil(f, KERNEL_PX).kernel
         base = on_axis.get(f.depth_m) or fit_pupils(lens, 0.0, f.depth_m, 0.5876)[0]
-        approx, t_e = _timed(lambda: ellipse_psf(base, f.field_deg, KERNEL_PX).kernel)
+        approx, t_e = timed(lambda: ellipse_psf(base, f.field_deg, KERNEL_PX).kernel)
         aw = axial_wavefront(lens, 587.6, f.depth_m)
         two = psf_from_pupil(two_term_fit(f, aw.two_term_w020_waves, aw.two_term_w040_waves), KERNEL_PX).kernel
         seidel = psf_from_pupil(two_term_fit(f, aw.w020_waves, aw.w040_waves), KERNEL_PX).kernel
@@ -94,13 +84,13 @@ def run(full: bool = False) -> str:
                "cut after ρ⁴ (its W040 ≈ 2.46 λ, the Seidel-like value the paper quotes).\n\n"
                + markdown_table(["field °", "depth m", "ellipse", "two-term best fit", "two-term truncated"], rows))
     # Single PSF and per-shard costs.
-    _, t_single = _timed(lambda: psf_from_pupil(fit_pupils(lens, 37.0, 1.3, 0.5876)[0], KERNEL_PX), 5)
+    _, t_single = timed(lambda: psf_from_pupil(fit_pupils(lens, 37.0, 1.3, 0.5876)[0], KERNEL_PX), 5)
     spec = TensorSpec()
     tensor = PsfTensor(lens, spec, use_cache=False)
-    _, t_shard = _timed(lambda: tensor.ensure([50], range(len(spec.depth_m))))
+    _, t_shard = timed(lambda: tensor.ensure([50], range(len(spec.depth_m))))
     n_shard = len(spec.depth_m) * len(spec.channels)
     base = fit_pupils(lens, 0.0, 1.3, 0.5876)[0]
-    _, t_ellipse = _timed(lambda: ellipse_psf(base, 37.0, KERNEL_PX), 5)
+    _, t_ellipse = timed(lambda: ellipse_psf(base, 37.0, KERNEL_PX), 5)
     rows = [["single PSF, exact (trace + fit + transform)", t_single * 1e3],
             ["single PSF, ellipse model (transform only, pupil reused)", t_ellipse * 1e3],
             [f"one θ shard of the tensor ({n_shard} PSFs), per PSF", t_shard / n_shard * 1e3]]
@@ -110,23 +100,11 @@ def run(full: bool = False) -> str:
                f"{KERNEL_PX}²), extrapolated from one shard: {est:.0f} s single process.")
     if full:
         tensor = PsfTensor(lens, spec, use_cache=False)
-        _, t_full = _timed(lambda: tensor.ensure_all(progress=True))
+        _, t_full = timed(lambda: tensor.ensure_all(progress=True))
         out.append(f"Full default tensor built from scratch: {t_full:.1f} s, peak resident memory "
                    f"{peak_rss_mb():.0f} MB (process total, `bmi bench psf --full`).")
     return "\n\n".join(out)
 
 
-def _handler(args) -> int:
-    text = run(full=args.full)
-    print(text)
-    if args.write_docs:
-        update_section("PSF (optics engine)", text)
-    return 0
-
-
 def register(subparsers) -> None:
-    p = subparsers.add_parser("psf", help="PSF accuracy against run time; tensor build time and memory",
-                              description=__doc__)
-    p.add_argument("--full", action="store_true", help="also build the full default tensor (minutes)")
-    p.add_argument("--write-docs", action="store_true", help="replace the PSF section of docs/benchmarks.md")
-    p.set_defaults(handler=_handler)
+    register_target(subparsers, "psf", "PSF accuracy against run time; tensor build time and memory", __doc__, "PSF (optics engine)", run)

@@ -13,17 +13,9 @@ units) or L1 distances between unit-sum kernels.
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
-from . import markdown_table, peak_rss_mb, update_section
-
-
-def _timed(fn):
-    t = time.perf_counter()
-    out = fn()
-    return out, time.perf_counter() - t
+from . import markdown_table, peak_rss_mb, register_target, timed
 
 
 def run(full: bool = False) -> str:
@@ -41,10 +33,10 @@ def run(full: bool = False) -> str:
     depths = np.array([0.7, 1.0, 2.0, 10.0], np.float32)
     range_m = depths[np.kron(rng.integers(0, 4, (8, 8)), np.ones((8, 8), int))]
     row0, col0 = 300, 5000
-    ref, t_ref = _timed(lambda: render_reference(rgb, range_m, tensor, BMI_SENSOR, row0, col0))
+    ref, t_ref = timed(lambda: render_reference(rgb, range_m, tensor, BMI_SENSOR, row0, col0))
     rows = [["per-pixel reference", 0.0, 0.0, t_ref]]
     for zone in (8, 16, 32, 64):
-        img, t = _timed(lambda: render_coded(rgb, range_m, tensor, BMI_SENSOR, row0, col0, zone_px=zone,
+        img, t = timed(lambda: render_coded(rgb, range_m, tensor, BMI_SENSOR, row0, col0, zone_px=zone,
                                               psf_mode="tensor"))
         rows.append([f"zones of {zone} px", float(np.abs(img - ref).mean()), float(np.abs(img - ref).max()), t])
     out.append("### Zone size against the per-pixel reference (64² window, θ ≈ 50°, 4 depths)\n\n"
@@ -57,7 +49,7 @@ def run(full: bool = False) -> str:
     for step in (1, 2, 5, 10):
         grid = tuple(full_grid[::step])
         t_sub = PsfTensor(lens, TensorSpec(depth_m=grid))
-        img, t = _timed(lambda: render_coded(scene.rgb, scene.range_m, t_sub, BMI_SENSOR, 1800, 2600, zone_px=128,
+        img, t = timed(lambda: render_coded(scene.rgb, scene.range_m, t_sub, BMI_SENSOR, 1800, 2600, zone_px=128,
                                               psf_mode="tensor"))
         if base is None:
             base = img
@@ -77,9 +69,9 @@ def run(full: bool = False) -> str:
         errs = [float(np.abs(pm.kernels(t, p, [d]) - exact.kernels(t, p, [d])).sum(axis=(2, 3)).mean())
                 for t, p, d in cases]
         rows.append([interp, float(np.mean(errs)), float(np.max(errs))])
-    _, t_exact = _timed(lambda: PsfMap(tensor, BMI_SENSOR, mode="exact").kernels(33.3, 21.0, range(0, 94, 4)))
+    _, t_exact = timed(lambda: PsfMap(tensor, BMI_SENSOR, mode="exact").kernels(33.3, 21.0, range(0, 94, 4)))
     pm = PsfMap(tensor, BMI_SENSOR, mode="tensor")
-    _, t_tensor = _timed(lambda: pm.kernels(33.3, 21.0, range(0, 94, 4)))
+    _, t_tensor = timed(lambda: pm.kernels(33.3, 21.0, range(0, 94, 4)))
     out.append("### PSF map: tensor interpolation + rotation against exact traced kernels "
                "(12 random (θ, φ, d), L1 per channel kernel)\n\n"
                + markdown_table(["θ weights", "mean L1", "max L1"], rows)
@@ -89,7 +81,7 @@ def run(full: bool = False) -> str:
         scene = generate_scene(4500, 6000, 7)
         rows = []
         for mode, zone in (("tensor", 512), ("exact", 512)):
-            _, t = _timed(lambda: render_coded(scene.rgb, scene.range_m, tensor, BMI_SENSOR, 0, 0, zone_px=zone,
+            _, t = timed(lambda: render_coded(scene.rgb, scene.range_m, tensor, BMI_SENSOR, 0, 0, zone_px=zone,
                                                 psf_mode=mode))
             rows.append([mode, zone, t, peak_rss_mb()])
         out.append("### Full 6000×4500 procedural frame (seed 7)\n\n"
@@ -97,17 +89,5 @@ def run(full: bool = False) -> str:
     return "\n\n".join(out)
 
 
-def _handler(args) -> int:
-    text = run(full=args.full)
-    print(text)
-    if args.write_docs:
-        update_section("Rendering (forward simulator)", text)
-    return 0
-
-
 def register(subparsers) -> None:
-    p = subparsers.add_parser("render", help="rendering accuracy knobs against run time; full-frame time and memory",
-                              description=__doc__)
-    p.add_argument("--full", action="store_true", help="also render the full 6000×4500 frame (minutes)")
-    p.add_argument("--write-docs", action="store_true", help="replace the rendering section of docs/benchmarks.md")
-    p.set_defaults(handler=_handler)
+    register_target(subparsers, "render", "rendering accuracy knobs against run time; full-frame time and memory", __doc__, "Rendering (forward simulator)", run)

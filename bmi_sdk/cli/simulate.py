@@ -9,7 +9,6 @@ than the sensor is a region-of-interest frame centred at (--field-deg,
 
 from __future__ import annotations
 
-import math
 import time
 from pathlib import Path
 
