@@ -201,7 +201,7 @@ def render_sample(spec: CacheSpec, index: int, tensor, geometry: SensorGeometry,
     else:
         rgb, range_m, row0, col0 = _dataset_window(scenes, geometry, size, rng)
     render_range = np.where(np.isfinite(range_m), range_m, FAR_FILL_M).astype(np.float32)
-    optical = render_coded(rgb, render_range, tensor, geometry, row0=row0, col0=col0)
+    optical = render_coded(rgb, render_range, tensor, geometry, row0=row0, col0=col0, psf_mode="tensor")
     optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
     m = slice(spec.margin_px, spec.margin_px + spec.stored_px)
     return {"optical": optical[m, m].astype(np.float16), "rgb": rgb[m, m].astype(np.float16),

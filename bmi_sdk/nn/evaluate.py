@@ -80,7 +80,9 @@ def perturb(tensor, *, shift_px: float = 0.0, scale: float = 0.0, radius: float 
     tensor.ensure_all()
     data = tensor.data.astype(np.float64)
     if shift_px:
-        data = ndimage.shift(data, (0, 0, 0, 0, shift_px), order=3, mode="constant")
+        flat = data.reshape(-1, *data.shape[-2:])
+        for n in range(len(flat)):
+            flat[n] = ndimage.shift(flat[n], (0.0, shift_px), order=3, mode="constant")
     if scale:
         rng = np.random.default_rng(seed)
         signs = rng.choice([-1.0, 1.0], size=data.shape[1:3])
@@ -144,7 +146,7 @@ class Benchmark:
         out = []
         for region, i, row0, col0 in windows:
             scene = generate_scene(size, size, np.random.default_rng([self.seed, 7, list(REGIONS).index(region), i]))
-            optical = render_coded(scene.rgb, scene.range_m, tensor, geometry, row0=row0, col0=col0)
+            optical = render_coded(scene.rgb, scene.range_m, tensor, geometry, row0=row0, col0=col0, psf_mode="tensor")
             optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
             out.append({"region": region, "tile": i, "row0": row0 + m, "col0": col0 + m, "optical_full": optical,
                         "rgb": scene.rgb[m:-m, m:-m], "range_m": scene.range_m[m:-m, m:-m]})
