@@ -65,9 +65,12 @@ def _pixel_operator(kernel_px: int, oversample: int) -> np.ndarray:
 
 
 @lru_cache(maxsize=512)
-def _phase_matrix(n_sub: int, step_mm: float, n_pupil: int, d_l: float, lam_mm: float) -> np.ndarray:
-    """exp(ik x_m l_j) for sub-sample positions x_m and pupil offsets l_j (complex64, n_sub × n_pupil)."""
+def _phase_matrix(n_sub: int, step_mm: float, n_pupil: int, d_l: float, lam_mm: float,
+                  shift_mm: float = 0.0) -> np.ndarray:
+    """exp(ik x_m l_j) for sub-sample positions x_m (+ ``shift_mm``) and pupil offsets l_j (complex64)."""
     x = (np.arange(n_sub) - n_sub // 2) * step_mm
+    if shift_mm != 0.0:
+        x = x + shift_mm
     l_off = (np.arange(n_pupil) - n_pupil // 2) * d_l
     return np.exp(1j * (2 * np.pi / lam_mm) * np.outer(x, l_off)).astype(np.complex64)
 
@@ -106,13 +109,23 @@ def pupil_function(fit: PupilFit, l_grid: np.ndarray, m_grid: np.ndarray, apertu
 
 
 def psf_from_pupil(fit: PupilFit, kernel_px: int, pitch_um: float = 2.0, oversample: int = DEFAULT_OVERSAMPLE,
-                   guard: float = DEFAULT_GUARD, aperture_l_scale: float = 1.0, rotation_deg: float = 0.0) -> Psf:
+                   guard: float = DEFAULT_GUARD, aperture_l_scale: float = 1.0, rotation_deg: float = 0.0,
+                   offset_px: tuple[float, float] = (0.0, 0.0), scale: float = 1.0) -> Psf:
     """The K × K pixel-integrated PSF of one fitted pupil (see module doc).
 
     ``rotation_deg`` = φ computes the PSF of a pixel at azimuth φ exactly (its radial
     axis along (cos φ, sin φ) of (col, row)) by turning the pupil grid instead of
     resampling the kernel; it costs a non-separable pupil evaluation.
+
+    ``offset_px`` = (dx, dy) samples the pixel grid with its centre pixel at
+    (dx, dy) px from the chief-ray point along the output (col, row) axes (a spot
+    that does not land on a pixel centre); ``scale`` s > 0 returns the
+    intensity I(x/s)/s² (a PSF s times larger about the chief ray) before the
+    pixel box. Both are exact (they move the transform's sample positions)
+    and the defaults leave the result bit-identical.
     """
+    if not scale > 0:
+        raise ValueError(f"scale must be > 0, got {scale}")
     if kernel_px < 1 or kernel_px % 2 == 0:
         raise ValueError(f"kernel_px must be odd and ≥ 1, got {kernel_px}")
     if oversample < 1 or oversample % 2 == 0:
@@ -137,12 +150,12 @@ def psf_from_pupil(fit: PupilFit, kernel_px: int, pitch_um: float = 2.0, oversam
         pupil = pupil_function(fit, fit.l_centre + l_off, fit.m_centre + m_off, aperture_l_scale)
     n_sub = kernel_px * oversample
     step_mm = pitch_mm / oversample  # pixel centres are samples
-    ex = _phase_matrix(n_sub, step_mm, n_l, d_l, lam_mm)  # (n_sub, n_l)
-    ey = _phase_matrix(n_sub, step_mm, n_m, d_l, lam_mm).T  # (n_m, n_sub)
+    ex = _phase_matrix(n_sub, step_mm / scale, n_l, d_l, lam_mm, offset_px[0] * pitch_mm / scale)  # (n_sub, n_l)
+    ey = _phase_matrix(n_sub, step_mm / scale, n_m, d_l, lam_mm, offset_px[1] * pitch_mm / scale).T
     field = ex @ pupil.astype(np.complex64) @ ey  # [x, y]
     intensity = (field.real.astype(np.float64) ** 2 + field.imag.astype(np.float64) ** 2).T  # [y, x]
     op = _pixel_operator(kernel_px, oversample)
-    pixels = np.maximum(op @ intensity @ op.T, 0.0) * pitch_mm**2
+    pixels = np.maximum(op @ intensity @ op.T, 0.0) * pitch_mm**2 / scale**2
     total_power = lam_mm**2 * np.sum(np.abs(pupil) ** 2)
     captured = float(pixels.sum() * d_l * d_l / total_power)
     return Psf(kernel=pixels / pixels.sum(), energy_captured=captured, pitch_um=pitch_um, pupil_samples=(n_l, n_m))

@@ -35,7 +35,7 @@ import numpy as np
 
 from .paraxial import entrance_pupil, indices
 from .prescription import Lens
-from .raytrace import RayTraceError, image_normal, trace
+from .raytrace import ImagePose, RayTraceError, image_normal, trace
 
 FAN_MERIDIONAL = 33
 FAN_SAGITTAL = 17
@@ -214,7 +214,7 @@ def _aim(lens, field_deg, depth_m, lam_um, z_ep, r_ep, r_stop):
     return out.T
 
 
-def _chief(lens, field_deg, depth_m, lam_um, z_ep, b_c, r_stop):
+def _chief(lens, field_deg, depth_m, lam_um, z_ep, b_c, r_stop, pose=None):
     """Refine each chief ray to pass the stop centre (secant iterations on the real trace)."""
     h = 1e-4 * max(r_stop, 1e-3)
     b = b_c.copy()
@@ -230,7 +230,7 @@ def _chief(lens, field_deg, depth_m, lam_um, z_ep, b_c, r_stop):
             break
         b = b - y0 * h / np.where(y1 != y0, y1 - y0, 1.0)
     o, d, opl = _launch(lens, field_deg, depth_m, z_ep, np.zeros_like(b)[:, None], b[:, None])
-    rays = trace(lens, lam_um[:, None], o, d, opl)
+    rays = trace(lens, lam_um[:, None], o, d, opl, image_pose=pose)
     if not rays.alive.all():
         e = int(np.nonzero(~rays.alive[:, 0])[0][0])
         raise RayTraceError(
@@ -275,10 +275,29 @@ def _fit_batched(xi, eta, values, weights, degree):
     return coeffs, values[..., 0] - fitted0
 
 
-def fit_pupils(lens: Lens, field_deg, depth_m, wavelength_um, grid: int = 20, degree: int = 10) -> list[PupilFit]:
+def _entry_pose(sensor_offset_mm, sensor_rotation, n_entries: int, pivot_z_mm: float):
+    """Per-entry ImagePoses with a ray axis (offset (B, 1, 3), rotation (B, 1, 3, 3)), or None."""
+    if sensor_offset_mm is None and sensor_rotation is None:
+        return None
+    off = np.zeros((n_entries, 3)) if sensor_offset_mm is None else np.broadcast_to(
+        np.asarray(sensor_offset_mm, dtype=np.float64), (n_entries, 3))
+    rot = np.broadcast_to(np.eye(3), (n_entries, 3, 3)) if sensor_rotation is None else np.broadcast_to(
+        np.asarray(sensor_rotation, dtype=np.float64), (n_entries, 3, 3))
+    return ImagePose(off[:, None, :], rot[:, None, :, :], pivot_z_mm)
+
+
+def fit_pupils(lens: Lens, field_deg, depth_m, wavelength_um, grid: int = 20, degree: int = 10,
+               sensor_offset_mm=None, sensor_rotation=None) -> list[PupilFit]:
     """Trace every (θ, d, λ) entry exactly and fit its converging wave (see module doc).
 
     The arguments broadcast to one batch; all entries are traced together.
+
+    ``sensor_offset_mm`` (B, 3) and ``sensor_rotation`` (B, 3, 3) (or one for all)
+    place the image surface rigidly per entry, about the lens centre (the stop),
+    *in that entry's meridional frame* (object in the y–z plane): for an object
+    at azimuth φ, rotate a sensor-fixed offset by −φ first
+    (``bmi_sdk.optics.perturb`` does this). None for both is the nominal lens,
+    bit-identical to the call without them.
     """
     field_deg, depth_m, wavelength_um = (np.atleast_1d(np.asarray(x, dtype=np.float64)).ravel()
                                          for x in np.broadcast_arrays(field_deg, depth_m, wavelength_um))
@@ -295,7 +314,8 @@ def fit_pupils(lens: Lens, field_deg, depth_m, wavelength_um, grid: int = 20, de
     r_stop = stop_radius_mm(lens)
     r_ep = r_stop / per_ep
     b_c, b_lo, b_hi, a_hi = _aim(lens, field_deg, depth_m, wavelength_um, z_ep, r_ep, r_stop)
-    b_c, chief_p, chief_s, chief_opl = _chief(lens, field_deg, depth_m, wavelength_um, z_ep, b_c, r_stop)
+    pose = _entry_pose(sensor_offset_mm, sensor_rotation, len(field_deg), lens.stop_z_mm)
+    b_c, chief_p, chief_s, chief_opl = _chief(lens, field_deg, depth_m, wavelength_um, z_ep, b_c, r_stop, pose)
     # Launch grids over-filling each real pupil.
     unit = np.linspace(-1.0, 1.0, grid)
     ua, ub = (x.ravel() for x in np.meshgrid(unit, unit, indexing="ij"))
@@ -305,8 +325,9 @@ def fit_pupils(lens: Lens, field_deg, depth_m, wavelength_um, grid: int = 20, de
     aa = half_a[:, None] * ua[None, :]
     bb = mid_b[:, None] + half_b[:, None] * ub[None, :]
     o, d, opl = _launch(lens, field_deg, depth_m, z_ep, aa, bb)
-    rays = trace(lens, wavelength_um[:, None], o, d, opl)
-    normal = image_normal(lens, chief_p)
+    rays = trace(lens, wavelength_um[:, None], o, d, opl, image_pose=pose)
+    chief_pose = None if pose is None else ImagePose(pose.offset_mm[:, 0], pose.rotation[:, 0], pose.pivot_z_mm)
+    normal = image_normal(lens, chief_p, chief_pose)
     normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
     away = np.array([0.0, -1.0, 0.0])
     e_rad = away - np.einsum("bi,i->b", normal, away)[:, None] * normal

@@ -12,6 +12,12 @@ relative to each surface's semi-diameter, so callers decide what vignettes
 (the PSF code fits these heights smoothly across the pupil to draw a sharp,
 anti-aliased aperture). Rays that miss a sphere or are totally reflected are
 dead (``alive`` False) with the surface index in ``fail_surface``.
+
+The image surface may be displaced and turned rigidly (``ImagePose``): a
+decentred or tilted lens assembly seen from the lens, and what the calibration
+fits. The ray is mapped into the nominal image surface's frame, intersected
+there, and the hit point mapped back (a rigid motion keeps path lengths). With
+no pose, the arithmetic is the nominal one, bit for bit.
 """
 
 from __future__ import annotations
@@ -41,6 +47,33 @@ class RayBundle:
     stop_xy_mm: np.ndarray  # (..., 2) intersection with the stop surface
 
 
+@dataclass(frozen=True)
+class ImagePose:
+    """Rigid placement of the image surface relative to its nominal one, in the lens frame.
+
+    A point y of the nominal surface moves to ``pivot + offset_mm + rotation (y − pivot)``,
+    ``pivot = (0, 0, pivot_z_mm)`` (the lens centre for a lens tilted about its centre).
+    ``offset_mm`` (..., 3) and ``rotation`` (..., 3, 3) broadcast against the ray batch.
+    """
+
+    offset_mm: np.ndarray
+    rotation: np.ndarray
+    pivot_z_mm: float
+
+    def to_nominal(self, point, direction=None):
+        """Map lens-frame points (and directions) into the nominal image surface's frame."""
+        pivot = np.array([0.0, 0.0, self.pivot_z_mm])
+        rel = np.asarray(point, dtype=np.float64) - pivot - self.offset_mm
+        y = np.einsum("...ji,...j->...i", self.rotation, rel) + pivot
+        if direction is None:
+            return y
+        return y, np.einsum("...ji,...j->...i", self.rotation, np.asarray(direction, dtype=np.float64))
+
+    def from_nominal(self, point):
+        pivot = np.array([0.0, 0.0, self.pivot_z_mm])
+        return np.einsum("...ij,...j->...i", self.rotation, np.asarray(point) - pivot) + pivot + self.offset_mm
+
+
 def _intersect(p, d, c):
     """Distance t along d from local point p to the vertex sheet of F = c|r|² − 2z."""
     b = d[..., 2] - c * np.einsum("...i,...i->...", p, d)
@@ -64,8 +97,11 @@ def _refract(d, normal, mu):
 
 
 def trace(lens: Lens, wavelength_um, origin, direction, opl0_mm=None, to_image: bool = True,
-          stop_only: bool = False) -> RayBundle:
+          stop_only: bool = False, image_pose: ImagePose | None = None) -> RayBundle:
     """Trace rays from ``origin`` along unit ``direction`` (object space, index of air).
+
+    ``image_pose`` places the image surface rigidly (see :class:`ImagePose`);
+    None is the nominal surface.
 
     ``wavelength_um`` is a scalar or an array broadcastable to the ray batch
     shape (one wavelength per ray group). The launch points must lie before
@@ -113,19 +149,24 @@ def trace(lens: Lens, wavelength_um, origin, direction, opl0_mm=None, to_image: 
         p = local + np.array([0.0, 0.0, z_vertex[j]])
     if to_image and not stop_only:
         c_img = lens.image.curvature_per_mm
-        local = p - np.array([0.0, 0.0, z_vertex[-1]])
-        t, ok = _intersect(local, d, c_img)
+        p_img, d_img = (p, d) if image_pose is None else image_pose.to_nominal(p, d)
+        local = p_img - np.array([0.0, 0.0, z_vertex[-1]])
+        t, ok = _intersect(local, d_img, c_img)
         fail[alive & ~ok] = n_surf
         alive &= ok
         t = np.where(alive, t, 0.0)
         opl += n_of[..., -1] * t
-        p = local + t[..., None] * d + np.array([0.0, 0.0, z_vertex[-1]])
+        p = local + t[..., None] * d_img + np.array([0.0, 0.0, z_vertex[-1]])
+        if image_pose is not None:
+            p = image_pose.from_nominal(p)
     return RayBundle(position=p, direction=d, opl_mm=opl, alive=alive, fail_surface=fail,
                      rel_height=rel_height, stop_xy_mm=stop_xy)
 
 
-def image_normal(lens: Lens, point):
-    """Unit normal of the image surface at ``point`` (pointing along +z, the light's way)."""
+def image_normal(lens: Lens, point, image_pose: ImagePose | None = None):
+    """Normal of the image surface at ``point`` (pointing along +z, the light's way; unit on the surface)."""
     c = lens.image.curvature_per_mm
-    local = np.asarray(point, dtype=np.float64) - np.array([0.0, 0.0, lens.vertex_z_mm[-1]])
-    return np.stack([-c * local[..., 0], -c * local[..., 1], 1.0 - c * local[..., 2]], axis=-1)
+    y = np.asarray(point, dtype=np.float64) if image_pose is None else image_pose.to_nominal(point)
+    local = y - np.array([0.0, 0.0, lens.vertex_z_mm[-1]])
+    n = np.stack([-c * local[..., 0], -c * local[..., 1], 1.0 - c * local[..., 2]], axis=-1)
+    return n if image_pose is None else np.einsum("...ij,...j->...i", image_pose.rotation, n)
