@@ -20,6 +20,7 @@ from functools import lru_cache
 import numpy as np
 
 from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
+from bmi_sdk.render import DEFAULT_ZONE_PX
 
 from .sources import register_source
 
@@ -38,7 +39,7 @@ class RenderedScene:
 
     def __init__(self, rgb: np.ndarray, range_m: np.ndarray, row0: int = 0, col0: int = 0,
                  lens: str = "bmi_monocentric", geometry: SensorGeometry = BMI_SENSOR, name: str = "scene",
-                 psf_mode: str = "exact", zone_px: int = 256, block_px: int = BLOCK_PX, label: str = "",
+                 psf_mode: str = "exact", zone_px: int = DEFAULT_ZONE_PX, block_px: int = BLOCK_PX, label: str = "",
                  tensor=None):
         """``tensor`` (a PsfTensor) overrides the lens's default one: a calibrated or perturbed lens."""
         if rgb.ndim != 3 or rgb.shape[2] != 3 or range_m.shape != rgb.shape[:2]:

@@ -36,7 +36,8 @@ from .convolve import spread_per_pixel, zones
 from .layers import layer_index, tensor_depth_index
 from .psf_map import PsfMap
 
-DEFAULT_ZONE_PX = 128
+DEFAULT_ZONE_PX = 512
+DEFAULT_RAMP_PX = 64
 EPS = 1e-9
 
 
@@ -84,8 +85,8 @@ def _convolve_into(acc, box, images, kernels, rows, cols):
 
 
 def render_coded(rgb: np.ndarray, range_m: np.ndarray, tensor: PsfTensor, geometry: SensorGeometry = BMI_SENSOR,
-                 row0: int = 0, col0: int = 0, *, zone_px: int = DEFAULT_ZONE_PX, interpolation: str = "linear",
-                 psf_mode: str = "exact", progress: bool = False) -> np.ndarray:
+                 row0: int = 0, col0: int = 0, *, zone_px: int = DEFAULT_ZONE_PX, ramp_px: int | None = None,
+                 interpolation: str = "linear", psf_mode: str = "exact", progress: bool = False) -> np.ndarray:
     """Coded optical image (H × W × 3 float32) of a scene window placed at (row0, col0) of the sensor.
 
     ``psf_mode`` chooses how zone kernels are made (``render.psf_map``): ``exact`` traces each
@@ -97,7 +98,9 @@ def render_coded(rgb: np.ndarray, range_m: np.ndarray, tensor: PsfTensor, geomet
     n_depths = len(tensor.depth_m)
     psf_map = PsfMap(tensor, geometry, interpolation, psf_mode)
     kpx = psf_map.kernel_px
-    zone_list = zones(height, width, zone_px, row0, col0)
+    if ramp_px is None:
+        ramp_px = max(1, min(DEFAULT_RAMP_PX, zone_px // 8))
+    zone_list = zones(height, width, zone_px, row0, col0, ramp_px)
     theta, phi = geometry.field_angles(np.array([row0 + z.row for z in zone_list]),
                                        np.array([col0 + z.col for z in zone_list]))
     theta = np.nan_to_num(theta, nan=float(tensor.field_deg[-1]))

@@ -15,7 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import fftconvolve
 
 
 @dataclass(frozen=True)
@@ -24,54 +23,47 @@ class Zone:
     col: int
     rows: slice  # support of its tent weight (window coordinates)
     cols: slice
-    weight: np.ndarray  # (h, w) tent weight on that support
+    weight: np.ndarray  # (h, w) weight on that support
 
 
-def _tents(length: int, step: int, origin: int):
-    """Centres (window coordinates; absolute multiples of ``step``) and tent weights on [0, length)."""
+def _trapezoids(length: int, step: int, origin: int, ramp: int):
+    """Centres (window coordinates; absolute multiples of ``step``) and 1-D weights on [0, length).
+
+    w = clip(½ + (step/2 − |x − c|)/ramp, 0, 1): neighbouring weights sum to 1 for any ramp.
+    """
     first = -(origin % step)
     centres = np.arange(first, length - 1 + step, step)
     centres = centres[(centres > -step) & (centres < length - 1 + step)]
     x = np.arange(length)[None, :]
-    w = np.maximum(0.0, 1.0 - np.abs(x - centres[:, None]) / step)
+    w = np.clip(0.5 + (step / 2 - np.abs(x - centres[:, None])) / ramp, 0.0, 1.0)
     w /= w.sum(axis=0, keepdims=True)
     return centres, w
 
 
-def zones(height: int, width: int, zone_px: int, row0: int = 0, col0: int = 0):
-    """The zones of a window at (row0, col0) of the sensor, each with its tent weight support."""
+def zones(height: int, width: int, zone_px: int, row0: int = 0, col0: int = 0, ramp_px: int | None = None):
+    """The zones of a window at (row0, col0) of the sensor, each with its weight's support.
+
+    ``ramp_px`` (default ``zone_px``: bilinear tents) is the width of the blend across zone borders.
+    """
     if zone_px < 2:
         raise ValueError(f"zone_px must be ≥ 2, got {zone_px}")
-    rc, rw = _tents(height, zone_px, row0)
-    cc, cw = _tents(width, zone_px, col0)
+    ramp = zone_px if ramp_px is None else ramp_px
+    if not 1 <= ramp <= zone_px:
+        raise ValueError(f"ramp_px must be in [1, zone_px = {zone_px}], got {ramp_px}")
+    rc, rw = _trapezoids(height, zone_px, row0, ramp)
+    cc, cw = _trapezoids(width, zone_px, col0, ramp)
     out = []
     for i, r in enumerate(rc):
         rnz = np.nonzero(rw[i])[0]
         for j, c in enumerate(cc):
             cnz = np.nonzero(cw[j])[0]
+            if len(rnz) == 0 or len(cnz) == 0:  # a border zone whose weight stays outside the window
+                continue
             rows = slice(rnz[0], rnz[-1] + 1)
             cols = slice(cnz[0], cnz[-1] + 1)
-            if len(rnz) == 0 or len(cnz) == 0:
-                continue
             out.append(Zone(int(r), int(c), rows, cols,
                             np.outer(rw[i, rows], cw[j, cols]).astype(np.float32)))
     return out
-
-
-def add_convolved(out: np.ndarray, images: np.ndarray, kernels: np.ndarray, rows: slice, cols: slice) -> None:
-    """out[q] += kernels[q] * images[q] (full convolution), placed on the window, clipped to ``out``.
-
-    images (Q, h, w) sit at (rows, cols) of out (Q, H, W); kernels (Q, K, K) are centred.
-    """
-    k = kernels.shape[-1]
-    r = k // 2
-    full = fftconvolve(images, kernels, mode="full", axes=(1, 2))
-    top, left = rows.start - r, cols.start - r
-    h, w = full.shape[1:]
-    r0, c0 = max(top, 0), max(left, 0)
-    r1, c1 = min(top + h, out.shape[1]), min(left + w, out.shape[2])
-    if r1 > r0 and c1 > c0:
-        out[:, r0:r1, c0:c1] += full[:, r0 - top:r1 - top, c0 - left:c1 - left]
 
 
 def spread_per_pixel(out: np.ndarray, image: np.ndarray, kernel_of) -> None:
