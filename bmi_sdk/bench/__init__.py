@@ -24,7 +24,16 @@ DOCS = Path(__file__).resolve().parents[2] / "docs" / "benchmarks.md"
 def machine_line() -> str:
     import os
 
-    return f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    return (f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+            f"load average {load} when written (wall times on a shared machine scale with it; CPU times do not)")
+
+
+def cpu_seconds() -> float:
+    """CPU time of this process plus its finished child processes (workers of a pool)."""
+    me = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
 
 
 def peak_rss_mb() -> float:
@@ -65,6 +74,13 @@ def timed(fn, repeat: int = 1):
         out = fn()
         best = min(best, time.perf_counter() - start)
     return out, best
+
+
+def timed_cpu(fn):
+    """(result, wall seconds, CPU seconds incl. finished children) of one call."""
+    wall, cpu = time.perf_counter(), cpu_seconds()
+    out = fn()
+    return out, time.perf_counter() - wall, cpu_seconds() - cpu
 
 
 def register_target(subparsers, name: str, help_text: str, description: str, section: str, run) -> None:

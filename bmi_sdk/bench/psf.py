@@ -9,10 +9,11 @@ guard 3, 9 samples per pixel side), over fields 0/30/60°, depths
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 
-from . import markdown_table, peak_rss_mb, register_target, timed
+from . import markdown_table, peak_rss_mb, register_target, timed, timed_cpu
 
 CASES = [(0.0, 0.7), (30.0, 0.7), (60.0, 0.7), (0.0, 2.0), (60.0, 2.0), (0.0, 10.0), (60.0, 10.0), (60.0, math.inf)]
 WAVELENGTHS_UM = (0.5876, 0.4861)
@@ -85,13 +86,16 @@ def run(full: bool = False) -> str:
                + markdown_table(["field °", "depth m", "ellipse", "two-term best fit", "two-term truncated"], rows))
     # Single PSF and per-shard costs.
     _, t_single = timed(lambda: psf_from_pupil(fit_pupils(lens, 37.0, 1.3, 0.5876)[0], KERNEL_PX), 5)
+    _, _, cpu_single = timed_cpu(lambda: [psf_from_pupil(fit_pupils(lens, 37.0, 1.3, 0.5876)[0], KERNEL_PX)
+                                          for _ in range(5)])
     spec = TensorSpec()
     tensor = PsfTensor(lens, spec, use_cache=False)
     _, t_shard = timed(lambda: tensor.ensure([50], range(len(spec.depth_m))))
     n_shard = len(spec.depth_m) * len(spec.channels)
     base = fit_pupils(lens, 0.0, 1.3, 0.5876)[0]
     _, t_ellipse = timed(lambda: ellipse_psf(base, 37.0, KERNEL_PX), 5)
-    rows = [["single PSF, exact (trace + fit + transform)", t_single * 1e3],
+    rows = [["single PSF, exact (trace + fit + transform), best wall", t_single * 1e3],
+            ["single PSF, exact, mean CPU", cpu_single / 5 * 1e3],
             ["single PSF, ellipse model (transform only, pupil reused)", t_ellipse * 1e3],
             [f"one θ shard of the tensor ({n_shard} PSFs), per PSF", t_shard / n_shard * 1e3]]
     est = t_shard * len(spec.field_deg)
@@ -100,9 +104,10 @@ def run(full: bool = False) -> str:
                f"{KERNEL_PX}²), extrapolated from one shard: {est:.0f} s single process.")
     if full:
         tensor = PsfTensor(lens, spec, use_cache=False)
-        _, t_full = timed(lambda: tensor.ensure_all(progress=True))
-        out.append(f"Full default tensor built from scratch: {t_full:.1f} s, peak resident memory "
-                   f"{peak_rss_mb():.0f} MB (process total, `bmi bench psf --full`).")
+        _, wall, cpu = timed_cpu(lambda: tensor.ensure_all(progress=True))
+        out.append(f"Full default tensor built from scratch over {os.cpu_count()} processes: {wall:.1f} s wall, "
+                   f"{cpu:.1f} s CPU in all ({cpu / tensor.filled.size * 1e3:.1f} ms CPU per PSF), "
+                   f"peak resident memory {peak_rss_mb():.0f} MB (main process).")
     return "\n\n".join(out)
 
 
