@@ -147,6 +147,8 @@ def linearise(lens, g, spots, channels, kernel_px, geometry, spread_px):
 
 POSITION = (0, 1, 3, 4, 5, 6, 8)  # parameters that move spots (scale and glare do not)
 MAX_STEP_PX = 0.5  # trust region: a linearised step may move no spot further than this
+MAX_STEP_SCALE_PCT = 2.5  # … nor change the PSF scale by more than this
+CENTROID_PX = 0.05  # centroid accuracy assumed by the start-value solve
 
 
 def initial_positions(lens, g, spots, channel, kernel_px, geometry, spread_px, free_mask, iterations: int = 2):
@@ -156,14 +158,23 @@ def initial_positions(lens, g, spots, channel, kernel_px, geometry, spread_px, f
     below a PSF width; the centroids place shift, decenter, tilt and radius
     within a fraction of a pixel first. The centroid of each spot relative to
     its chief ray comes from the exact kernel at the start values.
+
+    Positions alone cannot tell a shift from a tilt or a decenter (all move
+    every spot nearly alike), so the solve carries a weak prior: each
+    parameter ~ N(0, paper range²) against centroids good to
+    ``CENTROID_PX``; it picks the small-parameter point of the valley and the
+    patch fit, which sees the focus changes, moves along it.
     """
     theta, phi, depth = _sources(spots)
     lam = CHANNEL_NM[channel] * 1e-3
-    centre = _centres(spots, kernel_px)
     measured = np.array([s.centroid_px for s in spots])
-    first = spot_kernels(lens, Perturbation.from_vector(g, spread_px), theta, phi, depth, lam, centre, kernel_px,
-                         geometry.centre_px, geometry.pitch_um, stray_light=False)
-    origin = centre - kernel_px // 2
+    start = Perturbation.from_vector(g, spread_px)
+    _, land, _ = trace_spots(lens, start, theta, phi, depth, lam, geometry.centre_px, geometry.pitch_um)
+    land = land + np.array([start.psf_shift_px[1], start.psf_shift_px[0]])
+    # kernels centred on their own landing point, so no spot is cut by the window
+    first = spot_kernels(lens, start, theta, phi, depth, lam, np.rint(land), kernel_px, geometry.centre_px,
+                         geometry.pitch_um, stray_light=False)
+    origin = np.rint(land) - kernel_px // 2
     offset = np.stack([_centroid(k, np.ones_like(k, dtype=bool)) for k in first.kernels]) + origin - first.landing_px
     g = np.array(g, dtype=np.float64)
     cols = [i for i in POSITION if free_mask[i]]
@@ -175,6 +186,8 @@ def initial_positions(lens, g, spots, channel, kernel_px, geometry, spread_px, f
         _, chief, _ = trace_spots(lens, p, theta, phi, depth, lam, geometry.centre_px, geometry.pitch_um)
         return chief + np.array([p.psf_shift_px[1], p.psf_shift_px[0]])
 
+    base_names = [n for n in PARAMETERS for _ in range(SIZES[n])]
+    prior = np.array([PAPER_RANGES[base_names[i]] for i in cols])
     for _ in range(iterations):
         base = landing(g)
         jac = np.zeros((len(spots) * 2, len(cols)))
@@ -183,7 +196,9 @@ def initial_positions(lens, g, spots, channel, kernel_px, geometry, spread_px, f
             gj[idx] += FD_STEPS[idx]
             jac[:, j] = ((landing(gj) - base) / FD_STEPS[idx]).ravel()
         resid = (measured - base - offset).ravel()
-        step, *_ = np.linalg.lstsq(jac, resid, rcond=1e-10)
+        a = np.vstack([jac / CENTROID_PX, np.diag(1.0 / prior)])
+        b = np.concatenate([resid / CENTROID_PX, -g[cols] / prior])
+        step, *_ = np.linalg.lstsq(a, b, rcond=None)
         g[cols] += step
     return g
 
@@ -298,8 +313,9 @@ def fit_calibration(extraction: Extraction, free: dict | None = None, method: st
         inner.append(int(iters))
         g_new = np.where(free_mask, x[:9] * UNITS, g)
         move = np.abs(np.einsum("j,sjx->sx", (g_new - g)[list(ENGINE)], dland)).max()
-        if move > MAX_STEP_PX:  # outside the linearisation's validity: a shorter step, then relinearise
-            g_new = g + (g_new - g) * (MAX_STEP_PX / move)
+        shrink = min(1.0, MAX_STEP_PX / max(move, 1e-300), MAX_STEP_SCALE_PCT / max(abs(g_new[2] - g[2]), 1e-300))
+        if shrink < 1.0:  # outside the linearisation's validity: a shorter step, then relinearise
+            g_new = g + (g_new - g) * shrink
             x = np.concatenate([np.where(free_mask, g_new / UNITS, x[:9]), x[9:]])
         amp_rel = x[9:9 + n_s * n_c].reshape(n_s, n_c)
         bg = x[9 + n_s * n_c:]

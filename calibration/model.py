@@ -29,6 +29,7 @@ derivatives removed that bias.
 from __future__ import annotations
 
 import warnings
+from functools import lru_cache
 
 import jax
 import jax.numpy as jnp
@@ -102,10 +103,12 @@ def make_residual(n_spots, n_channels, spread_px):
     return residual
 
 
+@lru_cache(maxsize=8)
 def make_solver(n_spots, n_channels, spread_px, method: str = "lm", maxiter: int = 20):
     """Jitted (fit, residual, Jacobian): fit(x0, g0, g_fixed, free, amp_scale, lin, data, inv_sigma, used) → (x, iterations).
 
-    ``method``: "lm" (jaxopt.LevenbergMarquardt) or "gn" (jaxopt.GaussNewton).
+    ``method``: "lm" (jaxopt.LevenbergMarquardt) or "gn" (jaxopt.GaussNewton). Cached: one compilation
+    per problem shape and process (compiling costs seconds; a fit then takes milliseconds per inner solve).
     """
     jaxopt = _solver_module()
     residual = make_residual(n_spots, n_channels, spread_px)

@@ -84,8 +84,9 @@ class Perturbation:
                 raise ValueError(f"{name} needs {SIZES[name]} finite number(s) in {UNITS[name]}, "
                                  f"got {getattr(self, name)!r}")
             object.__setattr__(self, name, tuple(float(x) for x in v) if SIZES[name] == 2 else float(v[0]))
-        if not 0.0 <= self.stray_light_fraction < 1.0:
-            raise ValueError(f"stray_light_fraction must lie in [0, 1), got {self.stray_light_fraction}")
+        if not -0.1 < self.stray_light_fraction < 1.0:
+            # Physical glare is ≥ 0; a fitted value may fall below 0 by its noise and is kept (an honest estimate).
+            raise ValueError(f"stray_light_fraction must lie in (-0.1, 1), got {self.stray_light_fraction}")
         if not self.psf_scale_pct > -50.0:
             raise ValueError(f"psf_scale_pct must be > -50 %, got {self.psf_scale_pct}")
         if not abs(self.sensor_radius_error_pct) < 50.0:
@@ -305,7 +306,7 @@ def spot_kernels(lens: Lens, p: Perturbation, field_deg, phi_deg, depth_m, wavel
         else:
             k = psf_from_pupil(fit, kernel_px, pitch_um, oversample, guard, rotation_deg=float(phi[i]),
                                offset_px=(float(sample[i, 0]), float(sample[i, 1])), scale=scale).kernel
-        if stray_light and p.stray_light_fraction > 0:
+        if stray_light and p.stray_light_fraction != 0:
             k = (1 - p.stray_light_fraction) * k + p.stray_light_fraction * glare_kernel(
                 kernel_px, sample[i], p.stray_light_spread_px)
         kernels[i] = k
@@ -340,6 +341,7 @@ def perturbed_tensor(lens: Lens, spec, p: Perturbation, sensor_centre_px=(0.0, 0
     shape = (len(spec.field_deg), len(spec.depth_m), spec.kernel_px, spec.kernel_px)
     for c, channel in enumerate(spec.channels):
         k = sum(w * mono[lam] for lam, w in channel).reshape(shape)
+        k = np.maximum(k, 0.0)  # a fitted glare fraction slightly below 0 must not make negative PSF wings
         tensor.data[c] = (k / k.sum(axis=(-1, -2), keepdims=True)).astype(np.float32)
     tensor.filled[...] = True
     return tensor
