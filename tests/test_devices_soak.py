@@ -62,7 +62,9 @@ def test_soak_with_faults_counters_match_ledger():
     assert by_status[FrameStatus.INCOMPLETE] == sorted(ledger[Fault.INCOMPLETE] + ledger[Fault.DISCONNECT])
     assert stats["lost"] == len(ledger[Fault.DROP]) and not set(seen) & set(ledger[Fault.DROP])
     assert set(ledger[Fault.STALL]) <= set(by_status[FrameStatus.COMPLETE])
-    assert stats["disconnects"] == len(ledger[Fault.DISCONNECT])
+    # Every disconnect up to the last delivered frame is counted; one more may be counted when the device
+    # drops the link on the frame after it (while the host stops): it is in the device's full ledger.
+    assert len(ledger[Fault.DISCONNECT]) <= stats["disconnects"] <= len(dev.injector.ledger[Fault.DISCONNECT])
     assert reconnects in (stats["disconnects"], stats["disconnects"] - 1)  # the last one may end the soak
     assert len(seen) + len(ledger[Fault.DROP]) == last + 1  # every id accounted for
     assert min(len(v) for v in ledger.values()) > 0  # each kind of fault actually happened
