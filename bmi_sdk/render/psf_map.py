@@ -60,12 +60,16 @@ def rotate_kernel(kernel: np.ndarray, phi_deg: float) -> np.ndarray:
     return out / total if total > 0 else out
 
 
+def resampled_size(size: int, scale: float) -> int:
+    """Odd kernel size after resampling by ``scale``."""
+    return size if abs(scale - 1.0) < 1e-12 else max(1, int(round(size * scale)) | 1)
+
+
 def resample_kernel(kernel: np.ndarray, scale: float) -> np.ndarray:
     """Resample a kernel by ``scale`` (output pixels per input pixel inverse: >1 enlarges), odd size kept."""
     if abs(scale - 1.0) < 1e-12:
         return kernel
-    size = kernel.shape[-1]
-    new = max(1, int(round(size * scale)) | 1)
+    new = resampled_size(kernel.shape[-1], scale)
     interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_CUBIC
     out = np.maximum(cv2.resize(kernel.astype(np.float32), (new, new), interpolation=interp), 0.0)
     return out / out.sum()
@@ -97,7 +101,7 @@ class PsfMap:
 
     @property
     def kernel_px(self) -> int:
-        return resample_kernel(np.zeros((self.tensor.spec.kernel_px,) * 2) + 1, self.scale).shape[-1]
+        return resampled_size(self.tensor.spec.kernel_px, self.scale)
 
     def _exact_kernels(self, theta_deg: float, phi_deg: float, depth_indices: np.ndarray) -> np.ndarray:
         """(C, n, K, K) traced at exactly (θ, φ), memoised per (θ, φ, depth)."""
