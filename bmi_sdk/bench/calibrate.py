@@ -67,7 +67,7 @@ def recovery_table(records: list) -> str:
     nominal = np.array([c for r in records for c in r["held_out_chi2_nominal"]])
     fit_s = np.array([r["fit_s"] for r in records])
     cap_s = np.array([r["capture_s"] for r in records])
-    text = markdown_table(["parameter", "unit", "RMS error", "max |error|", "median 1σ", "|err| ≤ 1σ", "|err| ≤ 2σ",
+    text = markdown_table(["parameter", "unit", "RMS error", "max abs error", "median 1σ", "abs err ≤ 1σ", "abs err ≤ 2σ",
                            "std(err/σ)"], rows)
     text += (f"\n\n{len(records)} seeds ({records[0]['seed']}–{records[-1]['seed']}), {records[0]['n_points']} fit "
              f"sources + {len(records[0]['held_out_chi2'])} held out. Held-out χ²/dof (PSF + position predicted by the "
@@ -87,7 +87,7 @@ def _iterations_table(record: dict) -> str:
     for i, h in enumerate(record["history"]):
         z = np.abs(np.array(h) - truth) / sigma
         rows.append([i, float(np.max(z)), float(np.sqrt(np.mean(z**2))), VECTOR_NAMES[int(np.argmax(z))]])
-    return markdown_table(["outer iterations", "max |err|/σ", "RMS |err|/σ", "worst parameter"], rows)
+    return markdown_table(["outer iterations", "max abs err/σ", "RMS err/σ", "worst parameter"], rows)
 
 
 def run(full: bool = False, seeds: int | None = None, out_json: str | None = None) -> str:
@@ -108,7 +108,7 @@ def run(full: bool = False, seeds: int | None = None, out_json: str | None = Non
         rows.append([n_points, float(np.median(r["sigma"][2:3])), float(np.median(np.array(r["sigma"])[3:5])),
                      float(np.max(z)), r["outer_iterations"], r["fit_s"]])
     out.append("### Number of point sources against uncertainty and time (one seed each)\n\n"
-               + markdown_table(["fit sources", "1σ scale %", "1σ decenter µm", "max |err|/σ", "outer iterations",
+               + markdown_table(["fit sources", "1σ scale %", "1σ decenter µm", "max abs err/σ", "outer iterations",
                                  "fit s"], rows))
     return "\n\n".join(out)
 
