@@ -85,3 +85,17 @@ def export_with_manifest(net: DualHeadMimoUNet, path: str | Path, *, preset: str
                           psf_tensor_key=tensor.spec.cache_key(tensor.lens), calibration_id=None,
                           training=training, metrics=metrics or {}, onnx_max_abs_diff_vs_torch=max_diff,
                           onnx_opset=OPSET)
+
+
+def ship(src: str | Path, dst: str | Path, metrics: dict) -> Path:
+    """Copy a verified run model to ``dst`` (e.g. bmi_sdk/models/default.onnx) with its manifest plus ``metrics``."""
+    import shutil
+
+    from bmi_sdk.model_manifest import verify_model, write_manifest
+
+    manifest = verify_model(src)
+    keep = {k: v for k, v in manifest.items() if k not in ("schema", "sha256", "file", "input_name", "output_names",
+                                                          "input_channels", "size_multiple", "metrics")}
+    with atomic_path(dst, suffix=".onnx") as tmp:
+        shutil.copyfile(src, tmp)
+    return write_manifest(dst, **keep, metrics=metrics)
