@@ -64,6 +64,11 @@ LENS_KERNEL_PX = {"bmi_monocentric": 41, "fisheye": 161}
 """PSF kernel size per lens: the fisheye's near-range blur spreads ~15 % of its energy beyond 41 px."""
 
 
+def render_margin_px(lens_name: str) -> int:
+    """Scene margin rendered around a window and cut away: half a kernel, plus 4 px for jitter."""
+    return LENS_KERNEL_PX[lens_name] // 2 + 4
+
+
 def lens_geometry(lens_name: str) -> SensorGeometry:
     """The sensor a lens images on: the BMI curved sensor, or for the fisheye a plane 6000×4500 sensor
     at 2 µm whose pixel → field mapping is the fisheye's traced chief-ray table (0–60°)."""
@@ -157,7 +162,7 @@ class CacheSpec:
 
     @property
     def margin_px(self) -> int:
-        return LENS_KERNEL_PX[self.lens] // 2 + 4
+        return render_margin_px(self.lens)
 
     @property
     def stored_px(self) -> int:

@@ -28,7 +28,8 @@ import numpy as np
 from scipy import ndimage
 
 from bmi_sdk.model_io import INPUT_NAME, network_input
-from bmi_sdk.nn.data import LENS_KERNEL_PX, STANDARD_SIGMA, lens_geometry, lens_tensor, sample_window, simulate_sensor
+from bmi_sdk.nn.data import (STANDARD_SIGMA, lens_geometry, lens_tensor, render_margin_px, sample_window,
+                             simulate_sensor)
 from bmi_sdk.nn.metrics import depth_metrics, image_metrics, mean_metrics
 from bmi_sdk.sensor import PAPER_NOISE_SIGMAS, relative_illumination
 
@@ -119,7 +120,7 @@ class Benchmark:
 
     @property
     def margin_px(self) -> int:
-        return LENS_KERNEL_PX[self.lens] // 2 + 4
+        return render_margin_px(self.lens)
 
     def windows(self) -> list[tuple[str, int, int, int]]:
         """(region, tile index, row0, col0) of the rendered windows (tile + margin), seeded."""
