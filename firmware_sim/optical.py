@@ -56,6 +56,7 @@ class RenderedScene:
         self.block_px = block_px
         self.label = label
         self._blocks: dict[tuple[int, int], np.ndarray] = {}
+        self._psf_map = None  # one kernel memo for all blocks: zones straddle block borders
 
     def metadata(self) -> dict:
         return {"source": self.name, "label": self.label, "lens": self.lens, "psf_mode": self.psf_mode,
@@ -64,9 +65,11 @@ class RenderedScene:
     def _block(self, br: int, bc: int) -> np.ndarray:
         key = (br, bc)
         if key not in self._blocks:
-            from bmi_sdk.render import render_coded
+            from bmi_sdk.render import PsfMap, render_coded
 
             tensor = self.tensor if self.tensor is not None else _tensor(self.lens)
+            if self._psf_map is None:
+                self._psf_map = PsfMap(tensor, self.geometry, mode=self.psf_mode)
             margin = tensor.spec.kernel_px
             h, w = self.rgb.shape[:2]
             # block in scene coordinates, then with margin, clipped to the scene
@@ -77,7 +80,7 @@ class RenderedScene:
             out = np.zeros((self.block_px, self.block_px, 3), np.float32)
             if R1 > R0 and C1 > C0:
                 img = render_coded(self.rgb[R0:R1, C0:C1], self.range_m[R0:R1, C0:C1], tensor, self.geometry,
-                                   self.row0 + R0, self.col0 + C0, zone_px=self.zone_px, psf_mode=self.psf_mode)
+                                   self.row0 + R0, self.col0 + C0, zone_px=self.zone_px, psf_map=self._psf_map)
                 rr0, cc0 = max(r0, 0), max(c0, 0)
                 rr1, cc1 = min(r1, h), min(c1, w)
                 if rr1 > rr0 and cc1 > cc0:
