@@ -62,6 +62,13 @@ class StreamLink:
     # -- control ------------------------------------------------------------------
     def request(self, msg: Msg, body: bytes, expect: Msg) -> bytes:
         if self.closed_reason is not None:
+            # A device may answer and close at once (BUSY to a second host): its queued answer still counts.
+            try:
+                reply, reply_body = self._replies.get_nowait()
+            except queue.Empty:
+                reply = None
+            if reply == Msg.BUSY:
+                raise DeviceBusyError(json.loads(reply_body).get("reason", "device busy"))
             raise DeviceRemovedError(f"link is down: {self.closed_reason}")
         with self._send_lock:
             timeout_s = self.request_timeout_s
