@@ -194,20 +194,24 @@ class StreamCamera:
     def buffers_free(self) -> int:
         return 0 if self._pool is None else self._pool.free
 
+    def _wait_until(self, ready, timeout_s: float, removed_hint: str = "") -> None:
+        """Wait on the condition (held by the caller) until ``ready()``; raise if removed or timed out."""
+        deadline = time.monotonic() + timeout_s
+        while not ready():
+            if self._removed is not None:
+                raise DeviceRemovedError(f"{self.uri}: {self._removed}{removed_hint}")
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise GrabTimeoutError(f"no frame from {self.uri} within {timeout_s} s")
+            self._cond.wait(left)
+
     def grab(self, timeout_s: float = 5.0) -> RawFrame:
         """Next frame (per the strategy); GrabTimeoutError after ``timeout_s``; release it when done."""
         self._check_open()
         if not self._streaming:
             raise ConfigurationError("grab() needs start() first (or use capture())")
-        deadline = time.monotonic() + timeout_s
         with self._cond:
-            while not self._queue:
-                if self._removed is not None:
-                    raise DeviceRemovedError(f"{self.uri}: {self._removed} (call reconnect())")
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise GrabTimeoutError(f"no frame from {self.uri} within {timeout_s} s")
-                self._cond.wait(left)
+            self._wait_until(lambda: self._queue, timeout_s, " (call reconnect())")
             return self._hand_out(self._queue.popleft())
 
     def try_grab(self) -> RawFrame | None:
@@ -230,15 +234,8 @@ class StreamCamera:
             self._oneshot = []
         try:
             link.start(1)
-            deadline = time.monotonic() + timeout_s
             with self._cond:
-                while not self._oneshot:
-                    if self._removed is not None:
-                        raise DeviceRemovedError(f"{self.uri}: {self._removed}")
-                    left = deadline - time.monotonic()
-                    if left <= 0:
-                        raise GrabTimeoutError(f"no frame from {self.uri} within {timeout_s} s")
-                    self._cond.wait(left)
+                self._wait_until(lambda: self._oneshot, timeout_s)
                 frame = self._oneshot[0]
         finally:
             with self._cond:
