@@ -127,9 +127,29 @@ class SensorGeometry:
         cols = np.arange(col0, col0 + width, dtype=np.float64)[None, :]
         return self.field_angles(rows, cols)
 
+    def window_polar(self, row0: int, col0: int, height: int, width: int):
+        """(radial_mm, cos φ, sin φ) maps of a window, without trigonometry (per-tile hot path).
+
+        cos φ = dx / r and sin φ = dy / r equal cos/sin of ``pixel_polar``'s
+        φ to rounding; at the optical centre (r = 0) they are (1, 0), as
+        arctan2(0, 0) = 0 gives.
+        """
+        cy, cx = self.centre_px
+        pitch_mm = self.pitch_um * 1e-3
+        dy = ((np.arange(row0, row0 + height, dtype=np.float64) - cy) * pitch_mm)[:, None]
+        dx = ((np.arange(col0, col0 + width, dtype=np.float64) - cx) * pitch_mm)[None, :]
+        radial = np.hypot(dx, dy)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            inv = np.where(radial > 0, 1.0 / radial, 0.0)
+        cos_phi = np.where(radial > 0, dx * inv, 1.0)
+        return radial, cos_phi, dy * inv
+
     def valid_mask(self, row0: int = 0, col0: int = 0, height: int | None = None, width: int | None = None):
         """Pixels inside the image circle (θ ≤ max_field_deg)."""
-        theta, _ = self.grid(row0, col0, height, width)
+        height = self.height_px - row0 if height is None else height
+        width = self.width_px - col0 if width is None else width
+        radial, _, _ = self.window_polar(row0, col0, height, width)
+        theta = self.field_deg_from_radial_mm(radial)
         return np.isfinite(theta) & (theta <= self.max_field_deg)
 
     def ray_directions(self, rows, cols):

@@ -65,9 +65,13 @@ def raw_to_rgb(raw: np.ndarray, black_level: float, white_level: float, cfa: str
 
 def field_channels(geometry: SensorGeometry, row0: int, col0: int, height: int, width: int) -> np.ndarray:
     """3 × H × W float32: θ/60°, cos φ, sin φ of each pixel of the window."""
-    theta, phi = geometry.grid(row0, col0, height, width)
-    phi_rad = np.radians(phi)
-    return np.stack([np.nan_to_num(theta / FIELD_NORM_DEG, nan=1.0), np.cos(phi_rad), np.sin(phi_rad)]).astype(np.float32)
+    radial, cos_phi, sin_phi = geometry.window_polar(row0, col0, height, width)
+    theta = geometry.field_deg_from_radial_mm(radial)
+    out = np.empty((3, height, width), np.float32)
+    np.divide(theta, FIELD_NORM_DEG, out=out[0], casting="unsafe")
+    np.nan_to_num(out[0], copy=False, nan=1.0)
+    out[1], out[2] = cos_phi, sin_phi
+    return out
 
 
 def network_input(rgb: np.ndarray, geometry: SensorGeometry, row0: int, col0: int) -> np.ndarray:
