@@ -180,6 +180,7 @@ def test_calibration_file_round_trip_and_validation(single, tmp_path):
     assert (tmp_path / "calib.png").stat().st_size > 10_000
     again = load_calibration(tmp_path / "calib.json")
     assert again.id == calib.id and again.perturbation == result.estimate
+    _runtime_accepts_only_a_matching_frame(tmp_path / "calib.json", calib.id, doc)
     tensor = again.tensor()
     assert tensor.data.shape == (3, 2, 1, 21, 21) and np.allclose(tensor.data.sum(axis=(-1, -2)), 1.0, atol=1e-5)
     doc["parameters"]["decenter_um"]["value"] = [0.0, 0.0]
@@ -190,6 +191,24 @@ def test_calibration_file_round_trip_and_validation(single, tmp_path):
     (tmp_path / "calib.json").write_text(json.dumps(doc))
     with pytest.raises(CalibrationError, match="schema"):
         load_calibration(tmp_path / "calib.json")
+
+
+def _runtime_accepts_only_a_matching_frame(path, calibration_id, doc):
+    """``bmi infer --calibration FILE``: the file's id picks the model; another camera, lens or id is refused."""
+    from types import SimpleNamespace
+
+    from bmi_sdk.runtime.job import calibration_for
+
+    frame = SimpleNamespace(lens={"name": doc["lens"]["name"]}, device=dict(doc["device"]))
+    info = calibration_for(frame, path)
+    assert info["id"] == calibration_id and info["device"]["serial"] == doc["device"]["serial"]
+    assert calibration_for(frame, path, calibration_id)["id"] == calibration_id
+    with pytest.raises(ValueError, match="contradicts"):
+        calibration_for(frame, path, "0123456789abcdef")
+    with pytest.raises(ValueError, match="made on camera"):
+        calibration_for(SimpleNamespace(lens=frame.lens, device={"serial": "BMI-OTHER"}), path)
+    with pytest.raises(ValueError, match="taken through 'fisheye'"):
+        calibration_for(SimpleNamespace(lens={"name": "fisheye"}, device=frame.device), path)
 
 
 def test_cli_refuses_ambiguous_input(tmp_path):

@@ -7,6 +7,7 @@ def _run(args) -> int:
     from bmi_sdk.runtime import run_job
 
     result, report = run_job(args.raw, args.out, model_path=args.model, calibration_id=args.calibration_id,
+                             calibration_path=args.calibration,
                              tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
                              ply_step_px=args.ply_step, progress=not args.quiet)
     if report["calibration_note"]:
@@ -31,6 +32,8 @@ def register(subparsers) -> None:
                    help="ONNX model with its .manifest.json (default: the packaged model for the calibration)")
     p.add_argument("--calibration-id", default=None,
                    help="calibration in use (default: the frame's); picks the model trained on its PSF tensor")
+    p.add_argument("--calibration", default=None, metavar="FILE",
+                   help="calibration file from bmi calibrate (validated; its id picks the model)")
     p.add_argument("--tile-px", type=int, default=512, help="tile size, a multiple of 4 (default 512)")
     p.add_argument("--overlap-px", type=int, default=None,
                    help="tile overlap (default: receptive field + half the largest PSF, from the manifest)")

@@ -26,17 +26,53 @@ def load_model_for(frame, model_path: str | os.PathLike | None = None, calibrati
     return Model(model_path, tile_px=tile_px, threads=threads), note
 
 
+def calibration_for(frame, calibration_path: str | os.PathLike, calibration_id: str | None = None) -> dict:
+    """Load and check a calibration file for ``frame``; returns its identity for the report.
+
+    The file is validated by ``calibration.io.load_calibration`` (schema,
+    parameters, content id, corrected-tensor hash). It is refused when it
+    contradicts the request: another id than an explicit ``calibration_id``,
+    another lens than the frame's, or another camera serial than the frame's.
+    """
+    from calibration.io import load_calibration
+
+    calib = load_calibration(calibration_path)
+    if calibration_id is not None and calibration_id != calib.id:
+        raise ValueError(f"--calibration-id {calibration_id} contradicts {calibration_path} (id {calib.id})")
+    frame_lens = (getattr(frame, "lens", None) or {}).get("name")
+    calib_lens = calib.doc.get("lens", {}).get("name")
+    if frame_lens is not None and calib_lens is not None and frame_lens != calib_lens:
+        raise ValueError(f"calibration {calib.id} is for lens {calib_lens!r}; the frame was taken through {frame_lens!r}")
+    frame_serial = (getattr(frame, "device", None) or {}).get("serial")
+    calib_serial = calib.doc["device"].get("serial")
+    if frame_serial is not None and calib_serial is not None and frame_serial != calib_serial:
+        raise ValueError(f"calibration {calib.id} was made on camera {calib_serial!r}; "
+                         f"the frame comes from {frame_serial!r}")
+    return {"path": str(calib.path), "id": calib.id, "device": calib.doc["device"], "lens": calib_lens,
+            "corrected_tensor_sha256": calib.doc["corrected_tensor"]["npz_sha256"]}
+
+
 def run_job(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None = None,
-            model_path: str | os.PathLike | None = None, calibration_id: str | None = None, tile_px: int = 512,
+            model_path: str | os.PathLike | None = None, calibration_id: str | None = None,
+            calibration_path: str | os.PathLike | None = None, tile_px: int = 512,
             threads: int | None = None, overlap_px: int | None = None, ply_step_px: int = 1,
             progress: bool = False) -> tuple[InferenceResult, dict]:
-    """Read (if a path), infer, write outputs and ``report.json`` into ``out_dir``; return (result, report)."""
+    """Read (if a path), infer, write outputs and ``report.json`` into ``out_dir``; return (result, report).
+
+    ``calibration_path`` (a ``bmi calibrate`` file) selects the model trained
+    on that calibration's corrected PSF tensor, after ``calibration_for``'s
+    checks; without such a model the nominal one runs and the report says so.
+    """
     from devices import load_raw
 
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     frame = load_raw(frame_or_path) if isinstance(frame_or_path, (str, os.PathLike)) else frame_or_path
     timings["read_raw_s"] = time.perf_counter() - t0
+    calibration = None
+    if calibration_path is not None:
+        calibration = calibration_for(frame, calibration_path, calibration_id)
+        calibration_id = calibration["id"]
     note = None
     if model is None:
         t0 = time.perf_counter()
@@ -56,6 +92,7 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None = 
         "calibration_id": model.manifest["calibration_id"],
         "frame_calibration_id": getattr(frame, "calibration_id", None),
         "calibration_note": note,
+        "calibration_file": calibration,
         "frame": {"frame_id": frame.frame_id, "shape": list(frame.data.shape), "roi": vars(frame.roi),
                   "lens": frame.lens, "device": frame.device, "source": frame.source},
         **result.summary(),
