@@ -145,3 +145,58 @@ def test_a_window_rendered_alone_equals_the_same_region_of_a_larger_render(tenso
                         psf_mode="tensor")
     # Away from the small window's own edge (one kernel), the two agree: zones are anchored to the sensor.
     assert np.abs(part[21:-21, 21:-21] - big[41:55, 45:59]).max() < 1e-5
+
+
+# -- a perturbed lens in exact mode ---------------------------------------------------------------------
+
+def _centroid_px(kernel):
+    """(row, col) centroid of a (K, K) kernel relative to its centre pixel."""
+    rows, cols = np.mgrid[0:kernel.shape[0], 0:kernel.shape[1]] - kernel.shape[0] // 2
+    return np.array([(kernel * rows).sum(), (kernel * cols).sum()]) / kernel.sum()
+
+
+def test_exact_kernels_without_a_perturbation_are_the_traced_pupils_psf_bit_for_bit(tensor):
+    """perturbation None or all zero: the kernels of the plain exact map, defined by fit_pupils + psf_from_pupil."""
+    from bmi_sdk.optics.perturb import Perturbation
+    from bmi_sdk.optics.psf import psf_from_pupil
+    from bmi_sdk.optics.pupil import fit_pupils
+
+    spec, theta, phi, depth_index = SMALL, 33.3, 17.0, 2
+    lam_nm = sorted({lam for ch in spec.channels for lam, _ in ch})
+    fits = fit_pupils(MONO, theta, np.full(len(lam_nm), spec.depth_m[depth_index]), np.array(lam_nm) * 1e-3,
+                      grid=spec.fit_grid, degree=spec.fit_degree)
+    mono = {lam: psf_from_pupil(f, spec.kernel_px, BMI_SENSOR.pitch_um, spec.oversample, spec.guard,
+                                rotation_deg=phi).kernel for lam, f in zip(lam_nm, fits)}
+    k = np.stack([sum(w * mono[lam] for lam, w in ch) for ch in spec.channels])
+    expected = (k / k.sum(axis=(1, 2), keepdims=True)).astype(np.float32)
+    for p in (None, Perturbation(), Perturbation(stray_light_spread_px=3.0)):
+        got = PsfMap(tensor, BMI_SENSOR, perturbation=p).kernels(theta, phi, [depth_index])[:, 0]
+        assert got.dtype == np.float32 and np.array_equal(got, expected)
+
+
+def test_a_decentred_lens_moves_the_kernel_where_the_trace_lands_its_chief_ray(tensor):
+    """Independent paths: chief-ray landing shift from perturb.trace_spots vs the rendered kernel's centroid."""
+    from bmi_sdk.optics.perturb import Perturbation, trace_spots
+
+    nominal = PsfMap(tensor, BMI_SENSOR)
+    theta, phi, depth_index, green = 20.0, 30.0, 1, 1  # 1 m (sharp); channel 1 is the 587.6 nm line
+    lam_um = SMALL.channels[green][0][0] * 1e-3
+    k0 = nominal.kernels(theta, phi, [depth_index])[green, 0]
+    for decenter_um in ((10.0, 0.0), (3.0, -7.0), (1e-6, 0.0)):
+        p = Perturbation(decenter_um=decenter_um)
+        k = PsfMap(tensor, BMI_SENSOR, perturbation=p).kernels(theta, phi, [depth_index])[green, 0]
+        landing = [trace_spots(MONO, q, [theta], phi, SMALL.depth_m[depth_index], lam_um, BMI_SENSOR.centre_px)[1][0]
+                   for q in (p, Perturbation())]
+        expected = landing[0] - landing[1]  # (row, col) px
+        assert np.hypot(*expected) == pytest.approx(np.hypot(*decenter_um) / BMI_SENSOR.pitch_um, rel=0.1)
+        assert _centroid_px(k) - _centroid_px(k0) == pytest.approx(expected, abs=0.05)
+    # The (almost) zero decenter went through the perturbed trace too: no shift, the nominal kernel.
+    assert np.abs(k - k0).max() < 1e-4 * k0.max()
+
+
+def test_tensor_mode_refuses_a_perturbation(tensor):
+    from bmi_sdk.optics.perturb import Perturbation
+
+    with pytest.raises(ValueError, match="psf_mode='exact'"):
+        PsfMap(tensor, BMI_SENSOR, mode="tensor", perturbation=Perturbation(tilt_arcmin=(1.0, 0.0)))
+    PsfMap(tensor, BMI_SENSOR, mode="tensor", perturbation=Perturbation())  # the design is fine

@@ -96,7 +96,8 @@ def render_coded(rgb: np.ndarray, range_m: np.ndarray, tensor: PsfTensor, geomet
     ``zone_px`` / 8 up to 64 px, errs by 7e-5 against 64 px zones at a sixth of the cost of
     bilinear tents (``bmi bench render``). Pass a ``psf_map`` built for the same tensor and
     geometry to reuse its memoised kernels across calls (e.g. neighbouring blocks of one
-    frame); ``interpolation`` and ``psf_mode`` then come from it.
+    frame); ``interpolation`` and ``psf_mode`` then come from it. A built lens with hardware
+    errors renders through ``PsfMap(tensor, geometry, perturbation=...)`` (``exact`` mode).
     """
     _check(rgb, range_m)
     height, width, _ = rgb.shape

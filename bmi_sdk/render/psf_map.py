@@ -12,6 +12,21 @@ Two modes:
   kernels (L1 0.2–0.6 at 10 m and infinity against the exact kernel;
   ``bmi bench render``).
 
+A built lens that differs from its design (``optics.perturb.Perturbation``:
+decenter, tilt, sensor radius, PSF shift/scale, glare) is an ``exact``-mode
+option: each monochromatic kernel is ``perturb.spot_kernels`` of the perturbed
+lens at (θ, φ, depth, λ), sampled on the K × K grid centred on the pixel where
+the *design* lens's traced chief ray of that (θ, φ, depth, λ) lands (the
+convention of ``perturb.perturbed_tensor``). The renderer maps pixels to
+fields with the nominal geometry, so each PSF appears displaced by exactly
+(perturbed − design) chief-ray landing, and a zero perturbation is the
+nominal kernel. The design landing is traced, not taken from
+``SensorGeometry.pixel_of_field``: the BMI sensor's R·θ mapping is idealised
+and sits 14 px (30°) to 22 px (55°) radially outside the traced chief ray, a
+nominal-geometry offset that is no part of the perturbation and would push
+edge kernels off their 41 px grid. The tensor is rotationally symmetric, so
+``tensor`` mode refuses a perturbation.
+
 Tensor-mode details:
 
 * θ interpolation between the two bracketing tensor fields, either linear
@@ -37,6 +52,7 @@ import cv2
 import numpy as np
 
 from ..geometry import SensorGeometry
+from ..optics.perturb import Perturbation, spot_kernels, trace_spots
 from ..optics.psf import psf_from_pupil
 from ..optics.pupil import fit_pupils
 from ..optics.tensor import PsfTensor
@@ -79,18 +95,28 @@ MODES = ("exact", "tensor")
 
 
 class PsfMap:
-    """Kernels for arbitrary (θ, φ, depth index); depths are the tensor's grid (see module doc)."""
+    """Kernels for arbitrary (θ, φ, depth index); depths are the tensor's grid (see module doc).
+
+    ``perturbation`` (``exact`` mode only): the hardware errors of a built lens; ``None`` or all
+    zero is the design, and its kernels are bit-identical to a map without one.
+    """
 
     def __init__(self, tensor: PsfTensor, geometry: SensorGeometry, interpolation: str = "linear",
-                 mode: str = "exact"):
+                 mode: str = "exact", perturbation: Perturbation | None = None):
         if interpolation not in INTERPOLATIONS:
             raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}")
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if perturbation is not None and not np.any(perturbation.to_vector()):
+            perturbation = None  # the design (a glare spread without glare changes nothing)
+        if perturbation is not None and mode != "exact":
+            raise ValueError("a perturbation needs psf_mode='exact': the PSF tensor is rotationally symmetric "
+                             "and cannot hold decenter or tilt at every azimuth")
         self.tensor = tensor
         self.geometry = geometry
         self.interpolation = interpolation
         self.mode = mode
+        self.perturbation = perturbation
         self.scale = tensor.spec.pitch_um / geometry.pitch_um
         self.field_deg = np.asarray(tensor.spec.field_deg, dtype=np.float64)
         self._exact: dict[tuple, np.ndarray] = {}
@@ -104,7 +130,7 @@ class PsfMap:
         return resampled_size(self.tensor.spec.kernel_px, self.scale)
 
     def _exact_kernels(self, theta_deg: float, phi_deg: float, depth_indices: np.ndarray) -> np.ndarray:
-        """(C, n, K, K) traced at exactly (θ, φ), memoised per (θ, φ, depth)."""
+        """(C, n, K, K) traced at exactly (θ, φ) (through the perturbed lens if any), memoised per (θ, φ, depth)."""
         key = (round(float(theta_deg), 6), round(float(phi_deg), 6))
         missing = [int(j) for j in depth_indices if key + (int(j),) not in self._exact]
         if missing:
@@ -112,16 +138,33 @@ class PsfMap:
             lam_nm = sorted({lam for ch in spec.channels for lam, _ in ch})
             depth = np.asarray(spec.depth_m)[missing]
             d_grid, l_grid = np.meshgrid(depth, lam_nm, indexing="ij")
-            fits = fit_pupils(self.tensor.lens, float(np.clip(theta_deg, 0.0, self.field_deg[-1])), d_grid.ravel(),
-                              l_grid.ravel() * 1e-3, grid=spec.fit_grid, degree=spec.fit_degree)
-            mono = {}
-            for (dj, lam), fit in zip(((a, b) for a in missing for b in lam_nm), fits):
-                mono[dj, lam] = psf_from_pupil(fit, self.kernel_px, self.geometry.pitch_um, spec.oversample,
-                                               spec.guard, rotation_deg=float(phi_deg)).kernel
+            theta = float(np.clip(theta_deg, 0.0, self.field_deg[-1]))
+            if self.perturbation is None:
+                fits = fit_pupils(self.tensor.lens, theta, d_grid.ravel(), l_grid.ravel() * 1e-3,
+                                  grid=spec.fit_grid, degree=spec.fit_degree)
+                flat = [psf_from_pupil(fit, self.kernel_px, self.geometry.pitch_um, spec.oversample, spec.guard,
+                                       rotation_deg=float(phi_deg)).kernel for fit in fits]
+            else:
+                flat = self._perturbed_mono(theta, float(phi_deg), d_grid.ravel(), l_grid.ravel() * 1e-3)
+            mono = dict(zip(((a, b) for a in missing for b in lam_nm), flat))
             for dj in missing:
                 k = np.stack([sum(w * mono[dj, lam] for lam, w in ch) for ch in spec.channels])
+                if self.perturbation is not None:
+                    k = np.maximum(k, 0.0)  # a fitted glare fraction slightly below 0 must not make negative wings
                 self._exact[key + (dj,)] = (k / k.sum(axis=(1, 2), keepdims=True)).astype(np.float32)
         return np.stack([self._exact[key + (int(j),)] for j in depth_indices], axis=1)
+
+    def _perturbed_mono(self, theta_deg: float, phi_deg: float, depth_m: np.ndarray,
+                        wavelength_um: np.ndarray) -> np.ndarray:
+        """(n, K, K) kernels of the perturbed lens, each centred where the design's chief ray lands (module doc)."""
+        spec, lens, pitch_um = self.tensor.spec, self.tensor.lens, self.geometry.pitch_um
+        theta = np.full(len(depth_m), theta_deg)
+        centre_px = self.geometry.centre_px
+        _, design_px, _ = trace_spots(lens, Perturbation(), theta, phi_deg, depth_m, wavelength_um, centre_px,
+                                      pitch_um, spec.fit_grid, spec.fit_degree)
+        return spot_kernels(lens, self.perturbation, theta, phi_deg, depth_m, wavelength_um, design_px,
+                            self.kernel_px, centre_px, pitch_um, spec.oversample, spec.guard, spec.fit_grid,
+                            spec.fit_degree).kernels
 
     def _bracket(self, theta_deg: float):
         """Tensor indices and weights for θ (clamped to the tensor's field range)."""
