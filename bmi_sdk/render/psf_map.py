@@ -92,6 +92,8 @@ def resample_kernel(kernel: np.ndarray, scale: float) -> np.ndarray:
 
 
 MODES = ("exact", "tensor")
+DESIGN_FIT_GRID, DESIGN_FIT_DEGREE = 8, 2
+"""Pupil fit of the design trace that only places a perturbed kernel's grid (as ``optics.report.chief_ray_table``)."""
 
 
 class PsfMap:
@@ -160,8 +162,9 @@ class PsfMap:
         spec, lens, pitch_um = self.tensor.spec, self.tensor.lens, self.geometry.pitch_um
         theta = np.full(len(depth_m), theta_deg)
         centre_px = self.geometry.centre_px
+        # The chief ray is traced before (and apart from) the pupil fit: a coarse fit gives the same landing.
         _, design_px, _ = trace_spots(lens, Perturbation(), theta, phi_deg, depth_m, wavelength_um, centre_px,
-                                      pitch_um, spec.fit_grid, spec.fit_degree)
+                                      pitch_um, fit_grid=DESIGN_FIT_GRID, fit_degree=DESIGN_FIT_DEGREE)
         return spot_kernels(lens, self.perturbation, theta, phi_deg, depth_m, wavelength_um, design_px,
                             self.kernel_px, centre_px, pitch_um, spec.oversample, spec.guard, spec.fit_grid,
                             spec.fit_degree).kernels
