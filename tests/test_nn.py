@@ -245,3 +245,25 @@ def test_hardware_perturbations_move_and_magnify_kernels_as_defined():
     assert np.all(np.isclose(np.sqrt(ratios), 1.05, atol=0.005) | np.isclose(np.sqrt(ratios), 0.95, atol=0.005))
     # the three channels of an entry share one scale factor
     assert np.allclose(scaled.data[0], scaled.data[2])
+
+
+def test_eval_exact_conditions_resolve_and_render_the_perturbed_lens(monkeypatch):
+    """decenter/tilt and their exact-mode reference are default conditions and reach the renderer (tiny bench)."""
+    from bmi_sdk.nn import evaluate
+
+    for name in ("nominal_exact", "decenter_10um", "tilt_1arcmin"):
+        assert name in evaluate.known_conditions() and name in evaluate.EXACT
+    assert evaluate.EXACT["decenter_10um"].decenter_um == (10.0, 0.0)
+    assert evaluate.EXACT["tilt_1arcmin"].tilt_arcmin == (1.0, 0.0)
+
+    def passthrough(_path, _threads):  # the sensor image as the all-in-focus guess, 2 m everywhere
+        return lambda x: (x[:, :3], np.full_like(x[:, :1], 2.0))
+
+    monkeypatch.setattr(evaluate, "OnnxModel", passthrough)
+    monkeypatch.setattr(evaluate, "REGIONS", {"centre": evaluate.REGIONS["centre"]})  # one tile: ~7 s of traces
+    bench = evaluate.Benchmark(tiles=1, tile_px=16)
+    rows = evaluate.run_benchmark("unused.onnx", bench, ["nominal_exact", "decenter_10um"], progress=False)
+    assert [(r["condition"], r["region"]) for r in rows] == [("nominal_exact", "centre"), ("decenter_10um", "centre")]
+    assert all({"absrel", "rmse_m", "delta1", "psnr_db", "ssim"} <= set(r) for r in rows)
+    # Same scenes and noise: only the 5 px displaced PSFs change the image.
+    assert rows[0]["psnr_db"] != rows[1]["psnr_db"]

@@ -12,11 +12,17 @@ A condition is what changes between capture and the fixed trained network:
   ``standard`` = 0.005, ``noise_<σ>`` the sweep);
 * a perturbed PSF tensor used at render time (hardware errors, no
   retraining) — definitions in ``perturb``;
+* a built lens that breaks the rotational symmetry (``EXACT``: lens decenter
+  10 µm, tilt 1 arcmin, traced exactly at every zone's (θ, φ) by an
+  ``exact``-mode ``PsfMap`` with an ``optics.perturb.Perturbation``);
 * another optical system (``fisheye_standard``: the fisheye lens, its plane
   sensor and its own trained model).
 
-Hardware errors that need a non-rotationally-symmetric trace (lens decenter,
-tilt) wait for issue 5's perturbed tensors and are not reported here.
+Every other condition renders with ``psf_mode="tensor"`` (the paper's
+rotated radial tensor), which by itself differs from the exact kernels
+(``render.psf_map``). So decenter and tilt are to be read against
+``nominal_exact``, the design rendered by the same exact renderer at the
+same σ (0.005), not against ``standard``.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ from bmi_sdk.model_io import INPUT_NAME, network_input
 from bmi_sdk.nn.data import (STANDARD_SIGMA, lens_geometry, lens_tensor, render_margin_px, sample_window,
                              simulate_sensor)
 from bmi_sdk.nn.metrics import depth_metrics, image_metrics, mean_metrics
+from bmi_sdk.optics.perturb import Perturbation
 from bmi_sdk.sensor import PAPER_NOISE_SIGMAS, relative_illumination
 
 REGIONS = {"centre": (0.0, 20.0), "edge": (52.0, 58.0)}
@@ -49,11 +56,24 @@ HARDWARE = {
 }
 """Hardware-error conditions (paper Tables 5, 6) that a rotationally symmetric model can represent."""
 
+EXACT = {
+    "nominal_exact": Perturbation(),
+    "decenter_10um": Perturbation(decenter_um=(10.0, 0.0)),
+    "tilt_1arcmin": Perturbation(tilt_arcmin=(1.0, 0.0)),
+}
+"""Conditions rendered with exact-mode kernels of the (perturbed) lens at σ = ``STANDARD_SIGMA``; decenter
+along the sensor's +col, tilt about it; ``nominal_exact`` is their reference (module doc)."""
+
 
 def noise_conditions() -> dict:
     out = {"ideal": 0.0, "standard": STANDARD_SIGMA}
     out.update({f"noise_{s:g}": s for s in PAPER_NOISE_SIGMAS})
     return out
+
+
+def known_conditions() -> list[str]:
+    """Every condition name, in the default order (``fisheye_standard`` needs its own model)."""
+    return [*noise_conditions(), *HARDWARE, *EXACT, "fisheye_standard"]
 
 
 def perturb(tensor, *, shift_px: float = 0.0, scale: float = 0.0, radius: float = 0.0, seed: int = 0, **_):
@@ -132,13 +152,19 @@ class Benchmark:
             out += [(name, i, *sample_window(geometry, size, rng, band)) for i in range(self.tiles)]
         return out
 
-    def renders(self, tensor, progress: bool = False) -> list[dict]:
-        """Scene, optical image (relative illumination applied) and position of every tile, for one tensor."""
-        from bmi_sdk.render import render_coded
+    def renders(self, tensor, progress: bool = False, psf_mode: str = "tensor",
+                perturbation: Perturbation | None = None) -> list[dict]:
+        """Scene, optical image (relative illumination applied) and position of every tile, for one tensor.
+
+        ``psf_mode`` and ``perturbation`` make the zone kernels (``render.PsfMap``; a perturbation needs
+        ``exact``).
+        """
+        from bmi_sdk.render import PsfMap, render_coded
         from bmi_sdk.scenes import generate_scene
 
         geometry = lens_geometry(self.lens)
         size, m = self.tile_px + 2 * self.margin_px, self.margin_px
+        psf_map = PsfMap(tensor, geometry, mode=psf_mode, perturbation=perturbation)
         windows = self.windows()
         if progress:
             from tqdm import tqdm
@@ -147,7 +173,7 @@ class Benchmark:
         out = []
         for region, i, row0, col0 in windows:
             scene = generate_scene(size, size, np.random.default_rng([self.seed, 7, list(REGIONS).index(region), i]))
-            optical = render_coded(scene.rgb, scene.range_m, tensor, geometry, row0=row0, col0=col0, psf_mode="tensor")
+            optical = render_coded(scene.rgb, scene.range_m, tensor, geometry, row0=row0, col0=col0, psf_map=psf_map)
             optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
             out.append({"region": region, "tile": i, "row0": row0 + m, "col0": col0 + m, "optical_full": optical,
                         "rgb": scene.rgb[m:-m, m:-m], "range_m": scene.range_m[m:-m, m:-m]})
@@ -193,12 +219,14 @@ def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition:
 
 def run_benchmark(model_path: str | Path, bench: Benchmark = Benchmark(), conditions: list[str] | None = None,
                   fisheye_model: str | Path | None = None, progress: bool = True) -> list[dict]:
-    """Every requested condition (default: noise sweep + hardware errors, + fisheye when its model is given)."""
+    """Every requested condition (default: noise sweep, hardware errors (``HARDWARE``, ``EXACT``), + fisheye
+    when its model is given)."""
     noise = noise_conditions()
-    conditions = conditions or [*noise, *HARDWARE] + (["fisheye_standard"] if fisheye_model else [])
-    unknown = [c for c in conditions if c not in noise and c not in HARDWARE and c != "fisheye_standard"]
+    known = known_conditions()
+    conditions = conditions or [c for c in known if c != "fisheye_standard" or fisheye_model]
+    unknown = [c for c in conditions if c not in known]
     if unknown:
-        raise ValueError(f"unknown conditions {unknown}; known: {[*noise, *HARDWARE, 'fisheye_standard']}")
+        raise ValueError(f"unknown conditions {unknown}; known: {known}")
     model = OnnxModel(model_path, bench.threads)
     nominal = lens_tensor(bench.lens)
     rows: list[dict] = []
@@ -212,6 +240,9 @@ def run_benchmark(model_path: str | Path, bench: Benchmark = Benchmark(), condit
         p = HARDWARE[name]
         renders_p = bench.renders(perturb(nominal, **p, seed=bench.seed), progress)
         rows += score(model, renders_p, bench, STANDARD_SIGMA, name, p.get("stray", 0.0))
+    for name in [c for c in conditions if c in EXACT]:
+        renders_p = bench.renders(nominal, progress, psf_mode="exact", perturbation=EXACT[name])
+        rows += score(model, renders_p, bench, STANDARD_SIGMA, name)
     if "fisheye_standard" in conditions:
         if fisheye_model is None:
             raise ValueError("fisheye_standard needs --fisheye-model")
