@@ -28,6 +28,8 @@ def register(subparsers) -> None:
                    help="bmi_sdk.nn presets to export untrained when no --model is given (default tiny,small)")
     p.add_argument("--tile-px", type=int, default=512)
     p.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: all cores)")
+    p.add_argument("--frame-tiles", default="512,768,1024",
+                   help="tile sizes for the full-frame time/memory table of the first model")
     p.add_argument("--seam-tiles", default="256,512", help="tile sizes for the seam table")
     p.add_argument("--seam-frame", default="512x768", help="H×W of the frame run whole and tiled")
     p.add_argument("--peak-gflops", type=float, default=175.0,
@@ -153,9 +155,11 @@ def _run(args) -> int:
     sections = []
 
     # 1. full frame per model
-    rows = []
+    rows, rows_by_tile = [], {}
     for m in models:
         r = _full_frame(m, dng, args.tile_px, args.threads)
+        if m == models[0]:
+            rows_by_tile[args.tile_px] = r
         gflops = 2 * r["macs_per_tile"] * r["tiles"] / r["timings_s"]["network_s"] / 1e9
         rows.append([m.name, read_manifest(m)["preset"], r["receptive_field_px"], r["overlap_px"], r["tiles"],
                      r["wall_s"], r["timings_s"]["network_s"], r["peak_rss_mb"] / 1024, gflops,
@@ -164,6 +168,19 @@ def _run(args) -> int:
     table1 = markdown_table(["model", "preset", "receptive field px", "overlap px", "tiles", "frame s",
                              "network s", "peak RSS GB", "GFLOP/s", "of peak"], rows)
     sections.append(f"### Full 6000×4500 frame, {args.tile_px}² tiles\n\n{table1}")
+
+    # 1b. tile size against full-frame time and memory (first model): the overlap is fixed by the model,
+    # so bigger tiles recompute less of it, at the cost of a bigger session arena and band
+    rows1b = []
+    for tile in [int(t) for t in args.frame_tiles.split(",") if t]:
+        r = rows_by_tile.get(tile) or _full_frame(models[0], dng, tile, args.threads)
+        computed_mp = r["tiles"] * tile * tile / 1e6
+        rows1b.append([tile, r["overlap_px"], r["tiles"], f"{computed_mp / 27.0:.2f}", r["wall_s"],
+                       r["timings_s"]["network_s"], r["peak_rss_mb"] / 1024])
+        print(rows1b[-1], flush=True)
+    table1b = markdown_table(["tile px", "overlap px", "tiles", "computed px / frame px", "frame s", "network s",
+                              "peak RSS GB"], rows1b)
+    sections.append(f"### Tile size, model {models[0].name}\n\n{table1b}")
 
     # 2. seams on a window run whole and tiled (first model)
     h, w = (int(v) for v in args.seam_frame.lower().split("x"))
