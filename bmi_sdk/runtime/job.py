@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import time
-from pathlib import Path
 
 from ..bench import peak_rss_mb
 from .model import Model, select_model
