@@ -3,15 +3,18 @@
 The BMI sensor is a spherical cap (radius 7.199 mm, concave towards the lens)
 sampled on a 6000×4500 grid at 2 µm *arc-length* pitch: a pixel's distance
 from the optical centre, measured along the sphere, is ``pitch × radial index``
-(an azimuthal-equidistant layout, so the 60° half-field lands near the
-corners: 3750 px × 2 µm / 7.199 mm = 59.7°). A plane sensor (the fisheye
+(an azimuthal-equidistant layout: the corners lie 3750 px × 2 µm / 7.199 mm
+= 59.7° round the sphere, which the design lens's traced mapping makes a
+60.06° field, just outside the image circle). A plane sensor (the fisheye
 baseline) uses the same object with ``radius_mm=None`` and planar distances.
 
 Which *object-space* field angle θ lands at a given sensor position is a
 property of the lens, not of the sensor: it comes from the real chief-ray
 trace, as a monotone table ``(field_deg, sensor_radial_mm)``. For the ideal
 concentric lens the table is θ_sensor = θ_field (the chief ray passes the
-common centre undeviated); ``SensorGeometry.for_lens`` builds the exact table.
+common centre undeviated; ``IDEAL_BMI_SENSOR``); ``SensorGeometry.for_lens``
+builds the exact table, and ``BMI_SENSOR``, the SDK's default, carries the
+design lens's traced table (``data/bmi_sensor_mapping.json``).
 
 Conventions: pixel (row, col) has its centre at index coordinates
 (row, col); the optical centre sits at (cy_px, cx_px), by default the centre
@@ -24,7 +27,9 @@ z forward (OpenCV's).
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -39,8 +44,8 @@ class SensorGeometry:
     cy_px: float | None = None
     max_field_deg: float = 60.0
     # chief-ray table: object field angle (deg) -> radial position on the sensor (mm, arc length or planar)
-    field_table_deg: tuple = field(default=(), compare=False)
-    radial_table_mm: tuple = field(default=(), compare=False)
+    field_table_deg: tuple = field(default=())
+    radial_table_mm: tuple = field(default=())
 
     def __post_init__(self):
         if self.width_px <= 0 or self.height_px <= 0:
@@ -194,5 +199,24 @@ class SensorGeometry:
                    radial_table_mm=tuple(d.get("radial_table_mm", ())))
 
 
-BMI_SENSOR = SensorGeometry()
-"""The nominal BMI sensor with the ideal concentric mapping θ_field = θ_sensor."""
+IDEAL_BMI_SENSOR = SensorGeometry()
+"""The BMI sensor with the ideal concentric mapping θ_field = θ_sensor (a lens whose surfaces share one centre)."""
+
+SENSOR_MAPPING_FILE = Path(__file__).resolve().parent / "data" / "bmi_sensor_mapping.json"
+
+
+def _traced_bmi_sensor() -> SensorGeometry:
+    """The BMI sensor behind the design lens: its traced chief-ray table, read from the package.
+
+    The table is ``SensorGeometry.for_lens(bmi_monocentric)``'s, stored by
+    ``bmi lens --write-sensor-mapping`` so that importing the geometry traces
+    nothing (a test re-traces it and compares).
+    """
+    doc = json.loads(SENSOR_MAPPING_FILE.read_text())
+    return SensorGeometry(radius_mm=doc["radius_mm"], field_table_deg=tuple(doc["field_deg"]),
+                          radial_table_mm=tuple(doc["radial_mm"]))
+
+
+BMI_SENSOR = _traced_bmi_sensor()
+"""The nominal BMI sensor with the design lens's traced mapping: the printed lens is not exactly concentric,
+and its chief rays land 0.6–0.8 % inside R·θ (14 px at 30°, 24 px at 60°) — docs/optics.md."""

@@ -3,16 +3,37 @@
 import numpy as np
 import pytest
 
-from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
+from bmi_sdk.geometry import BMI_SENSOR, IDEAL_BMI_SENSOR, SENSOR_MAPPING_FILE, SensorGeometry
 from bmi_sdk.optics import get_lens
+from bmi_sdk.optics.report import sensor_mapping
 
 
 def test_corners_reach_the_half_field_and_the_centre_is_the_axis():
-    theta, _ = BMI_SENSOR.field_angles(np.array([0, 4499]), np.array([0, 5999]))
+    corners = (np.array([0, 4499]), np.array([0, 5999]))
+    theta, _ = IDEAL_BMI_SENSOR.field_angles(*corners)
     assert theta == pytest.approx([59.68, 59.68], abs=0.01)  # 3750 px × 2 µm / 7.199 mm
+    # the design lens lands its chief rays inside R·θ, so the same corners see 60.06°: just outside the circle
+    assert BMI_SENSOR.field_angles(*corners)[0] == pytest.approx([60.06, 60.06], abs=0.01)
     cy, cx = BMI_SENSOR.centre_px
     assert BMI_SENSOR.field_angles(cy, cx)[0] == 0.0
-    assert BMI_SENSOR.valid_mask().all()  # the 60° circle covers the whole array
+    assert IDEAL_BMI_SENSOR.valid_mask().all()  # the ideal 60° circle covers the whole array
+    assert 0 < (~BMI_SENSOR.valid_mask()).sum() < 200  # a few corner pixels beyond 60°
+
+
+def test_default_sensor_carries_the_traced_chief_ray_table():
+    """The shipped mapping is the design lens's trace (re-traced here) and differs from R·θ as measured."""
+    doc = sensor_mapping(get_lens())
+    import json
+
+    shipped = json.loads(SENSOR_MAPPING_FILE.read_text())
+    assert shipped["lens_sha256"] == doc["lens_sha256"], "lens changed: bmi lens --write-sensor-mapping"
+    assert np.allclose(shipped["radial_mm"], doc["radial_mm"], rtol=0, atol=1e-9)
+    assert BMI_SENSOR.field_table_deg == tuple(shipped["field_deg"])
+    # chief ray of 30° lands 13.8 px inside the ideal R·θ position (0.73 %): the lens is not concentric
+    ideal_px = np.radians(30.0) * 7.199e3 / 2.0
+    landed_px = BMI_SENSOR.radial_mm_from_field_deg(30.0) * 1e3 / 2.0
+    assert ideal_px - landed_px == pytest.approx(13.8, abs=0.1)
+    assert BMI_SENSOR != IDEAL_BMI_SENSOR  # geometries with different tables are different sensors
 
 
 def test_pixel_field_round_trip_and_azimuth_convention():
@@ -28,7 +49,8 @@ def test_pixel_field_round_trip_and_azimuth_convention():
 def test_ray_directions_and_depth_conversions():
     d = BMI_SENSOR.ray_directions(np.array([0, 2250]), np.array([0, 3000]))
     assert np.linalg.norm(d, axis=-1) == pytest.approx([1.0, 1.0])
-    assert d[0, 0] < 0 and d[0, 1] < 0 and d[0, 2] == pytest.approx(np.cos(np.radians(59.68)), abs=1e-3)
+    corner_theta = BMI_SENSOR.field_angles(0, 0)[0]
+    assert d[0, 0] < 0 and d[0, 1] < 0 and d[0, 2] == pytest.approx(np.cos(np.radians(corner_theta)), abs=1e-9)
     assert BMI_SENSOR.z_to_range(BMI_SENSOR.range_to_z(5.0, 60.0), 60.0) == pytest.approx(5.0)
     assert BMI_SENSOR.range_to_z(5.0, 60.0) == pytest.approx(2.5)
 

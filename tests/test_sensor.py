@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from bmi_sdk.geometry import BMI_SENSOR
+from bmi_sdk.geometry import BMI_SENSOR, IDEAL_BMI_SENSOR
 from bmi_sdk.sensor import (
     PAPER_NOISE_SIGMAS,
     SensorModel,
@@ -86,9 +86,12 @@ def test_relative_illumination_cos_theta():
     ri = relative_illumination(g, row0, col0, 10, 20)
     assert ri.shape == (10, 20) and ri.dtype == np.float32
     r, c = 5, 7
-    theta_rad = np.hypot(row0 + r - cy, col0 + c - cx) * g.pitch_um * 1e-3 / g.radius_mm
+    theta_rad = np.radians(g.field_angles(row0 + r, col0 + c)[0])  # the lens's traced field of that pixel
     assert ri[r, c] == pytest.approx(np.cos(theta_rad), rel=1e-6)
-    # the corner is just inside the 60° field (59.7°); a sensor with a 50° circle is dark there
-    assert relative_illumination(g, 0, 0, 1, 1)[0, 0] == pytest.approx(np.cos(np.radians(59.68)), abs=1e-3)
+    # with the ideal mapping the corner is just inside the 60° field (59.7°); the design lens sees 60.06° there,
+    # outside its image circle, so the corner is dark, as on a sensor with a 50° circle
+    assert relative_illumination(IDEAL_BMI_SENSOR, 0, 0, 1, 1)[0, 0] == pytest.approx(np.cos(np.radians(59.68)),
+                                                                                     abs=1e-3)
+    assert relative_illumination(g, 0, 0, 1, 1)[0, 0] == 0.0
     narrow = type(g)(max_field_deg=50.0)
     assert relative_illumination(narrow, 0, 0, 1, 1)[0, 0] == 0.0

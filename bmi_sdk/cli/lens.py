@@ -21,6 +21,13 @@ def _print_table(report: dict) -> None:
 def _run(args) -> int:
     from bmi_sdk.optics import get_lens, lens_report
 
+    if args.write_sensor_mapping:
+        from bmi_sdk.io_atomic import write_json
+        from bmi_sdk.optics.report import sensor_mapping
+
+        write_json(args.write_sensor_mapping, sensor_mapping(get_lens(args.lens)))
+        print(f"wrote {args.write_sensor_mapping}")
+        return 0
     report = lens_report(get_lens(args.lens))
     if args.json:
         print(json.dumps(report, indent=2))
@@ -39,4 +46,7 @@ def register(subparsers) -> None:
                    help="built-in lens name (bmi_monocentric, fisheye) or a prescription JSON path")
     p.add_argument("--json", action="store_true", help="print JSON (keys efl_mm, epd_mm, f_number, "
                    "petzval_radius_mm, seidel_w040_waves, wavefront[...])")
+    p.add_argument("--write-sensor-mapping", metavar="PATH", default=None,
+                   help="write the traced chief-ray table (pixel ↔ field mapping) as JSON; "
+                        "bmi_sdk/data/bmi_sensor_mapping.json is this for bmi_monocentric")
     p.set_defaults(handler=_run)

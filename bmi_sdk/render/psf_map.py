@@ -20,11 +20,10 @@ the *design* lens's traced chief ray of that (θ, φ, depth, λ) lands (the
 convention of ``perturb.perturbed_tensor``). The renderer maps pixels to
 fields with the nominal geometry, so each PSF appears displaced by exactly
 (perturbed − design) chief-ray landing, and a zero perturbation is the
-nominal kernel. The design landing is traced, not taken from
-``SensorGeometry.pixel_of_field``: the BMI sensor's R·θ mapping is idealised
-and sits 14 px (30°) to 22 px (55°) radially outside the traced chief ray, a
-nominal-geometry offset that is no part of the perturbation and would push
-edge kernels off their 41 px grid. The tensor is rotationally symmetric, so
+nominal kernel. The design landing is traced per entry, not taken from
+``SensorGeometry.pixel_of_field``: a geometry holds one table (587.6 nm,
+infinity; up to 0.5 px of lateral colour away), or the ideal R·θ mapping
+(up to 24 px away), neither of which is part of the perturbation. The tensor is rotationally symmetric, so
 ``tensor`` mode refuses a perturbation.
 
 Tensor-mode details:
