@@ -213,6 +213,19 @@ def test_checkpoint_resume_reproduces_the_next_step(tmp_path):
             tmp_path / "ckpt.pt")
 
 
+def test_a_cache_rendered_through_another_geometry_is_refused(tmp_path):
+    """cache.json records the sensor mapping and PSF tensor; a stale cache (e.g. ideal R·θ) is not reused."""
+    from bmi_sdk.nn.data import build_cache, render_identity
+
+    spec = CacheSpec(samples=4, crop_px=16, jitter_px=2)
+    stale = {**render_identity(spec.lens), "geometry_sha256": "ideal-r-theta"}
+    (tmp_path / "cache").mkdir()
+    (tmp_path / "cache" / "cache.json").write_text(json.dumps({"schema": CACHE_SCHEMA, "spec": spec.to_dict(),
+                                                               "renderer": stale}))
+    with pytest.raises(ValueError, match="ideal-r-theta"):
+        build_cache(tmp_path / "cache", spec, progress=False)
+
+
 def test_dihedral_roundtrip():
     a = np.arange(12).reshape(3, 4)
     assert np.array_equal(dihedral(dihedral(a, 3), 3), a)

@@ -214,6 +214,20 @@ def render_sample(spec: CacheSpec, index: int, tensor, geometry: SensorGeometry,
             "origin": np.array([row0 + spec.margin_px, col0 + spec.margin_px], dtype=np.int32)}
 
 
+def render_identity(lens_name: str) -> dict:
+    """What the cached renders depend on besides the spec: the sensor mapping and the PSF tensor.
+
+    Stored in ``cache.json``, so a cache rendered through another geometry
+    (e.g. the ideal R·θ mapping) or another tensor is refused, not reused.
+    """
+    import hashlib
+
+    tensor = lens_tensor(lens_name)
+    geometry = json.dumps(lens_geometry(lens_name).to_dict(), sort_keys=True)
+    return {"geometry_sha256": hashlib.sha256(geometry.encode()).hexdigest()[:16],
+            "psf_tensor_key": tensor.spec.cache_key(tensor.lens)}
+
+
 def _render_shard(cache_dir: Path, spec: CacheSpec, shard: int, scenes: Sequence | None) -> int:
     """Render and write one shard (atomically); returns its sample count."""
     tensor, geometry = lens_tensor(spec.lens), lens_geometry(spec.lens)
@@ -233,11 +247,12 @@ def build_cache(cache_dir: str | Path, spec: CacheSpec, scenes: Sequence | None 
     """
     cache_dir = Path(cache_dir)
     meta_path = cache_dir / "cache.json"
-    meta = {"schema": CACHE_SCHEMA, "spec": spec.to_dict()}
+    meta = {"schema": CACHE_SCHEMA, "spec": spec.to_dict(), "renderer": render_identity(spec.lens)}
     if meta_path.exists():
         old = json.loads(meta_path.read_text())
         if old != meta:
-            raise ValueError(f"{cache_dir} holds another cache ({old.get('spec')}); choose another --cache")
+            raise ValueError(f"{cache_dir} holds another cache (spec {old.get('spec')}, renderer {old.get('renderer')}; "
+                             f"this run needs {meta['spec']}, {meta['renderer']}); choose another --cache")
     else:
         write_json(meta_path, meta)
     n_shards = math.ceil(spec.samples / SHARD_SAMPLES)
