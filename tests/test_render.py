@@ -194,6 +194,28 @@ def test_a_decentred_lens_moves_the_kernel_where_the_trace_lands_its_chief_ray(t
     assert np.abs(k - k0).max() < 1e-4 * k0.max()
 
 
+def test_a_calibrated_optical_centre_takes_the_whole_image_shift_out(tensor):
+    """centre_calibrated: the on-axis spot is where the design puts it; off axis only the field-dependent rest moves."""
+    from bmi_sdk.optics.perturb import Perturbation, trace_spots
+
+    p = Perturbation(decenter_um=(10.0, 0.0), tilt_arcmin=(0.0, 1.0))
+    depth_index, green = 1, 1
+    lam_um = SMALL.channels[green][0][0] * 1e-3
+    depth_m = SMALL.depth_m[depth_index]
+
+    def landing(q, theta, phi):
+        return trace_spots(MONO, q, [theta], phi, depth_m, lam_um, BMI_SENSOR.centre_px)[1][0]
+
+    whole_image = landing(p, 0.0, 0.0) - landing(Perturbation(), 0.0, 0.0)
+    assert np.hypot(*whole_image) > 4.0  # 10 µm of decenter moves the image ~5 px
+    for theta, phi in ((0.0, 0.0), (40.0, 120.0)):
+        k0 = PsfMap(tensor, BMI_SENSOR).kernels(theta, phi, [depth_index])[green, 0]
+        k = PsfMap(tensor, BMI_SENSOR, perturbation=p, centre_calibrated=True).kernels(theta, phi, [depth_index])
+        expected = landing(p, theta, phi) - landing(Perturbation(), theta, phi) - whole_image
+        assert _centroid_px(k[green, 0]) - _centroid_px(k0) == pytest.approx(expected, abs=0.05)
+    assert np.hypot(*expected) < 1.0  # what is left at 40° is a fraction of a pixel
+
+
 def test_tensor_mode_refuses_a_perturbation(tensor):
     from bmi_sdk.optics.perturb import Perturbation
 

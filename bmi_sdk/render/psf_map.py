@@ -100,10 +100,14 @@ class PsfMap:
 
     ``perturbation`` (``exact`` mode only): the hardware errors of a built lens; ``None`` or all
     zero is the design, and its kernels are bit-identical to a map without one.
+    ``centre_calibrated``: the camera's optical centre is known (as ``bmi calibrate``
+    measures it), so the on-axis spot displacement of the perturbation, a shift of
+    the whole image, is taken out of every kernel; what remains is the
+    field-dependent displacement and the change of PSF shape.
     """
 
     def __init__(self, tensor: PsfTensor, geometry: SensorGeometry, interpolation: str = "linear",
-                 mode: str = "exact", perturbation: Perturbation | None = None):
+                 mode: str = "exact", perturbation: Perturbation | None = None, centre_calibrated: bool = False):
         if interpolation not in INTERPOLATIONS:
             raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}")
         if mode not in MODES:
@@ -118,6 +122,7 @@ class PsfMap:
         self.interpolation = interpolation
         self.mode = mode
         self.perturbation = perturbation
+        self.centre_calibrated = centre_calibrated
         self.scale = tensor.spec.pitch_um / geometry.pitch_um
         self.field_deg = np.asarray(tensor.spec.field_deg, dtype=np.float64)
         self._exact: dict[tuple, np.ndarray] = {}
@@ -164,6 +169,14 @@ class PsfMap:
         # The chief ray is traced before (and apart from) the pupil fit: a coarse fit gives the same landing.
         _, design_px, _ = trace_spots(lens, Perturbation(), theta, phi_deg, depth_m, wavelength_um, centre_px,
                                       pitch_um, fit_grid=DESIGN_FIT_GRID, fit_degree=DESIGN_FIT_DEGREE)
+        if self.centre_calibrated:
+            axis = np.zeros(len(depth_m))
+            _, axis_design, _ = trace_spots(lens, Perturbation(), axis, phi_deg, depth_m, wavelength_um, centre_px,
+                                            pitch_um, fit_grid=DESIGN_FIT_GRID, fit_degree=DESIGN_FIT_DEGREE)
+            _, axis_built, _ = trace_spots(lens, self.perturbation, axis, phi_deg, depth_m, wavelength_um, centre_px,
+                                           pitch_um, fit_grid=DESIGN_FIT_GRID, fit_degree=DESIGN_FIT_DEGREE)
+            shift_rc = np.array([self.perturbation.psf_shift_px[1], self.perturbation.psf_shift_px[0]])
+            design_px = design_px + (axis_built + shift_rc - axis_design)  # the image centre moves with the spot
         return spot_kernels(lens, self.perturbation, theta, phi_deg, depth_m, wavelength_um, design_px,
                             self.kernel_px, centre_px, pitch_um, spec.oversample, spec.guard, spec.fit_grid,
                             spec.fit_degree).kernels
