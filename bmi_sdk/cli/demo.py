@@ -24,6 +24,9 @@ import numpy as np
 OPTICAL_SCENE_SOURCE = "procedural"
 """Name under which the forward simulator registers its procedural scene source (``procedural:SEED``)."""
 
+CAPTURE_TIMEOUT_S = 1800.0
+
+
 
 def _stage(timings: dict, name: str, t0: float) -> None:
     timings[name] = time.perf_counter() - t0
@@ -111,8 +114,10 @@ def _run(args) -> int:
         print(f"WARNING: {source_warning}")
     device = FirmwareDevice(seed=args.seed)
     device.load_source(source)
-    with open_camera("sim://demo", device=device, timeout_s=300) as cam:
-        frame = cam.capture(timeout_s=300)
+    # The capture is a full-frame exact-mode optical render: ~160 s on an idle 2-core machine, several
+    # times that when the machine is shared; the wait is generous so a slow machine is not a failure.
+    with open_camera("sim://demo", device=device, timeout_s=CAPTURE_TIMEOUT_S) as cam:
+        frame = cam.capture(timeout_s=CAPTURE_TIMEOUT_S)
     dng = out / "frame.dng"
     frame.save_dng(dng)
     _stage(timings, f"acquire full-resolution frame {frame.data.shape[1]}×{frame.data.shape[0]} from sim:// "
