@@ -67,4 +67,5 @@ def _argv(args) -> list[str]:
     for name, default in (("samples", 768), ("crop", 128), ("batch", 8), ("seed", 0)):
         if getattr(args, name) != default:
             out.append(f"--{name} {getattr(args, name)}")
+    out.append(f"--threads {args.threads}")  # CPU float reductions depend on it: part of a bit-exact rerun
     return out
