@@ -166,15 +166,20 @@ def test_bad_models_refused_clearly(unet, tmp_path):
 
 def test_model_selection_by_calibration_id(unet, tmp_path):
     meta = read_manifest(unet)
-    for name, cal in (("default", None), ("cal_a", "cal-A")):
+    for name, cal, lens in (("default", None, meta["lens"]), ("cal_a", "cal-A", meta["lens"]),
+                            ("a_fisheye", None, "fisheye")):  # sorts first: must still never be chosen for BMI
         path = tmp_path / f"{name}.onnx"
         path.write_bytes(unet.read_bytes())
-        write_manifest(path, **{k: meta[k] for k in ("preset", "receptive_field_px", "lens", "psf_tensor_key")},
-                       calibration_id=cal)
+        write_manifest(path, **{k: meta[k] for k in ("preset", "receptive_field_px", "psf_tensor_key")},
+                       lens=lens, calibration_id=cal)
     assert select_model("cal-A", tmp_path) == (tmp_path / "cal_a.onnx", None)
     chosen, note = select_model("cal-B", tmp_path)
     assert chosen == tmp_path / "default.onnx" and "cal-B" in note
     assert select_model(None, tmp_path) == (tmp_path / "default.onnx", None)
+    (tmp_path / "default.onnx").unlink()
+    with pytest.raises(ModelError, match="no nominal"):  # the fisheye's nominal model is not a fallback
+        select_model(None, tmp_path)
+    assert select_model(None, tmp_path, lens="fisheye") == (tmp_path / "a_fisheye.onnx", None)
     with pytest.raises(ModelError, match="no model"):
         select_model(None, tmp_path / "empty")
 

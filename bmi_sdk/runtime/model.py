@@ -135,10 +135,11 @@ class Model:
 
 
 def select_model(calibration_id: str | None = None, models_dir: str | os.PathLike = MODELS_DIR,
-                 preset: str | None = None) -> tuple[Path, str | None]:
+                 preset: str | None = None, lens: str = "bmi_monocentric") -> tuple[Path, str | None]:
     """Pick the model file for a camera's calibration: (path, note).
 
-    Among the manifests in ``models_dir``: a model trained on the calibration's
+    Among the manifests in ``models_dir`` trained for ``lens`` (the package also
+    holds the fisheye baseline, which must never decode a BMI frame): a model trained on the calibration's
     corrected PSF tensor (manifest ``calibration_id`` equal to the one asked
     for) wins; otherwise the nominal model (``calibration_id`` null), and the
     note says that the calibration had no model of its own. ``preset`` narrows
@@ -154,10 +155,11 @@ def select_model(calibration_id: str | None = None, models_dir: str | os.PathLik
             m = read_manifest(onnx)
         except ModelError:
             continue
-        if preset is None or m["preset"] == preset:
+        if m["lens"] == lens and (preset is None or m["preset"] == preset):
             candidates.append((onnx, m))
     if not candidates:
-        raise ModelError(f"no model with a manifest in {models_dir}" + (f" for preset {preset!r}" if preset else ""))
+        raise ModelError(f"no model with a manifest in {models_dir} for lens {lens!r}"
+                         + (f" and preset {preset!r}" if preset else ""))
     if calibration_id is not None:
         for onnx, m in candidates:
             if m["calibration_id"] == calibration_id:
