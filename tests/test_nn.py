@@ -280,3 +280,23 @@ def test_eval_exact_conditions_resolve_and_render_the_perturbed_lens(monkeypatch
     assert all({"absrel", "rmse_m", "delta1", "psnr_db", "ssim"} <= set(r) for r in rows)
     # Same scenes and noise: only the 5 px displaced PSFs change the image.
     assert rows[0]["psnr_db"] != rows[1]["psnr_db"]
+
+
+def test_fisheye_benchmark_scores_the_same_scene_content_as_the_bmi_benchmark():
+    """The system comparison is paired: each tile's scored content is identical for both lenses, the fisheye's
+    wider margin is the mirror continuation of the BMI window, and the BMI scenes are the plain draws."""
+    from bmi_sdk.nn.evaluate import SCENE_MARGIN_PX, Benchmark
+    from bmi_sdk.scenes import generate_scene
+
+    bmi, fish = Benchmark(tile_px=32), Benchmark(lens="fisheye", tile_px=32)
+    assert bmi.margin_px == SCENE_MARGIN_PX < fish.margin_px
+    for region, i in (("centre", 0), ("edge", 5)):
+        (rgb_b, range_b), (rgb_f, range_f) = bmi.scene(region, i), fish.scene(region, i)
+        assert rgb_f.shape[:2] == range_f.shape == (32 + 2 * fish.margin_px,) * 2
+        mb, mf = bmi.margin_px, fish.margin_px
+        np.testing.assert_array_equal(rgb_b[mb:-mb, mb:-mb], rgb_f[mf:-mf, mf:-mf])
+        np.testing.assert_array_equal(range_b[mb:-mb, mb:-mb], range_f[mf:-mf, mf:-mf])
+        pad = mf - mb  # mirror continuation: the row just outside the drawn scene repeats the one inside
+        np.testing.assert_array_equal(range_f[pad - 1], range_f[pad + 1])
+    direct = generate_scene(32 + 2 * SCENE_MARGIN_PX, 32 + 2 * SCENE_MARGIN_PX, np.random.default_rng([20260, 7, 1, 5]))
+    np.testing.assert_array_equal(bmi.scene("edge", 5)[1], direct.range_m)

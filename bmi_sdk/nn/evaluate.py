@@ -1,7 +1,8 @@
 """The synthetic benchmark behind ``bmi eval``: the paper's table analogues on fixed, seeded tiles.
 
 Benchmark: ``tiles`` procedural scenes per field region, each a ``tile_px``²
-window (+ a margin of half a kernel, rendered and cut away) whose centre is
+window (+ a margin of half a kernel, rendered and cut away; ``SCENE_MARGIN_PX``
+says how a wider kernel's margin is filled) whose centre is
 drawn with the seed: **centre** = θ ∈ [0°, 20°], **edge** = θ ∈ [52°, 58°]
 (its pixels span the 50–60° band; those beyond 60° are invalid). Metrics
 (``metrics``) are per tile on valid pixels, averaged over the tiles of a region.
@@ -47,6 +48,11 @@ from bmi_sdk.optics.perturb import Perturbation
 from bmi_sdk.sensor import PAPER_NOISE_SIGMAS, relative_illumination
 
 REGIONS = {"centre": (0.0, 20.0), "edge": (52.0, 58.0)}
+SCENE_MARGIN_PX = render_margin_px("bmi_monocentric")
+"""Scene drawn around every benchmark tile, whatever the lens: each scene is drawn at tile + 2 × this
+(the BMI window), and a lens with a wider kernel margin (the fisheye: 84 px) sees it extended by mirror
+reflection. So every optical system scores the very same content on each tile — the fisheye comparison is
+paired — and the BMI benchmark is what it always was."""
 STRAY_SIGMA_PX = 100.0
 """Width of the veiling-glare kernel of the stray-light condition (0.2 mm on the sensor)."""
 
@@ -158,6 +164,21 @@ class Benchmark:
             out += [(name, i, *sample_window(geometry, size, rng, band)) for i in range(self.tiles)]
         return out
 
+    def scene(self, region: str, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """(linear RGB, range_m) of tile ``i`` of ``region`` over this lens's window (tile + 2 × margin)."""
+        from bmi_sdk.scenes import generate_scene
+
+        draw_px = self.tile_px + 2 * SCENE_MARGIN_PX
+        pad = self.margin_px - SCENE_MARGIN_PX
+        if pad < 0:
+            raise ValueError(f"lens {self.lens!r} needs a {self.margin_px}-px margin, less than the scene's "
+                             f"{SCENE_MARGIN_PX}: not a benchmark lens")
+        scene = generate_scene(draw_px, draw_px, np.random.default_rng([self.seed, 7, list(REGIONS).index(region), i]))
+        if not pad:
+            return scene.rgb, scene.range_m
+        return (np.pad(scene.rgb, ((pad, pad), (pad, pad), (0, 0)), mode="reflect"),
+                np.pad(scene.range_m, pad, mode="reflect"))
+
     def renders(self, tensor, progress: bool = False, psf_mode: str = "tensor",
                 perturbation: Perturbation | None = None, centre_calibrated: bool = True) -> list[dict]:
         """Scene, optical image (relative illumination applied) and position of every tile, for one tensor.
@@ -167,7 +188,6 @@ class Benchmark:
         a camera whose optical centre is calibrated sees it.
         """
         from bmi_sdk.render import PsfMap, render_coded
-        from bmi_sdk.scenes import generate_scene
 
         geometry = lens_geometry(self.lens)
         size, m = self.tile_px + 2 * self.margin_px, self.margin_px
@@ -180,11 +200,11 @@ class Benchmark:
             windows = tqdm(windows, desc="rendering benchmark tiles", unit="tile", leave=False)
         out = []
         for region, i, row0, col0 in windows:
-            scene = generate_scene(size, size, np.random.default_rng([self.seed, 7, list(REGIONS).index(region), i]))
-            optical = render_coded(scene.rgb, scene.range_m, tensor, geometry, row0=row0, col0=col0, psf_map=psf_map)
+            rgb, range_m = self.scene(region, i)
+            optical = render_coded(rgb, range_m, tensor, geometry, row0=row0, col0=col0, psf_map=psf_map)
             optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
             out.append({"region": region, "tile": i, "row0": row0 + m, "col0": col0 + m, "optical_full": optical,
-                        "rgb": scene.rgb[m:-m, m:-m], "range_m": scene.range_m[m:-m, m:-m]})
+                        "rgb": rgb[m:-m, m:-m], "range_m": range_m[m:-m, m:-m]})
         return out
 
 
