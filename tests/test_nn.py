@@ -285,7 +285,8 @@ def test_eval_exact_conditions_resolve_and_render_the_perturbed_lens(monkeypatch
 def test_fisheye_benchmark_scores_the_same_scene_content_as_the_bmi_benchmark():
     """The system comparison is paired: each tile's scored content is identical for both lenses, the fisheye's
     wider margin is the mirror continuation of the BMI window, and the BMI scenes are the plain draws."""
-    from bmi_sdk.nn.evaluate import SCENE_MARGIN_PX, Benchmark
+    from bmi_sdk.nn.data import SCENE_MARGIN_PX, mirror_extend
+    from bmi_sdk.nn.evaluate import Benchmark
     from bmi_sdk.scenes import generate_scene
 
     bmi, fish = Benchmark(tile_px=32), Benchmark(lens="fisheye", tile_px=32)
@@ -300,3 +301,5 @@ def test_fisheye_benchmark_scores_the_same_scene_content_as_the_bmi_benchmark():
         np.testing.assert_array_equal(range_f[pad - 1], range_f[pad + 1])
     direct = generate_scene(32 + 2 * SCENE_MARGIN_PX, 32 + 2 * SCENE_MARGIN_PX, np.random.default_rng([20260, 7, 1, 5]))
     np.testing.assert_array_equal(bmi.scene("edge", 5)[1], direct.range_m)
+    with pytest.raises(ValueError, match="less margin"):
+        mirror_extend(direct.rgb, direct.range_m, -2)

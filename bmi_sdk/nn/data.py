@@ -69,6 +69,23 @@ def render_margin_px(lens_name: str) -> int:
     return LENS_KERNEL_PX[lens_name] // 2 + 4
 
 
+SCENE_MARGIN_PX = render_margin_px("bmi_monocentric")
+"""Procedural scene drawn around a window whatever the lens. Object sizes scale with the drawn size, so
+a lens with a wider kernel margin (the fisheye: 84 px) sees the same draw extended by mirror reflection
+(``mirror_extend``), not a larger draw: both systems train and are scored on one scene distribution."""
+
+
+def mirror_extend(rgb: np.ndarray, range_m: np.ndarray, pad_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """A scene (H×W×3 RGB, H×W range) continued by ``pad_px`` of its mirror image on every side."""
+    if pad_px < 0:
+        raise ValueError(f"cannot extend a scene by {pad_px} px: its lens needs less margin than "
+                         f"SCENE_MARGIN_PX = {SCENE_MARGIN_PX}")
+    if not pad_px:
+        return rgb, range_m
+    return (np.pad(rgb, ((pad_px, pad_px), (pad_px, pad_px), (0, 0)), mode="reflect"),
+            np.pad(range_m, pad_px, mode="reflect"))
+
+
 def lens_geometry(lens_name: str) -> SensorGeometry:
     """The sensor a lens images on: the BMI curved sensor, or for the fisheye a plane 6000×4500 sensor
     at 2 µm whose pixel → field mapping is the fisheye's traced chief-ray table (0–60°)."""
@@ -201,8 +218,9 @@ def render_sample(spec: CacheSpec, index: int, tensor, geometry: SensorGeometry,
     size = spec.stored_px + 2 * spec.margin_px
     if scenes is None:
         row0, col0 = sample_window(geometry, size, rng)
-        scene = generate_scene(size, size, rng)
-        rgb, range_m = scene.rgb, scene.range_m
+        draw_px = spec.stored_px + 2 * SCENE_MARGIN_PX
+        scene = generate_scene(draw_px, draw_px, rng)
+        rgb, range_m = mirror_extend(scene.rgb, scene.range_m, spec.margin_px - SCENE_MARGIN_PX)
     else:
         rgb, range_m, row0, col0 = _dataset_window(scenes, geometry, size, rng)
     render_range = np.where(np.isfinite(range_m), range_m, FAR_FILL_M).astype(np.float32)

@@ -1,8 +1,9 @@
 """The synthetic benchmark behind ``bmi eval``: the paper's table analogues on fixed, seeded tiles.
 
 Benchmark: ``tiles`` procedural scenes per field region, each a ``tile_px``²
-window (+ a margin of half a kernel, rendered and cut away; ``SCENE_MARGIN_PX``
-says how a wider kernel's margin is filled) whose centre is
+window (+ a margin of half a kernel, rendered and cut away; a wider kernel's
+margin is the scene's mirror continuation, ``data.SCENE_MARGIN_PX``, so every
+optical system scores the very same content on each tile) whose centre is
 drawn with the seed: **centre** = θ ∈ [0°, 20°], **edge** = θ ∈ [52°, 58°]
 (its pixels span the 50–60° band; those beyond 60° are invalid). Metrics
 (``metrics``) are per tile on valid pixels, averaged over the tiles of a region.
@@ -41,18 +42,13 @@ import numpy as np
 from scipy import ndimage
 
 from bmi_sdk.model_io import INPUT_NAME, network_input
-from bmi_sdk.nn.data import (STANDARD_SIGMA, lens_geometry, lens_tensor, render_margin_px, sample_window,
-                             simulate_sensor)
+from bmi_sdk.nn.data import (SCENE_MARGIN_PX, STANDARD_SIGMA, lens_geometry, lens_tensor, mirror_extend,
+                             render_margin_px, sample_window, simulate_sensor)
 from bmi_sdk.nn.metrics import depth_metrics, image_metrics, mean_metrics
 from bmi_sdk.optics.perturb import Perturbation
 from bmi_sdk.sensor import PAPER_NOISE_SIGMAS, relative_illumination
 
 REGIONS = {"centre": (0.0, 20.0), "edge": (52.0, 58.0)}
-SCENE_MARGIN_PX = render_margin_px("bmi_monocentric")
-"""Scene drawn around every benchmark tile, whatever the lens: each scene is drawn at tile + 2 × this
-(the BMI window), and a lens with a wider kernel margin (the fisheye: 84 px) sees it extended by mirror
-reflection. So every optical system scores the very same content on each tile — the fisheye comparison is
-paired — and the BMI benchmark is what it always was."""
 STRAY_SIGMA_PX = 100.0
 """Width of the veiling-glare kernel of the stray-light condition (0.2 mm on the sensor)."""
 
@@ -169,15 +165,8 @@ class Benchmark:
         from bmi_sdk.scenes import generate_scene
 
         draw_px = self.tile_px + 2 * SCENE_MARGIN_PX
-        pad = self.margin_px - SCENE_MARGIN_PX
-        if pad < 0:
-            raise ValueError(f"lens {self.lens!r} needs a {self.margin_px}-px margin, less than the scene's "
-                             f"{SCENE_MARGIN_PX}: not a benchmark lens")
         scene = generate_scene(draw_px, draw_px, np.random.default_rng([self.seed, 7, list(REGIONS).index(region), i]))
-        if not pad:
-            return scene.rgb, scene.range_m
-        return (np.pad(scene.rgb, ((pad, pad), (pad, pad), (0, 0)), mode="reflect"),
-                np.pad(scene.range_m, pad, mode="reflect"))
+        return mirror_extend(scene.rgb, scene.range_m, self.margin_px - SCENE_MARGIN_PX)
 
     def renders(self, tensor, progress: bool = False, psf_mode: str = "tensor",
                 perturbation: Perturbation | None = None, centre_calibrated: bool = True) -> list[dict]:
