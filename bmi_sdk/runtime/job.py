@@ -16,8 +16,9 @@ def load_model_for(frame, model_path: str | os.PathLike | None = None, calibrati
     """The model for ``frame``: ``model_path`` if given, else the packaged model for the calibration in use.
 
     The calibration is ``calibration_id`` if given, else the frame's own
-    (``RawFrame.calibration_id``); only models trained for the frame's lens are candidates. Returns the loaded model and a note when the
-    calibration had no model of its own (the nominal one is used instead).
+    (``RawFrame.calibration_id``); only models trained for the frame's lens are
+    candidates. Returns the loaded model and a note when the calibration had no
+    model of its own (the nominal one is used instead).
     """
     note = None
     if model_path is None:

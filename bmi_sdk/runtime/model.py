@@ -138,8 +138,8 @@ def select_model(calibration_id: str | None = None, models_dir: str | os.PathLik
                  preset: str | None = None, lens: str = "bmi_monocentric") -> tuple[Path, str | None]:
     """Pick the model file for a camera's calibration: (path, note).
 
-    Among the manifests in ``models_dir`` trained for ``lens`` (the package also
-    holds the fisheye baseline, which must never decode a BMI frame): a model trained on the calibration's
+    Among the manifests in ``models_dir`` trained for ``lens`` (a fisheye-baseline
+    model, nominal too, must never decode a BMI frame): a model trained on the calibration's
     corrected PSF tensor (manifest ``calibration_id`` equal to the one asked
     for) wins; otherwise the nominal model (``calibration_id`` null), and the
     note says that the calibration had no model of its own. ``preset`` narrows
