@@ -261,3 +261,16 @@ def test_cli_infer(unet, dng, tmp_path):
     bad = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", "infer", str(dng), "--out", str(tmp_path / "x"),
                           "--model", str(tmp_path / "missing.onnx")], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 1 and "no model file" in bad.stderr
+
+
+def test_packaged_models_match_their_manifests_and_serve_their_own_lens():
+    """Every shipped ONNX file is the one its manifest hashes; a BMI frame gets default.onnx, never the
+    fisheye baseline (which sorts after it but is also nominal), and the fisheye lens gets its own model."""
+    from bmi_sdk.model_manifest import verify_model
+    from bmi_sdk.runtime import MODELS_DIR
+
+    shipped = {p.name: verify_model(p) for p in sorted(MODELS_DIR.glob("*.onnx"))}
+    assert {"default.onnx", "fisheye.onnx"} <= set(shipped)
+    assert shipped["default.onnx"]["lens"] == "bmi_monocentric" and shipped["fisheye.onnx"]["lens"] == "fisheye"
+    assert select_model(None) == (MODELS_DIR / "default.onnx", None)
+    assert select_model(None, lens="fisheye") == (MODELS_DIR / "fisheye.onnx", None)
