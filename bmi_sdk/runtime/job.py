@@ -8,7 +8,7 @@ import time
 from ..bench import peak_rss_mb
 from .model import Model, select_model
 from .outputs import write_outputs, write_report
-from .pipeline import InferenceResult, infer_frame
+from .pipeline import InferenceResult, frame_lens_name, infer_frame
 
 
 def load_model_for(frame, model_path: str | os.PathLike | None = None, calibration_id: str | None = None,
@@ -22,7 +22,7 @@ def load_model_for(frame, model_path: str | os.PathLike | None = None, calibrati
     """
     note = None
     if model_path is None:
-        lens = (getattr(frame, "lens", None) or {}).get("name") or "bmi_monocentric"
+        lens = frame_lens_name(frame) or "bmi_monocentric"
         model_path, note = select_model(calibration_id or getattr(frame, "calibration_id", None), lens=lens)
     return Model(model_path, tile_px=tile_px, threads=threads), note
 
@@ -40,7 +40,7 @@ def calibration_for(frame, calibration_path: str | os.PathLike, calibration_id: 
     calib = load_calibration(calibration_path)
     if calibration_id is not None and calibration_id != calib.id:
         raise ValueError(f"--calibration-id {calibration_id} contradicts {calibration_path} (id {calib.id})")
-    frame_lens = (getattr(frame, "lens", None) or {}).get("name")
+    frame_lens = frame_lens_name(frame)
     calib_lens = calib.doc.get("lens", {}).get("name")
     if frame_lens is not None and calib_lens is not None and frame_lens != calib_lens:
         raise ValueError(f"calibration {calib.id} is for lens {calib_lens!r}; the frame was taken through {frame_lens!r}")

@@ -43,13 +43,18 @@ class InferenceResult:
                 "valid_fraction": float(self.valid.mean()), "timings_s": dict(self.timings_s)}
 
 
+def frame_lens_name(frame) -> str | None:
+    """The lens a frame was taken through (its metadata's ``lens.name``), or None when it does not say."""
+    return (getattr(frame, "lens", None) or {}).get("name")
+
+
 def check_frame(frame, model: Model) -> None:
     """Refuse a frame the model cannot decode, naming why (foreign camera, incomplete, other lens, odd ROI)."""
     if not getattr(frame, "is_bmi", True):
         reason = (frame.source or {}).get("foreign_raw_reason", "not a BMI frame")
         raise ValueError(f"this raw frame is not from a BMI camera ({reason}); the network only decodes BMI captures")
     frame.check()
-    lens = (frame.lens or {}).get("name")
+    lens = frame_lens_name(frame)
     if lens is not None and lens != model.manifest["lens"]:
         raise ValueError(f"frame was taken through lens {lens!r}; model {model.path.name} was trained for "
                          f"{model.manifest['lens']!r}")
