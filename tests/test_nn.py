@@ -179,6 +179,34 @@ def test_sensor_chain_is_unbiased_and_quantised():
     assert abs(float(noisy.mean()) - 0.4) < 2e-3 and 0.005 < float(noisy.std()) < 0.03
 
 
+def test_noise_range_draws_log_uniform_sigma_and_a_fixed_sigma_draws_nothing():
+    from bmi_sdk.nn.data import noise_sigma
+
+    rng = np.random.default_rng(3)
+    before = rng.bit_generator.state
+    assert noise_sigma(rng, 0.005, None) == 0.005
+    assert rng.bit_generator.state == before  # fixed-σ runs keep the random stream they always had
+    sigmas = np.array([noise_sigma(rng, 0.002, 0.05) for _ in range(20000)])
+    assert sigmas.min() >= 0.002 and sigmas.max() <= 0.05
+    # log-uniform: half the draws below the geometric mean (a uniform draw would put 17 % there),
+    # and each of the range's two log-halves split again evenly
+    assert abs(np.mean(sigmas < math.sqrt(0.002 * 0.05)) - 0.5) < 0.015
+    assert abs(np.mean(sigmas < 0.002 * (0.05 / 0.002) ** 0.25) - 0.25) < 0.015
+    for lo, hi in ((0.0, 0.05), (0.05, 0.01), (-0.01, 0.05)):
+        with pytest.raises(ValueError, match="sigma_max"):
+            noise_sigma(rng, lo, hi)
+
+
+def test_a_config_saved_before_noise_ranges_reads_as_fixed_sigma():
+    """Shipped manifests and old checkpoints carry no ``sigma_max``: they mean one σ for every pair."""
+    from bmi_sdk.nn.train import TrainConfig
+
+    old = TrainConfig().to_dict()
+    del old["sigma_max"]
+    assert TrainConfig.from_dict(old) == TrainConfig()
+    assert TrainConfig.from_dict(old).sigma_max is None
+
+
 def _synthetic_cache(path, spec):
     """A cache in the on-disk format with random content (the renderer is tested elsewhere)."""
     path.mkdir()

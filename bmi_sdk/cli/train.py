@@ -20,6 +20,11 @@ def register(subparsers) -> None:
     p.add_argument("--crop", type=int, default=128, help="training crop size in pixels (multiple of 4)")
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sigma", type=float, default=None,
+                   help="training noise σ, fraction of full scale (default 0.005, the paper's standard); "
+                        "the lower end of the range with --sigma-max")
+    p.add_argument("--sigma-max", type=float, default=None,
+                   help="draw each pair's σ log-uniform over [--sigma, --sigma-max] (default: every pair at --sigma)")
     p.add_argument("--cache", default=None, help="render cache folder (default .bmi_cache/train/<lens>-<samples>-<crop>-s<seed>)")
     p.add_argument("--render-workers", type=int, default=2, help="processes that render the cache")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
@@ -33,7 +38,7 @@ def _run(args) -> int:
 
     import torch
 
-    from bmi_sdk.nn.data import CacheSpec, build_cache
+    from bmi_sdk.nn.data import STANDARD_SIGMA, CacheSpec, build_cache
     from bmi_sdk.nn.export import export_with_manifest
     from bmi_sdk.nn.train import TrainConfig, load_weights, train
 
@@ -41,7 +46,11 @@ def _run(args) -> int:
         raise ValueError(f"--crop must be a multiple of 4, got {args.crop}")
     torch.set_num_threads(args.threads)
     spec = CacheSpec(lens=args.lens, samples=args.samples, crop_px=args.crop, seed=args.seed)
-    config = TrainConfig(preset=args.preset, steps=args.steps, batch_size=args.batch, seed=args.seed, cache=spec)
+    sigma = STANDARD_SIGMA if args.sigma is None else args.sigma
+    if args.sigma_max is not None and not 0 < sigma <= args.sigma_max:
+        raise ValueError(f"--sigma-max needs 0 < --sigma <= --sigma-max, got {sigma} and {args.sigma_max}")
+    config = TrainConfig(preset=args.preset, steps=args.steps, batch_size=args.batch, sigma=sigma,
+                         sigma_max=args.sigma_max, seed=args.seed, cache=spec)
     cache = Path(args.cache or f".bmi_cache/train/{args.lens}-{args.samples}-{args.crop}-s{args.seed}")
     t0 = time.perf_counter()
     build_cache(cache, spec, workers=args.render_workers)
@@ -64,8 +73,9 @@ def _argv(args) -> list[str]:
     out = [f"--preset {args.preset}", f"--steps {args.steps}", f"--out {args.out}"]
     if args.lens != "bmi_monocentric":
         out.append(f"--lens {args.lens}")
-    for name, default in (("samples", 768), ("crop", 128), ("batch", 8), ("seed", 0)):
+    for name, default in (("samples", 768), ("crop", 128), ("batch", 8), ("seed", 0), ("sigma", None),
+                          ("sigma_max", None)):
         if getattr(args, name) != default:
-            out.append(f"--{name} {getattr(args, name)}")
+            out.append(f"--{name.replace('_', '-')} {getattr(args, name)}")
     out.append(f"--threads {args.threads}")  # CPU float reductions depend on it: part of a bit-exact rerun
     return out

@@ -304,6 +304,19 @@ def build_cache(cache_dir: str | Path, spec: CacheSpec, scenes: Sequence | None 
     return cache_dir
 
 
+def noise_sigma(rng: np.random.Generator, sigma: float, sigma_max: float | None) -> float:
+    """One pair's noise σ: ``sigma``, or log-uniform over [``sigma``, ``sigma_max``] (no draw without a range).
+
+    Log-uniform because the network's difficulty scales with the ratio of noise to signal,
+    not with its difference: every octave of σ gets the same share of training pairs.
+    """
+    if sigma_max is None:
+        return sigma
+    if not 0 < sigma <= sigma_max:
+        raise ValueError(f"a noise range needs 0 < sigma <= sigma_max, got {sigma} and {sigma_max}")
+    return float(np.exp(rng.uniform(np.log(sigma), np.log(sigma_max))))
+
+
 class PairCache:
     """The rendered pairs of a cache in memory, and the per-step batch assembly."""
 
@@ -350,8 +363,15 @@ class PairCache:
         return (x, rgb.transpose(2, 0, 1), np.nan_to_num(range_m, nan=1.0)[None],
                 valid[None].astype(np.float32))
 
-    def batch(self, seed: int, step: int, batch_size: int, sigma: float = STANDARD_SIGMA):
-        """The batch of ``step``: a pure function of (seed, step), so a resumed run sees the same data."""
+    def batch(self, seed: int, step: int, batch_size: int, sigma: float = STANDARD_SIGMA,
+              sigma_max: float | None = None):
+        """The batch of ``step``: a pure function of (seed, step), so a resumed run sees the same data.
+
+        With ``sigma_max`` each pair draws its own noise σ log-uniform over
+        [``sigma``, ``sigma_max``] (``noise_sigma``); without it every pair has ``sigma``
+        and the random stream is the one fixed-σ runs have always used.
+        """
         rng = np.random.default_rng([seed, step])
-        items = [self.pair(int(rng.integers(len(self))), rng, sigma) for _ in range(batch_size)]
+        items = [self.pair(int(rng.integers(len(self))), rng, noise_sigma(rng, sigma, sigma_max))
+                 for _ in range(batch_size)]
         return tuple(np.stack(parts) for parts in zip(*items))

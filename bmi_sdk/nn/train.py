@@ -40,6 +40,7 @@ class TrainConfig:
     lr: float = 5e-4
     betas: tuple = (0.9, 0.99)
     sigma: float = STANDARD_SIGMA
+    sigma_max: float | None = None  # set: each pair's σ is log-uniform over [sigma, sigma_max]
     silog_lambda: float = SILOG_LAMBDA
     seed: int = 0
     cache: CacheSpec = field(default_factory=CacheSpec)
@@ -86,7 +87,8 @@ class Trainer:
         """One optimiser step on the batch of ``step_index``; returns the loss terms."""
         c = self.config
         x, aif, depth_m, valid = (torch.from_numpy(a).to(self.device)
-                                  for a in self.data.batch(c.seed, self.step_index, c.batch_size, c.sigma))
+                                  for a in self.data.batch(c.seed, self.step_index, c.batch_size,
+                                                                 c.sigma, c.sigma_max))
         for group in self.opt.param_groups:
             group["lr"] = learning_rate(c, self.step_index)
         self.net.train()
