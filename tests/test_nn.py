@@ -181,6 +181,7 @@ def test_sensor_chain_is_unbiased_and_quantised():
 
 def test_noise_range_draws_log_uniform_sigma_and_a_fixed_sigma_draws_nothing():
     from bmi_sdk.nn.data import noise_sigma
+    from bmi_sdk.nn.train import TrainConfig
 
     rng = np.random.default_rng(3)
     before = rng.bit_generator.state
@@ -195,6 +196,8 @@ def test_noise_range_draws_log_uniform_sigma_and_a_fixed_sigma_draws_nothing():
     for lo, hi in ((0.0, 0.05), (0.05, 0.01), (-0.01, 0.05)):
         with pytest.raises(ValueError, match="sigma_max"):
             noise_sigma(rng, lo, hi)
+        with pytest.raises(ValueError, match="sigma_max"):  # refused when the run is configured, not at step 1
+            TrainConfig(sigma=lo, sigma_max=hi)
 
 
 def test_a_config_saved_before_noise_ranges_reads_as_fixed_sigma():

@@ -47,8 +47,6 @@ def _run(args) -> int:
     torch.set_num_threads(args.threads)
     spec = CacheSpec(lens=args.lens, samples=args.samples, crop_px=args.crop, seed=args.seed)
     sigma = STANDARD_SIGMA if args.sigma is None else args.sigma
-    if args.sigma_max is not None and not 0 < sigma <= args.sigma_max:
-        raise ValueError(f"--sigma-max needs 0 < --sigma <= --sigma-max, got {sigma} and {args.sigma_max}")
     config = TrainConfig(preset=args.preset, steps=args.steps, batch_size=args.batch, sigma=sigma,
                          sigma_max=args.sigma_max, seed=args.seed, cache=spec)
     cache = Path(args.cache or f".bmi_cache/train/{args.lens}-{args.samples}-{args.crop}-s{args.seed}")

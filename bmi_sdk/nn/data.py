@@ -304,6 +304,12 @@ def build_cache(cache_dir: str | Path, spec: CacheSpec, scenes: Sequence | None 
     return cache_dir
 
 
+def check_noise_range(sigma: float, sigma_max: float | None) -> None:
+    """Refuse a noise range that is empty or reaches σ ≤ 0 (log-uniform needs both ends positive)."""
+    if sigma_max is not None and not 0 < sigma <= sigma_max:
+        raise ValueError(f"a noise range needs 0 < sigma <= sigma_max, got {sigma} and {sigma_max}")
+
+
 def noise_sigma(rng: np.random.Generator, sigma: float, sigma_max: float | None) -> float:
     """One pair's noise σ: ``sigma``, or log-uniform over [``sigma``, ``sigma_max``] (no draw without a range).
 
@@ -312,8 +318,7 @@ def noise_sigma(rng: np.random.Generator, sigma: float, sigma_max: float | None)
     """
     if sigma_max is None:
         return sigma
-    if not 0 < sigma <= sigma_max:
-        raise ValueError(f"a noise range needs 0 < sigma <= sigma_max, got {sigma} and {sigma_max}")
+    check_noise_range(sigma, sigma_max)
     return float(np.exp(rng.uniform(np.log(sigma), np.log(sigma_max))))
 
 

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from bmi_sdk.io_atomic import atomic_path, write_json
-from bmi_sdk.nn.data import STANDARD_SIGMA, CacheSpec, PairCache, build_cache
+from bmi_sdk.nn.data import STANDARD_SIGMA, CacheSpec, PairCache, build_cache, check_noise_range
 from bmi_sdk.nn.losses import SILOG_LAMBDA, total_loss
 from bmi_sdk.nn.model import DualHeadMimoUNet, preset_config
 
@@ -44,6 +44,9 @@ class TrainConfig:
     silog_lambda: float = SILOG_LAMBDA
     seed: int = 0
     cache: CacheSpec = field(default_factory=CacheSpec)
+
+    def __post_init__(self):
+        check_noise_range(self.sigma, self.sigma_max)
 
     def to_dict(self) -> dict:
         d = asdict(self)
