@@ -89,9 +89,8 @@ class Trainer:
     def step(self) -> dict:
         """One optimiser step on the batch of ``step_index``; returns the loss terms."""
         c = self.config
-        x, aif, depth_m, valid = (torch.from_numpy(a).to(self.device)
-                                  for a in self.data.batch(c.seed, self.step_index, c.batch_size,
-                                                                 c.sigma, c.sigma_max))
+        arrays = self.data.batch(c.seed, self.step_index, c.batch_size, c.sigma, c.sigma_max)
+        x, aif, depth_m, valid = (torch.from_numpy(a).to(self.device) for a in arrays)
         for group in self.opt.param_groups:
             group["lr"] = learning_rate(c, self.step_index)
         self.net.train()
