@@ -21,6 +21,12 @@ def register(subparsers) -> None:
     p.add_argument("--tile-px", type=int, default=192)
     p.add_argument("--seed", type=int, default=20260)
     p.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
+    p.add_argument("--decoder", default="cnn",
+                   help="comma list of decoders: cnn (the ONNX model), classical (bmi_sdk.decode, no network); "
+                        "e.g. cnn,classical")
+    p.add_argument("--window-px", type=int, default=64, help="classical: evidence window (default 64)")
+    p.add_argument("--stride-px", type=int, default=16, help="classical: window stride (default 16)")
+    p.add_argument("--candidates", type=int, default=48, help="classical: depth candidates (default 48)")
     p.add_argument("--json", action="store_true", help="one JSON object per line per condition and region")
     p.set_defaults(handler=_run)
 
@@ -29,21 +35,28 @@ def _run(args) -> int:
     from bmi_sdk.model_manifest import verify_model
     from bmi_sdk.nn.evaluate import Benchmark, run_benchmark
 
-    verify_model(args.model)
+    decoders = tuple(d.strip() for d in args.decoder.split(",") if d.strip())
+    if "cnn" in decoders:
+        verify_model(args.model)
     if args.fisheye_model:
         verify_model(args.fisheye_model)
     if args.tile_px % 4:
         raise ValueError(f"--tile-px must be a multiple of 4, got {args.tile_px}")
     bench = Benchmark(tiles=args.tiles, tile_px=args.tile_px, seed=args.seed, threads=args.threads)
     conditions = [c.strip() for c in args.conditions.split(",")] if args.conditions else None
-    rows = run_benchmark(args.model, bench, conditions, args.fisheye_model, progress=not args.json)
+    from bmi_sdk.decode import ClassicalConfig
+
+    config = ClassicalConfig(window_px=args.window_px, stride_px=args.stride_px, candidates=args.candidates)
+    rows = run_benchmark(args.model, bench, conditions, args.fisheye_model, progress=not args.json,
+                         decoders=decoders, classical_config=config)
     if args.json:
         for row in rows:
-            print(json.dumps({k: row[k] for k in ("condition", "region", *KEYS)}))
+            print(json.dumps({k: row[k] for k in ("condition", "decoder", "region", *KEYS, "sigma_z_rms") if k in row}))
         return 0
-    print("| condition | region | AbsRel | RMSE (m) | δ<1.25 | δ<1.25² | δ<1.25³ | PSNR (dB) | SSIM |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| condition | decoder | region | AbsRel | RMSE (m) | δ<1.25 | δ<1.25² | δ<1.25³ | PSNR (dB) | SSIM | σ z RMS |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['condition']} | {r['region']} | {r['absrel']:.3f} | {r['rmse_m']:.3f} | {r['delta1']:.3f} | "
-              f"{r['delta2']:.3f} | {r['delta3']:.3f} | {r['psnr_db']:.2f} | {r['ssim']:.3f} |")
+        z = f"{r['sigma_z_rms']:.2f}" if "sigma_z_rms" in r else "–"
+        print(f"| {r['condition']} | {r['decoder']} | {r['region']} | {r['absrel']:.3f} | {r['rmse_m']:.3f} | "
+              f"{r['delta1']:.3f} | {r['delta2']:.3f} | {r['delta3']:.3f} | {r['psnr_db']:.2f} | {r['ssim']:.3f} | {z} |")
     return 0

@@ -44,8 +44,9 @@ from typing import Sequence
 
 import numpy as np
 
-from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
+from bmi_sdk.geometry import SensorGeometry
 from bmi_sdk.io_atomic import atomic_path, write_json
+from bmi_sdk.lenses import LENS_KERNEL_PX, lens_geometry, lens_tensor  # noqa: F401  (re-exported)
 from bmi_sdk.model_io import field_channels, raw_to_rgb, window_cfa
 from bmi_sdk.sensor import CFA_PATTERN, add_gaussian_noise, bayer_mosaic, relative_illumination
 
@@ -59,10 +60,6 @@ FAR_FILL_M = 10.0
 
 
 # -- lenses and their sensors ---------------------------------------------------------------------------
-
-LENS_KERNEL_PX = {"bmi_monocentric": 41, "fisheye": 161}
-"""PSF kernel size per lens: the fisheye's near-range blur spreads ~15 % of its energy beyond 41 px."""
-
 
 def render_margin_px(lens_name: str) -> int:
     """Scene margin rendered around a window and cut away: half a kernel, plus 4 px for jitter."""
@@ -86,40 +83,25 @@ def mirror_extend(rgb: np.ndarray, range_m: np.ndarray, pad_px: int) -> tuple[np
             np.pad(range_m, pad_px, mode="reflect"))
 
 
-def lens_geometry(lens_name: str) -> SensorGeometry:
-    """The sensor a lens images on: the BMI curved sensor, or for the fisheye a plane 6000×4500 sensor
-    at 2 µm whose pixel → field mapping is the fisheye's traced chief-ray table (0–60°)."""
-    if lens_name == "bmi_monocentric":
-        return BMI_SENSOR
-    if lens_name == "fisheye":
-        from bmi_sdk.optics import chief_ray_table, get_lens
-
-        field, radial = chief_ray_table(get_lens("fisheye"), np.linspace(0.0, 60.0, 121))
-        return SensorGeometry(radius_mm=None, field_table_deg=tuple(np.abs(field)),
-                              radial_table_mm=tuple(np.abs(radial)))
-    raise ValueError(f"unknown lens {lens_name!r}; one of {sorted(LENS_KERNEL_PX)}")
-
-
-def lens_tensor(lens_name: str):
-    """The lazily filled nominal PSF tensor of a lens (shared disk cache)."""
-    from bmi_sdk.optics import PsfTensor, TensorSpec, get_lens
-
-    return PsfTensor(get_lens(lens_name), TensorSpec(kernel_px=LENS_KERNEL_PX[lens_name]))
-
-
 # -- the sensor half of the chain (per step) -----------------------------------------------------------
 
-def simulate_sensor(optical: np.ndarray, sigma: float, rng: np.random.Generator, row0: int = 0, col0: int = 0,
-                    black_level_dn: int = BLACK_LEVEL_DN, white_level_dn: int = WHITE_LEVEL_DN) -> np.ndarray:
-    """Optical image at the sensor (H×W×3, relative illumination applied) → demosaiced RGB the network sees.
+def simulate_raw(optical: np.ndarray, sigma: float, rng: np.random.Generator, row0: int = 0, col0: int = 0,
+                 black_level_dn: int = BLACK_LEVEL_DN, white_level_dn: int = WHITE_LEVEL_DN) -> np.ndarray:
+    """Optical image at the sensor (H×W×3, relative illumination applied) → the raw H×W uint16 frame.
 
     Gaussian noise σ (the paper's model) → RGGB mosaic at the window's phase →
-    ADC (black level, 12-bit rounding and clipping) → ``raw_to_rgb``.
+    ADC (black level, 12-bit rounding and clipping).
     """
     noisy = add_gaussian_noise(optical, sigma, rng)
     mosaic = bayer_mosaic(noisy, row0, col0)
     dn = np.rint(np.float32(black_level_dn) + mosaic * np.float32(white_level_dn - black_level_dn))
-    raw = np.clip(dn, 0, white_level_dn).astype(np.uint16)
+    return np.clip(dn, 0, white_level_dn).astype(np.uint16)
+
+
+def simulate_sensor(optical: np.ndarray, sigma: float, rng: np.random.Generator, row0: int = 0, col0: int = 0,
+                    black_level_dn: int = BLACK_LEVEL_DN, white_level_dn: int = WHITE_LEVEL_DN) -> np.ndarray:
+    """Optical image at the sensor → demosaiced RGB the network sees: ``simulate_raw`` → ``raw_to_rgb``."""
+    raw = simulate_raw(optical, sigma, rng, row0, col0, black_level_dn, white_level_dn)
     return raw_to_rgb(raw, black_level_dn, white_level_dn, window_cfa(CFA_PATTERN, row0, col0))
 
 

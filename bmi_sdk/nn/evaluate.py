@@ -42,11 +42,12 @@ import numpy as np
 from scipy import ndimage
 
 from bmi_sdk.model_io import INPUT_NAME, network_input
-from bmi_sdk.nn.data import (SCENE_MARGIN_PX, STANDARD_SIGMA, lens_geometry, lens_tensor, mirror_extend,
-                             render_margin_px, sample_window, simulate_sensor)
+from bmi_sdk.model_io import raw_to_rgb, window_cfa
+from bmi_sdk.nn.data import (BLACK_LEVEL_DN, SCENE_MARGIN_PX, STANDARD_SIGMA, WHITE_LEVEL_DN, lens_geometry,
+                             lens_tensor, mirror_extend, render_margin_px, sample_window, simulate_raw)
 from bmi_sdk.nn.metrics import depth_metrics, image_metrics, mean_metrics
 from bmi_sdk.optics.perturb import Perturbation
-from bmi_sdk.sensor import PAPER_NOISE_SIGMAS, relative_illumination
+from bmi_sdk.sensor import CFA_PATTERN, PAPER_NOISE_SIGMAS, relative_illumination
 
 REGIONS = {"centre": (0.0, 20.0), "edge": (52.0, 58.0)}
 STRAY_SIGMA_PX = 100.0
@@ -213,57 +214,155 @@ class OnnxModel:
         return aif, depth_m
 
 
+class ClassicalTiles:
+    """The classical decoder (``bmi_sdk.decode``) as a benchmark decoder: raw tile in, AiF + depth + 1σ out.
+
+    ``psf_map`` is the kernel source the decoder believes in: the nominal camera's, or (for a
+    "calibrated" row) the perturbed camera's own kernels.
+    """
+
+    name = "classical"
+
+    def __init__(self, psf_map, config=None, name: str = "classical"):
+        from bmi_sdk.decode import ClassicalConfig, ClassicalDecoder, inverse_depth_candidates
+
+        config = config or ClassicalConfig()
+        self.decoder = ClassicalDecoder(psf_map, inverse_depth_candidates(psf_map.tensor.depth_m, config.candidates),
+                                        config)
+        self.name = name
+
+    def __call__(self, raw: np.ndarray, geometry, row0: int, col0: int):
+        out = self.decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0)
+        return out.aif, out.depth_m, out.depth_sigma_m
+
+
 def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition: str,
           stray: float = 0.0) -> list[dict]:
-    """Rows {condition, region, metrics…} for one condition over pre-rendered tiles."""
+    """Rows {condition, decoder, region, metrics…} for one condition over pre-rendered tiles.
+
+    ``model``: an ``OnnxModel`` (decoder ``cnn``: demosaiced network input) or a ``ClassicalTiles``
+    (raw tile in; its rows add ``sigma_z_rms``, the RMS of (depth error / reported 1σ) over all
+    valid pixels of the region: 1 for an honest σ).
+    """
     geometry = lens_geometry(bench.lens)
     m, t = bench.margin_px, bench.tile_px
     per_region: dict[str, list] = {}
+    z_sums: dict[str, list] = {}
+    classical = isinstance(model, ClassicalTiles)
     for k, item in enumerate(renders):
         optical = item["optical_full"]
         if stray:
             optical = stray_light(optical, stray)
         optical = optical[m:m + t, m:m + t]
         rng = np.random.default_rng([bench.seed, 99, k, int(round(sigma * 1e6))])
-        seen = simulate_sensor(optical, sigma, rng, item["row0"], item["col0"])
-        aif, depth_m = model(network_input(seen, geometry, item["row0"], item["col0"]))
+        raw = simulate_raw(optical, sigma, rng, item["row0"], item["col0"])
         valid = geometry.valid_mask(item["row0"], item["col0"], t, t) & np.isfinite(item["range_m"])
-        row = depth_metrics(depth_m[0, 0], item["range_m"], valid)
-        row.update(image_metrics(aif[0].transpose(1, 2, 0), item["rgb"], valid))
+        if classical:
+            aif_hwc, depth_m, depth_sigma_m = model(raw, geometry, item["row0"], item["col0"])
+            valid &= np.isfinite(depth_m)
+            z = (depth_m[valid] - item["range_m"][valid]) / depth_sigma_m[valid]
+            z_sums.setdefault(item["region"], []).append((float(np.sum(z ** 2)), int(z.size)))
+        else:
+            seen = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, window_cfa(CFA_PATTERN, item["row0"], item["col0"]))
+            aif, depth = model(network_input(seen, geometry, item["row0"], item["col0"]))
+            aif_hwc, depth_m = aif[0].transpose(1, 2, 0), depth[0, 0]
+        row = depth_metrics(depth_m, item["range_m"], valid)
+        row.update(image_metrics(aif_hwc, item["rgb"], valid))
         per_region.setdefault(item["region"], []).append(row)
-    return [{"condition": condition, "region": region, **mean_metrics(rows)} for region, rows in per_region.items()]
+    rows = []
+    for region, region_rows in per_region.items():
+        row = {"condition": condition, "decoder": getattr(model, "name", "cnn"), "region": region,
+               **mean_metrics(region_rows)}
+        if region in z_sums:
+            total, count = map(sum, zip(*z_sums[region]))
+            row["sigma_z_rms"] = float(np.sqrt(total / max(count, 1)))
+        rows.append(row)
+    return rows
 
 
-def run_benchmark(model_path: str | Path, bench: Benchmark = Benchmark(), conditions: list[str] | None = None,
-                  fisheye_model: str | Path | None = None, progress: bool = True) -> list[dict]:
+DECODERS = ("cnn", "classical")
+
+
+def classical_window_px(lens_name: str, base_px: int) -> int:
+    """The evidence window for a lens: ``base_px``, or the smallest multiple of 4 that holds its kernel."""
+    from bmi_sdk.lenses import LENS_KERNEL_PX
+
+    return max(base_px, -(-LENS_KERNEL_PX[lens_name] // 4) * 4)
+
+
+def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(), conditions: list[str] | None = None,
+                  fisheye_model: str | Path | None = None, progress: bool = True,
+                  decoders: tuple[str, ...] = ("cnn",), classical_config=None) -> list[dict]:
     """Every requested condition (default: noise sweep, hardware errors (``HARDWARE``, ``EXACT``), + fisheye
-    when its model is given)."""
+    when its model is given, or always for the classical decoder) for every requested decoder.
+
+    The classical decoder reads the nominal camera's kernels (decoder ``classical``); on a hardware
+    condition whose kernels a camera model can represent it also reads the built camera's own kernels
+    (decoder ``classical_calibrated``: decoding with a perfect calibration). The stray-light rows
+    have no calibrated twin: their veil is an image-level operation here, not a kernel.
+    """
+    from bmi_sdk.decode import ClassicalConfig
+    from bmi_sdk.render import PsfMap
+
+    unknown_dec = [d for d in decoders if d not in DECODERS]
+    if unknown_dec or not decoders:
+        raise ValueError(f"unknown decoders {unknown_dec}; known: {DECODERS}")
     noise = noise_conditions()
     known = known_conditions()
-    conditions = conditions or [c for c in known if c != "fisheye_standard" or fisheye_model]
+    with_fisheye = fisheye_model is not None or "classical" in decoders
+    conditions = conditions or [c for c in known if c != "fisheye_standard" or with_fisheye]
     unknown = [c for c in conditions if c not in known]
     if unknown:
         raise ValueError(f"unknown conditions {unknown}; known: {known}")
-    model = OnnxModel(model_path, bench.threads)
+    geometry = lens_geometry(bench.lens)
     nominal = lens_tensor(bench.lens)
+    config = classical_config or ClassicalConfig()
+    nominal_map = PsfMap(nominal, geometry, mode="tensor")
+    models = []
+    if "cnn" in decoders:
+        if model_path is None:
+            raise ValueError("the cnn decoder needs a model")
+        models.append(OnnxModel(model_path, bench.threads))
+    if "classical" in decoders:
+        models.append(ClassicalTiles(nominal_map, config))
+
+    def calibrated(psf_map):
+        return [ClassicalTiles(psf_map, config, "classical_calibrated")] if "classical" in decoders else []
+
     rows: list[dict] = []
     renders = None
     on_nominal = [c for c in conditions if c in noise or (c in HARDWARE and HARDWARE[c].keys() == {"stray"})]
     for name in on_nominal:
         renders = renders or bench.renders(nominal, progress)
-        rows += score(model, renders, bench, noise.get(name, STANDARD_SIGMA), name,
-                      HARDWARE.get(name, {}).get("stray", 0.0))
+        for model in models:
+            rows += score(model, renders, bench, noise.get(name, STANDARD_SIGMA), name,
+                          HARDWARE.get(name, {}).get("stray", 0.0))
     for name in [c for c in conditions if c in HARDWARE and c not in on_nominal]:
         p = HARDWARE[name]
-        renders_p = bench.renders(perturb(nominal, **p, seed=bench.seed), progress)
-        rows += score(model, renders_p, bench, STANDARD_SIGMA, name, p.get("stray", 0.0))
+        built = perturb(nominal, **p, seed=bench.seed)
+        renders_p = bench.renders(built, progress)
+        for model in models + calibrated(PsfMap(built, geometry, mode="tensor")):
+            rows += score(model, renders_p, bench, STANDARD_SIGMA, name, p.get("stray", 0.0))
     for name in [c for c in conditions if c in EXACT]:
         renders_p = bench.renders(nominal, progress, psf_mode="exact", perturbation=EXACT[name])
-        rows += score(model, renders_p, bench, STANDARD_SIGMA, name)
+        built_map = PsfMap(nominal, geometry, mode="exact", perturbation=EXACT[name], centre_calibrated=True)
+        for model in models + calibrated(built_map):
+            rows += score(model, renders_p, bench, STANDARD_SIGMA, name)
     if "fisheye_standard" in conditions:
-        if fisheye_model is None:
-            raise ValueError("fisheye_standard needs --fisheye-model")
         fb = Benchmark(lens="fisheye", tiles=bench.tiles, tile_px=bench.tile_px, seed=bench.seed, threads=bench.threads)
-        rows += score(OnnxModel(fisheye_model, bench.threads), fb.renders(lens_tensor("fisheye"), progress), fb,
-                      STANDARD_SIGMA, "fisheye_standard")
+        fisheye_tensor = lens_tensor("fisheye")
+        fisheye_models = []
+        if "cnn" in decoders:
+            if fisheye_model is None:
+                raise ValueError("fisheye_standard with the cnn decoder needs --fisheye-model")
+            fisheye_models.append(OnnxModel(fisheye_model, bench.threads))
+        if "classical" in decoders:
+            from dataclasses import replace
+
+            fisheye_config = replace(config, window_px=classical_window_px("fisheye", config.window_px))
+            fisheye_models.append(ClassicalTiles(PsfMap(fisheye_tensor, lens_geometry("fisheye"), mode="tensor"),
+                                                 fisheye_config))
+        fisheye_renders = fb.renders(fisheye_tensor, progress)
+        for model in fisheye_models:
+            rows += score(model, fisheye_renders, fb, STANDARD_SIGMA, "fisheye_standard")
     return rows

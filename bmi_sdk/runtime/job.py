@@ -53,17 +53,34 @@ def calibration_for(frame, calibration_path: str | os.PathLike, calibration_id: 
             "corrected_tensor_sha256": calib.doc["corrected_tensor"]["npz_sha256"]}
 
 
+DECODERS = ("cnn", "classical")
+DEFAULT_DECODER = "cnn"
+"""The end-to-end network stays the default until the classical decoder beats it on ``bmi eval``
+(docs/results.md, decoder comparison)."""
+
+
 def run_job(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None = None,
             model_path: str | os.PathLike | None = None, calibration_id: str | None = None,
             calibration_path: str | os.PathLike | None = None, tile_px: int = 512,
             threads: int | None = None, overlap_px: int | None = None, ply_step_px: int = 1,
-            progress: bool = False) -> tuple[InferenceResult, dict]:
-    """Read (if a path), infer, write outputs and ``report.json`` into ``out_dir``; return (result, report).
+            progress: bool = False, decoder: str = DEFAULT_DECODER, classical_config=None,
+            classical_decoder=None) -> tuple[InferenceResult, dict]:
+    """Read (if a path), decode, write outputs and ``report.json`` into ``out_dir``; return (result, report).
 
-    ``calibration_path`` (a ``bmi calibrate`` file) selects the model trained
-    on that calibration's corrected PSF tensor, after ``calibration_for``'s
-    checks; without such a model the nominal one runs and the report says so.
+    ``decoder``: ``cnn`` (the shipped end-to-end network) or ``classical`` (``runtime.classical``:
+    the evidence of the camera's own kernels, no network; writes the depth 1σ too).
+    ``calibration_path`` (a ``bmi calibrate`` file), after ``calibration_for``'s checks: for
+    ``cnn`` it selects the model trained on that calibration's corrected PSF tensor (without
+    one the nominal model runs and the report says so); for ``classical`` the decoder uses
+    that camera's corrected kernels at every (θ, φ). ``classical_decoder`` reuses a built
+    decoder (its kernels) across frames of one camera.
     """
+    if decoder not in DECODERS:
+        raise ValueError(f"unknown decoder {decoder!r}; one of {DECODERS}")
+    if decoder == "classical":
+        return _run_classical(frame_or_path, out_dir, calibration_path=calibration_path,
+                              calibration_id=calibration_id, ply_step_px=ply_step_px, progress=progress,
+                              config=classical_config, decoder=classical_decoder)
     from devices import load_raw
 
     timings: dict[str, float] = {}
@@ -89,10 +106,60 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None = 
     timings["write_outputs_s"] = time.perf_counter() - t0
     report = {
         "schema": "bmi-infer-report/1",
+        "decoder": "cnn",
         "model": model.describe(),
         "calibration_id": model.manifest["calibration_id"],
         "frame_calibration_id": getattr(frame, "calibration_id", None),
         "calibration_note": note,
+        "calibration_file": calibration,
+        "frame": {"frame_id": frame.frame_id, "shape": list(frame.data.shape), "roi": vars(frame.roi),
+                  "lens": frame.lens, "device": frame.device, "source": frame.source},
+        **result.summary(),
+        "stage_timings_s": timings,
+        "peak_rss_mb": peak_rss_mb(),
+        **written,
+    }
+    write_report(out_dir, report)
+    return result, report
+
+
+def _run_classical(frame_or_path, out_dir, *, calibration_path, calibration_id, ply_step_px, progress, config,
+                   decoder) -> tuple:
+    """``run_job`` with the classical decoder (its docstring)."""
+    from devices import load_raw
+
+    from ..built_camera import BuiltCamera
+    from ..decode import ClassicalConfig
+    from .classical import classical_decoder, decode_frame
+
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    frame = load_raw(frame_or_path) if isinstance(frame_or_path, (str, os.PathLike)) else frame_or_path
+    timings["read_raw_s"] = time.perf_counter() - t0
+    calibration = None
+    lens = frame_lens_name(frame) or "bmi_monocentric"
+    camera = BuiltCamera(lens_name=lens, geometry=frame.geometry)
+    if calibration_path is not None:
+        from calibration.io import load_calibration
+
+        calibration = calibration_for(frame, calibration_path, calibration_id)
+        camera = BuiltCamera.from_calibration(load_calibration(calibration_path), geometry=frame.geometry)
+    t0 = time.perf_counter()
+    if decoder is None:
+        decoder = classical_decoder(camera, config or ClassicalConfig())
+    result = decode_frame(decoder, frame, camera, progress=progress)
+    timings["decode_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    written = write_outputs(out_dir, result.aif, result.depth_m, frame.geometry, frame.roi.y_px, frame.roi.x_px,
+                            ply_step_px=ply_step_px, depth_sigma_m=result.depth_sigma_m)
+    timings["write_outputs_s"] = time.perf_counter() - t0
+    report = {
+        "schema": "bmi-infer-report/1",
+        "decoder": "classical",
+        "camera": camera.to_dict() | {"sha256": camera.sha256()},
+        "calibration_id": camera.calibration_id,
+        "frame_calibration_id": getattr(frame, "calibration_id", None),
+        "calibration_note": None,
         "calibration_file": calibration,
         "frame": {"frame_id": frame.frame_id, "shape": list(frame.data.shape), "roi": vars(frame.roi),
                   "lens": frame.lens, "device": frame.device, "source": frame.source},

@@ -76,12 +76,14 @@ def depth_preview(depth_m: np.ndarray, max_px: int = 1500, near_m: float | None 
 
 
 def write_ply(path: str | os.PathLike, depth_m: np.ndarray, aif: np.ndarray, geometry: SensorGeometry,
-              row0: int = 0, col0: int = 0, step_px: int = 1, rows_per_block: int = 256) -> int:
+              row0: int = 0, col0: int = 0, step_px: int = 1, rows_per_block: int = 256,
+              depth_sigma_m: np.ndarray | None = None) -> int:
     """Stream a binary little-endian PLY of every ``step_px``-th valid pixel; return the point count.
 
     Point = range × unit chief-ray direction of the pixel's absolute sensor
     position (``row0``, ``col0``: the frame's ROI offset). Rays are computed per
-    block of rows, so memory stays bounded for a full frame.
+    block of rows, so memory stays bounded for a full frame. With ``depth_sigma_m``
+    each point also carries ``sigma`` (float, metres): the 1σ of its range.
     """
     if step_px < 1:
         raise ValueError(f"ply step must be ≥ 1 px, got {step_px}")
@@ -89,8 +91,10 @@ def write_ply(path: str | os.PathLike, depth_m: np.ndarray, aif: np.ndarray, geo
     count = int(np.count_nonzero(np.isfinite(sub_d) & (sub_d > 0)))
     header = ("ply\nformat binary_little_endian 1.0\ncomment bmi-sdk point cloud: range along chief rays, metres\n"
               f"element vertex {count}\nproperty float x\nproperty float y\nproperty float z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n").encode()
-    dtype = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+              "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+              + ("property float sigma\n" if depth_sigma_m is not None else "") + "end_header\n").encode()
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    dtype = np.dtype(fields + ([("sigma", "<f4")] if depth_sigma_m is not None else []))
     cols = np.arange(0, depth_m.shape[1], step_px)
     written = 0
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
@@ -108,6 +112,8 @@ def write_ply(path: str | os.PathLike, depth_m: np.ndarray, aif: np.ndarray, geo
             block = np.empty(len(rr), dtype)
             block["x"], block["y"], block["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
             block["red"], block["green"], block["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+            if depth_sigma_m is not None:
+                block["sigma"] = depth_sigma_m[rows[rr], cols[cc]]
             f.write(block.tobytes())
             written += len(rr)
     if written != count:
@@ -115,9 +121,21 @@ def write_ply(path: str | os.PathLike, depth_m: np.ndarray, aif: np.ndarray, geo
     return count
 
 
+def confidence_image(depth_m: np.ndarray, depth_sigma_m: np.ndarray) -> np.ndarray:
+    """uint8 confidence 255 / (1 + 10 σ/d): 255 certain, ~128 at 10 % relative 1σ, 0 where invalid."""
+    rel = depth_sigma_m / np.where(np.isfinite(depth_m) & (depth_m > 0), depth_m, np.nan)
+    conf = 255.0 / (1.0 + 10.0 * rel)
+    return np.where(np.isfinite(conf), np.round(conf), 0).astype(np.uint8)
+
+
 def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarray, geometry: SensorGeometry,
-                  row0: int = 0, col0: int = 0, *, ply_step_px: int = 1, preview_px: int = 1500) -> dict:
-    """Write the image, depth and point-cloud files into ``out_dir``; return {name: path} and the point count."""
+                  row0: int = 0, col0: int = 0, *, ply_step_px: int = 1, preview_px: int = 1500,
+                  depth_sigma_m: np.ndarray | None = None) -> dict:
+    """Write the image, depth and point-cloud files into ``out_dir``; return {name: path} and the point count.
+
+    With ``depth_sigma_m`` (the decoder's 1σ of the range, metres) also ``depth_sigma.npy``,
+    ``confidence.png`` (``confidence_image``) and a per-point ``sigma`` in the PLY.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     srgb = linear_to_srgb(aif)
@@ -130,9 +148,14 @@ def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarr
     _imwrite(out / "depth_mm.png", mm)
     del mm
     _imwrite(out / "depth_preview.png", depth_preview(depth_m, preview_px))
-    points = write_ply(out / "points.ply", depth_m, aif, geometry, row0, col0, ply_step_px)
-    files = {name: str(out / name) for name in ("aif.npy", "aif.png", "aif_preview.png", "depth.npy",
-                                                  "depth_mm.png", "depth_preview.png", "points.ply")}
+    names = ["aif.npy", "aif.png", "aif_preview.png", "depth.npy", "depth_mm.png", "depth_preview.png", "points.ply"]
+    if depth_sigma_m is not None:
+        save_npy(out / "depth_sigma.npy", np.where(np.isfinite(depth_m), depth_sigma_m, np.nan).astype(np.float32))
+        _imwrite(out / "confidence.png", confidence_image(depth_m, depth_sigma_m))
+        names += ["depth_sigma.npy", "confidence.png"]
+    points = write_ply(out / "points.ply", depth_m, aif, geometry, row0, col0, ply_step_px,
+                       depth_sigma_m=depth_sigma_m)
+    files = {name: str(out / name) for name in names}
     return {"files": files, "ply_points": points, "ply_step_px": ply_step_px}
 
 

@@ -1,0 +1,285 @@
+"""The classical decoder: depth, its 1σ and the all-in-focus image from one raw frame, with no network.
+
+Steps (each in its own module):
+
+1. ``bayer``: the raw frame's four colour planes, and the raw noise σ (given, or estimated).
+2. Windows of ``window_px`` (full-resolution footprint) every ``stride_px``, on a grid anchored to
+   the sensor: window centres sit at rows and columns k·stride − ½ of the frame. The grid is
+   processed in blocks of ``block_windows``² windows; each block is one zone (θ, φ of its centre)
+   whose kernels come from ``kernels.ZoneKernels``. Blocks whose pixels all lie outside the image
+   circle are skipped.
+3. ``evidence``: a coarse pass over every ``coarse_step``-th candidate picks the block's depth
+   range (best coarse candidate of any window ± one coarse step); the fine pass scores only the
+   candidates inside it. The report counts the candidate evaluations this leaves out.
+4. Refinement (parabola in 1/d) and the Laplace 1σ of 1/d, scaled by ``sigma_scale`` and floored
+   by ``sigma_floor_inv_per_m`` (calibrated on training scenes, ``docs/decoder.md``).
+5. Confidence-weighted fill: 1/d is replaced by its inverse-variance weighted mean over a
+   Gaussian neighbourhood of ``fill_windows`` windows, which leaves confident windows as they
+   are and gives textureless ones (flat evidence, large σ) their neighbours' depth; σ becomes the
+   neighbourhood's pooled σ, never smaller than the window's own would allow.
+6. 1/d and σ are interpolated bilinearly to every pixel; ``aif`` deconvolves each block with the
+   kernels of its pixels' depths.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from ..geometry import SensorGeometry
+from ..model_io import raw_to_rgb, window_cfa
+from ..sensor import relative_illumination
+from .aif import wiener_blend
+from .bayer import estimate_noise_sigma, normalised_planes
+from .candidates import Candidates
+from .evidence import Evidence, hann_taper, plane_nll, window_spectra
+from .kernels import ZoneKernels
+
+
+@dataclass(frozen=True)
+class ClassicalConfig:
+    """Accuracy knobs of the classical decoder (error against run time: ``bmi bench decoder``)."""
+
+    window_px: int = 64
+    stride_px: int = 16
+    candidates: int = 48
+    coarse_step: int = 4
+    slopes: tuple = (1.6, 2.0, 2.4, 2.8, 3.2)
+    block_windows: int = 16
+    sigma_scale: float = 1.0
+    sigma_floor_inv_per_m: float = 0.0
+    fill_windows: float = 1.5
+    noise_sigma: float | None = None
+
+    def __post_init__(self):
+        if self.window_px % 4 or self.window_px < 16:
+            raise ValueError(f"window_px must be a multiple of 4 and >= 16, got {self.window_px}")
+        if self.stride_px % 2 or self.stride_px < 2:
+            raise ValueError(f"stride_px must be even and >= 2, got {self.stride_px}")
+        if self.block_windows < 1 or self.coarse_step < 1:
+            raise ValueError("block_windows and coarse_step must be >= 1")
+        if not self.slopes:
+            raise ValueError("at least one prior slope is needed")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["slopes"] = list(self.slopes)
+        return d
+
+
+@dataclass
+class DecodeResult:
+    depth_m: np.ndarray            # H × W float32 range along each pixel's chief ray, NaN outside the image circle
+    depth_sigma_m: np.ndarray      # H × W float32 1σ of depth_m, NaN outside
+    aif: np.ndarray                # H × W × 3 float32 linear RGB (relative illumination undone), 0 outside
+    valid: np.ndarray              # H × W bool
+    grid_inv_depth: np.ndarray     # window grid 1/d (m⁻¹), NaN in skipped blocks
+    grid_sigma_inv: np.ndarray     # window grid 1σ of 1/d
+    stats: dict = field(default_factory=dict)
+
+
+class ClassicalDecoder:
+    """Decode raw RGGB frames with the kernels of one ``PsfMap`` (nominal or calibrated camera)."""
+
+    def __init__(self, psf_map, candidates: Candidates, config: ClassicalConfig = ClassicalConfig()):
+        if psf_map.kernel_px > config.window_px:
+            raise ValueError(f"{psf_map.kernel_px}-px kernels do not fit {config.window_px}-px windows")
+        self.config = config
+        self.candidates = candidates
+        self.zones = ZoneKernels(psf_map, candidates, config.slopes, config.window_px)
+
+    # -- evidence ---------------------------------------------------------------------------------
+    def _block_nll(self, spectra: list, zone, which: np.ndarray, noise_var: float, taper_energy: float) -> np.ndarray:
+        models = self.zones.models(zone, which)                   # (planes, A, D, n, m)
+        total = None
+        for p, power in enumerate(spectra):
+            best = np.min([plane_nll(power, models[p, a], noise_var, taper_energy) for a in range(models.shape[1])],
+                          axis=0)
+            total = best if total is None else total + best
+        return total                                               # (windows, D)
+
+    def decode(self, raw: np.ndarray, black_level_dn: float, white_level_dn: float, geometry: SensorGeometry,
+               row0: int = 0, col0: int = 0, cfa: str = "RGGB", progress: bool = False) -> DecodeResult:
+        """Decode an H × W RGGB window whose top-left pixel is (row0, col0) of the full sensor."""
+        cfg = self.config
+        t_start = time.perf_counter()
+        timings = dict.fromkeys(("planes_s", "evidence_s", "kernels_s", "fill_s", "upsample_s", "aif_s"), 0.0)
+        height, width = raw.shape
+        planes = normalised_planes(raw, black_level_dn, white_level_dn, row0, col0)
+        noise = cfg.noise_sigma if cfg.noise_sigma is not None else estimate_noise_sigma(planes)
+        noise = max(float(noise), 1e-4)
+        n = cfg.window_px // 2
+        sp = cfg.stride_px // 2
+        pad = n // 2
+        padded = np.stack([np.pad(p, ((pad, pad + sp), (pad, pad + sp)), mode="reflect") for p in planes])
+        timings["planes_s"] = time.perf_counter() - t_start
+        taper = hann_taper(n)
+        taper_energy = float((taper ** 2).sum())
+        grid_rows = -(-height // cfg.stride_px) + 1
+        grid_cols = -(-width // cfg.stride_px) + 1
+        inv = np.full((grid_rows, grid_cols), np.nan)
+        sig = np.full((grid_rows, grid_cols), np.nan)
+        cand_inv = self.candidates.inv_depth_per_m
+        n_cand = len(self.candidates)
+        coarse = np.unique(np.r_[np.arange(0, n_cand, cfg.coarse_step), n_cand - 1])
+        evaluations = {"full": 0, "done": 0}
+        blocks = [(br, bc) for br in range(0, grid_rows, cfg.block_windows) for bc in range(0, grid_cols, cfg.block_windows)]
+        skipped = 0
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(blocks), unit="block", desc="evidence")
+        for br, bc in blocks:
+            if bar is not None:
+                bar.update()
+            nr, nc = min(cfg.block_windows, grid_rows - br), min(cfg.block_windows, grid_cols - bc)
+            # full-resolution extent of the block's windows, clipped to the frame
+            r_lo, r_hi = max(br * cfg.stride_px - n, 0), min((br + nr - 1) * cfg.stride_px + n, height)
+            c_lo, c_hi = max(bc * cfg.stride_px - n, 0), min((bc + nc - 1) * cfg.stride_px + n, width)
+            if not geometry.valid_mask(row0 + r_lo, col0 + c_lo, r_hi - r_lo, c_hi - c_lo).any():
+                skipped += 1
+                continue
+            t0 = time.perf_counter()
+            centre_r = row0 + (br + (nr - 1) / 2) * cfg.stride_px
+            centre_c = col0 + (bc + (nc - 1) / 2) * cfg.stride_px
+            theta, phi = geometry.field_angles(np.array([centre_r]), np.array([centre_c]))
+            zone = ZoneKernels.zone(float(np.nan_to_num(theta[0], nan=geometry.max_field_deg)), float(phi[0]))
+            ps = slice(br * sp, br * sp + (nr - 1) * sp + n), slice(bc * sp, bc * sp + (nc - 1) * sp + n)
+            spectra = [window_spectra(padded[p][ps], n, sp, taper)[0] for p in range(4)]
+            t1 = time.perf_counter()
+            self.zones.models(zone, coarse)
+            t2 = time.perf_counter()
+            coarse_nll = self._block_nll(spectra, zone, coarse, noise ** 2, taper_energy)
+            best = coarse[np.argmin(coarse_nll, axis=1)]
+            lo = max(int(best.min()) - cfg.coarse_step, 0)
+            hi = min(int(best.max()) + cfg.coarse_step, n_cand - 1)
+            which = np.arange(lo, hi + 1)
+            t3 = time.perf_counter()
+            self.zones.models(zone, which)
+            t4 = time.perf_counter()
+            nll = self._block_nll(spectra, zone, which, noise ** 2, taper_energy)
+            if len(which) < 3:  # a refinement needs a bracket
+                which = np.arange(max(0, lo - 1), min(n_cand, lo + 2))
+                nll = self._block_nll(spectra, zone, which, noise ** 2, taper_energy)
+            depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
+            inv[br:br + nr, bc:bc + nc] = 1.0 / depth_b
+            sig[br:br + nr, bc:bc + nc] = sigma_b
+            evaluations["full"] += nr * nc * n_cand
+            evaluations["done"] += nr * nc * (len(coarse) + len(which))
+            timings["evidence_s"] += (t1 - t0) + (t3 - t2) + (time.perf_counter() - t4)
+            timings["kernels_s"] += (t2 - t1) + (t4 - t3)
+        if bar is not None:
+            bar.close()
+        t0 = time.perf_counter()
+        sig = np.maximum(sig * cfg.sigma_scale, cfg.sigma_floor_inv_per_m)
+        inv, sig = confidence_fill(inv, sig, cfg.fill_windows)
+        timings["fill_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        valid = geometry.valid_mask(row0, col0, height, width)
+        inv_px = upsample_grid(inv, cfg.stride_px, height, width)
+        sig_px = upsample_grid(sig, cfg.stride_px, height, width)
+        valid &= np.isfinite(inv_px) & (inv_px > 0)
+        depth = np.where(valid, 1.0 / np.where(valid, inv_px, 1.0), np.nan).astype(np.float32)
+        depth_sigma = np.where(valid, sig_px * depth.astype(np.float64) ** 2, np.nan).astype(np.float32)
+        timings["upsample_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        aif = self._aif(raw, black_level_dn, white_level_dn, cfa, inv_px, valid, geometry, row0, col0, noise)
+        timings["aif_s"] = time.perf_counter() - t0
+        timings["total_s"] = time.perf_counter() - t_start
+        stats = {"decoder": "classical", "config": cfg.to_dict(), "noise_sigma": noise,
+                 "candidates_depth_m": [round(float(d), 4) for d in self.candidates.depth_m],
+                 "blocks_run": len(blocks) - skipped, "blocks_skipped": skipped,
+                 "candidate_evaluations": evaluations["done"],
+                 "candidate_evaluations_exhaustive": evaluations["full"],
+                 "kernel_sets_computed": self.zones.kernel_sets_computed, "timings_s": timings}
+        return DecodeResult(depth, depth_sigma, aif, valid, inv, sig, stats)
+
+    # -- all-in-focus -----------------------------------------------------------------------------
+    def _aif(self, raw, black, white, cfa, inv_px, valid, geometry, row0, col0, noise) -> np.ndarray:
+        cfg = self.config
+        height, width = raw.shape
+        block = cfg.block_windows * cfg.stride_px
+        halo = self.zones.psf_map.kernel_px + 8
+        halo += halo % 2
+        out = np.zeros((height, width, 3), np.float32)
+        cand_inv = self.candidates.inv_depth_per_m
+        for r in range(0, height, block):
+            for c in range(0, width, block):
+                r1, c1 = min(r + block, height), min(c + block, width)
+                core_valid = valid[r:r1, c:c1]
+                if not core_valid.any():
+                    continue
+                rows = _reflect(np.arange(r - halo, r1 + halo), height)
+                cols = _reflect(np.arange(c - halo, c1 + halo), width)
+                window = raw[np.ix_(rows, cols)]
+                rgb = raw_to_rgb(window, black, white, window_cfa(cfa, row0 + r - halo, col0 + c - halo))
+                theta, phi = geometry.field_angles(np.array([row0 + (r + r1) / 2]), np.array([col0 + (c + c1) / 2]))
+                zone = ZoneKernels.zone(float(np.nan_to_num(theta[0], nan=geometry.max_field_deg)), float(phi[0]))
+                inv_core = np.where(core_valid, inv_px[r:r1, c:c1], np.nanmedian(inv_px[r:r1, c:c1][core_valid]))
+                core = (slice(halo, halo + r1 - r), slice(halo, halo + c1 - c))
+                aif = wiener_blend(rgb, inv_core, cand_inv, lambda idx, z=zone: self.zones.kernels(z, idx), noise, core)
+                falloff = relative_illumination(geometry, row0 + r, col0 + c, r1 - r, c1 - c)
+                out[r:r1, c:c1] = np.where(core_valid[..., None] & (falloff[..., None] > 0),
+                                           aif / np.maximum(falloff, 1e-6)[..., None], 0.0)
+        return out
+
+
+def _reflect(index: np.ndarray, size: int) -> np.ndarray:
+    """Mirror indices into [0, size) keeping parity (…, 2, 1, 0, 1, 2, …): the Bayer phase is kept."""
+    period = 2 * (size - 1)
+    index = np.abs(index) % period
+    return np.where(index >= size, period - index, index)
+
+
+def confidence_fill(inv: np.ndarray, sig: np.ndarray, radius_windows: float) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse-variance weighted Gaussian pooling of 1/d over the window grid (module doc, step 5).
+
+    Each window's own estimate keeps its full weight 1/σ²; its neighbours enter with weight
+    g · 1/σ² (g a Gaussian of ``radius_windows``, 0 at the centre), so the pooled value moves
+    only where the window is unsure relative to its neighbours. The pooled σ is
+    1 / sqrt(Σ weights), inflated by the spread of the pooled values (neighbours that
+    disagree, e.g. across a depth edge, do not make a window more certain).
+    """
+    if radius_windows <= 0:
+        return inv, sig
+    ok = np.isfinite(inv) & np.isfinite(sig) & (sig > 0)
+    w = np.where(ok, 1.0 / np.where(ok, sig, 1.0) ** 2, 0.0)
+    x = np.where(ok, inv, 0.0)
+    size = int(2 * np.ceil(2 * radius_windows) + 1)
+    g = cv2.getGaussianKernel(size, radius_windows)
+    g = g @ g.T
+    g[size // 2, size // 2] = 0.0
+    nb_w = ndimage.convolve(w, g, mode="nearest")
+    nb_wx = ndimage.convolve(w * x, g, mode="nearest")
+    nb_wxx = ndimage.convolve(w * x * x, g, mode="nearest")
+    tot_w = w + nb_w
+    safe = np.where(tot_w > 0, tot_w, 1.0)
+    mean = (w * x + nb_wx) / safe
+    spread = np.maximum((w * x * x + nb_wxx) / safe - mean ** 2, 0.0)
+    pooled_sig = np.sqrt(1.0 / safe + spread)
+    keep = tot_w > 0
+    return np.where(keep, mean, np.nan), np.where(keep, np.minimum(pooled_sig, np.where(ok, sig, np.inf)), np.nan)
+
+
+def upsample_grid(grid: np.ndarray, stride_px: int, height: int, width: int) -> np.ndarray:
+    """Bilinear interpolation of a window grid (sample k at pixel k·stride − ½) to H × W pixels.
+
+    NaN samples (skipped blocks) are filled from their nearest finite neighbour first, so they do
+    not spread NaN into valid pixels next to the image-circle border.
+    """
+    g = grid.astype(np.float32)
+    bad = ~np.isfinite(g)
+    if bad.all():
+        return np.full((height, width), np.nan, np.float32)
+    if bad.any():
+        idx = ndimage.distance_transform_edt(bad, return_distances=False, return_indices=True)
+        g = g[tuple(idx)]
+    scale = 1.0 / stride_px
+    matrix = np.array([[scale, 0.0, 0.5 * scale], [0.0, scale, 0.5 * scale]], np.float32)
+    return cv2.warpAffine(g, matrix, (width, height), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REPLICATE)

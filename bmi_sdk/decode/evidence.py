@@ -1,0 +1,179 @@
+"""Depth evidence from the camera's own kernels: the Gaussian-prior marginal likelihood of local spectra.
+
+For one window of one Bayer plane (R, G1, G2 or B: ``bayer``), with taper t,
+local spectrum Y(ω) = DFT(t · (y − mean)), a candidate kernel with OTF K_d and
+an image prior of power spectrum β S(f), S = 1 / |f|² (natural images), the
+negative log-likelihood of the observed window under depth d is
+
+    L(d, β) = Σ_ω≠0  P(ω) / V_d(ω) + log V_d(ω),    P = |Y|²,
+    V_d(ω) = β Σt² · Σ_aliases |K_d(f)|² S(f)  +  σ² Σt²
+
+(Levin, Fergus, Durand & Freeman, "Image and depth from a conventional camera
+with a coded aperture", SIGGRAPH 2007). A Bayer plane is the full-resolution
+image sampled every second pixel, so the model power of plane frequency ω is
+the sum of the four full-resolution frequencies that fold onto it (the
+aliases; the kernel's spectrum reaches well past the plane's Nyquist
+frequency). The noise σ is white on the raw samples, which is why the
+evidence is computed on the raw planes and not on demosaiced channels (whose
+interpolated noise is correlated).
+
+Within one zone the weights 1 / V are fixed, so the data term of every window,
+every candidate depth and every prior level β_j is one matrix product
+P (windows × frequencies) @ W (frequencies × (depth, β)). β is profiled out
+per plane, window and depth on a geometric grid and refined by a parabola in
+log β; the planes' profiled NLLs add up. Depth candidates are spaced evenly in
+inverse depth (defocus is nearly linear in 1/d); the best candidate is
+refined by a parabola in 1/d, and the parabola's curvature gives the 1σ of
+1/d (``Evidence.refine``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import fft as sfft
+
+BETA_RATIO = 2.0
+"""Spacing of the prior-level grid (factor between neighbours); refined by a parabola in log β."""
+BETA_MARGIN = (0.25, 16.0)
+"""The β grid spans the windows' moment estimates times these factors: a wrong (too blurred) kernel
+explains fine detail only with a much larger β, so the grid reaches further up than down."""
+MAX_BETA_LEVELS = 32
+
+
+def hann_taper(n: int) -> np.ndarray:
+    """n × n separable Hann window (periodic form: no zero at both ends, all n samples carry data)."""
+    w = 0.5 - 0.5 * np.cos(2.0 * np.pi * (np.arange(n) + 0.5) / n)
+    return np.outer(w, w).astype(np.float32)
+
+
+def prior_spectrum(n_full: int, slope: float = 2.0, floor_cycles: float | None = None) -> np.ndarray:
+    """S(f) = 1 / (|f|² + f0²)^(slope/2) on the n_full × n_full full-resolution DFT grid (f in cycles per pixel).
+
+    f0 (default one DFT bin) keeps the DC term finite; DC itself never enters the likelihood.
+    """
+    f = sfft.fftfreq(n_full)
+    f0 = 1.0 / n_full if floor_cycles is None else floor_cycles
+    return (f[:, None] ** 2 + f[None, :] ** 2 + f0 ** 2) ** (-0.5 * slope)
+
+
+def folded_model(kernels: np.ndarray, n_plane: int, slope: float = 2.0) -> np.ndarray:
+    """(..., n_plane, n_plane // 2 + 1) model power Σ_aliases |K(f)|² S(f) of a plane's rfft bins.
+
+    ``kernels`` (..., K, K) are full-resolution, centred, unit-sum kernels (K ≤ 2 n_plane). The plane
+    samples every second full-resolution pixel; plane bin (u, v) receives full-resolution bins
+    (u + a n, v + b n), a, b ∈ {0, 1}, of the 2n-point DFT.
+    """
+    n_full = 2 * n_plane
+    k = kernels.shape[-1]
+    if k > n_full:
+        raise ValueError(f"a {k}-px kernel does not fit a {n_full}-px window")
+    padded = np.zeros(kernels.shape[:-2] + (n_full, n_full), np.float64)
+    padded[..., :k, :k] = kernels
+    power = np.abs(np.fft.fft2(padded)) ** 2 * prior_spectrum(n_full, slope)  # the kernel's shift only changes phase
+    folded = (power[..., :n_plane, :] + power[..., n_plane:, :])
+    folded = folded[..., :, :n_plane] + folded[..., :, n_plane:]
+    return folded[..., :, :n_plane // 2 + 1]
+
+
+def rfft_multiplicity(n_plane: int) -> np.ndarray:
+    """(n, n//2+1) how many full-spectrum bins each rfft bin stands for (1 on the self-conjugate columns), DC 0."""
+    m = np.full((n_plane, n_plane // 2 + 1), 2.0)
+    m[:, 0] = 1.0
+    if n_plane % 2 == 0:
+        m[:, -1] = 1.0
+    m[0, 0] = 0.0  # the mean is removed: DC carries no evidence
+    return m
+
+
+def window_spectra(plane: np.ndarray, n_plane: int, stride_plane: int, taper: np.ndarray) -> tuple[np.ndarray, tuple]:
+    """Power spectra (rows × cols, n, n//2+1) float32 of the tapered, mean-removed n × n windows of a plane.
+
+    Windows start every ``stride_plane`` samples; returns the spectra and the (rows, cols) grid shape.
+    """
+    view = np.lib.stride_tricks.sliding_window_view(plane, (n_plane, n_plane))[::stride_plane, ::stride_plane]
+    rows, cols = view.shape[:2]
+    w = view.reshape(rows * cols, n_plane, n_plane).astype(np.float32)
+    tsum = float(taper.sum())
+    mean = np.einsum("nij,ij->n", w, taper) / tsum
+    w = (w - mean[:, None, None]) * taper
+    spec = sfft.rfft2(w, workers=1)
+    return (spec.real ** 2 + spec.imag ** 2).astype(np.float32), (rows, cols)
+
+
+@dataclass
+class Evidence:
+    """NLL(window, candidate) summed over the planes, and what the refinement needs.
+
+    ``nll``: (rows, cols, D) float64 negative log-likelihood (up to a constant per window);
+    ``inv_depth_per_m``: (D,) candidate 1/d in m⁻¹, monotonic.
+    """
+
+    nll: np.ndarray
+    inv_depth_per_m: np.ndarray
+
+    def refine(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(depth_m, sigma_inv_depth_per_m, best_index) from a parabola in 1/d through the best candidate.
+
+        The parabola passes through the best candidate and its two neighbours at their own 1/d (the
+        candidates need not be evenly spaced). Its vertex, clamped to the neighbours, is the estimate;
+        its second derivative h gives the Laplace-approximation 1σ of 1/d, 1 / sqrt(h). At either
+        end of the list the end candidate is kept and h is taken from the one-sided difference.
+        """
+        nll, x = self.nll, np.asarray(self.inv_depth_per_m, dtype=np.float64)
+        d = nll.shape[-1]
+        best = np.argmin(nll, axis=-1)
+        i = np.clip(best, 1, d - 2)
+        take = lambda k: np.take_along_axis(nll, k[..., None], axis=-1)[..., 0]  # noqa: E731
+        y0, y1, y2 = take(i - 1), take(i), take(i + 1)
+        x0, x1, x2 = x[i - 1], x[i], x[i + 1]
+        s01, s12 = (y1 - y0) / (x1 - x0), (y2 - y1) / (x2 - x1)
+        h = 2.0 * (s12 - s01) / (x2 - x0)
+        safe = np.where(h > 0, h, 1.0)
+        vertex = 0.5 * (x0 + x1) - s01 / safe  # where the derivative of the parabola vanishes
+        vertex = np.where(h > 0, np.clip(vertex, np.minimum(x0, x2), np.maximum(x0, x2)), x1)
+        edge = (best == 0) | (best == d - 1)
+        j = np.where(best == 0, 1, d - 2)
+        gap = np.abs(x[j] - x[best])
+        h_edge = 2.0 * np.maximum(take(j) - take(best), 0.0) / gap ** 2
+        inv = np.where(edge, x[best], vertex)
+        h = np.where(edge, h_edge, h)
+        sigma_inv = 1.0 / np.sqrt(np.maximum(h, 1e-12))
+        return 1.0 / np.maximum(inv, 1e-6), sigma_inv, best
+
+
+def plane_nll(power: np.ndarray, model: np.ndarray, noise_var: float, taper_energy: float) -> np.ndarray:
+    """(windows, D) NLL of one plane's window spectra, β profiled out (module doc).
+
+    ``power`` (windows, n, m) float32; ``model`` (D, n, m) = Σ_aliases |K_d|² S per candidate.
+    """
+    nw = power.shape[0]
+    n_cand = model.shape[0]
+    mult = rfft_multiplicity(model.shape[1])
+    keep = mult > 0
+    p = power.reshape(nw, -1)[:, keep.ravel()]
+    mult = mult[keep]
+    a = model.reshape(n_cand, -1)[:, keep.ravel()] * taper_energy        # (D, F)
+    s = max(noise_var, 1e-12) * taper_energy
+    # moment estimate of β per window and candidate: Σ P ≈ β Σ m A + s Σ m
+    total = p @ mult                                                      # (W,)
+    gain = a @ mult                                                       # (D,)
+    excess = np.maximum(total - s * mult.sum(), 1e-3 * total + 1e-30)
+    lo = np.log(max(float(excess.min() / gain.max()), 1e-30) * BETA_MARGIN[0])
+    hi = np.log(float(excess.max() / gain.min()) * BETA_MARGIN[1])
+    n_beta = int(np.clip(np.ceil((hi - lo) / np.log(BETA_RATIO)) + 1, 3, MAX_BETA_LEVELS))
+    log_beta = np.linspace(lo, hi, n_beta)
+    v = np.exp(log_beta)[None, :, None] * a[:, None, :] + s                # (D, J, F)
+    weights = (mult / v).reshape(n_cand * n_beta, -1).T.astype(np.float32)  # (F, D·J)
+    log_term = (np.log(v) * mult).sum(axis=-1).reshape(-1)                   # (D·J,)
+    nll = (p @ weights).astype(np.float64) + log_term                        # (W, D·J)
+    nll = nll.reshape(nw, n_cand, n_beta)
+    j = np.clip(np.argmin(nll, axis=-1), 1, n_beta - 2)
+    take = lambda k: np.take_along_axis(nll, k[..., None], axis=-1)[..., 0]  # noqa: E731
+    lo_v, mid_v, hi_v = take(j - 1), take(j), take(j + 1)
+    curv = lo_v - 2 * mid_v + hi_v
+    # the parabola through the three levels, evaluated at its vertex clamped to the bracket
+    offset = np.clip(0.5 * (lo_v - hi_v) / np.where(curv > 0, curv, np.inf), -1.0, 1.0)
+    refined = mid_v + 0.5 * offset * (hi_v - lo_v) + 0.5 * curv * offset ** 2
+    return np.minimum(refined, nll.min(axis=-1))

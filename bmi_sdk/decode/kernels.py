@@ -1,0 +1,65 @@
+"""The camera's kernels at the candidate depths, per zone, and the evidence models derived from them.
+
+A zone is a field position (θ, φ) rounded to ``ZONE_STEP_DEG``: kernels change slowly with the
+field (``bmi bench render``), and neighbouring tiles of a frame share their zone's kernels. The
+kernels come from a ``render.PsfMap``, so the decoder sees exactly what the renderer (or the
+calibrated camera: an exact-mode map with the calibration's ``Perturbation``) puts into frames.
+Only the candidates a tile asks for are computed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .bayer import PLANE_CHANNELS
+from .evidence import folded_model
+
+ZONE_STEP_DEG = 0.5
+
+
+class ZoneKernels:
+    """Memoised (C, D, K, K) kernels and folded evidence models for (θ, φ) zones of one ``PsfMap``."""
+
+    def __init__(self, psf_map, candidates, slopes: tuple[float, ...], window_px: int):
+        if window_px % 2 or window_px < 8:
+            raise ValueError(f"window_px must be even and >= 8, got {window_px}")
+        self.psf_map = psf_map
+        self.candidates = candidates
+        self.slopes = tuple(float(a) for a in slopes)
+        self.window_px = window_px
+        self._kernels: dict[tuple, np.ndarray] = {}
+        self._models: dict[tuple, np.ndarray] = {}
+        self.kernel_sets_computed = 0
+
+    @staticmethod
+    def zone(theta_deg: float, phi_deg: float) -> tuple[float, float]:
+        """The zone key of a field position: θ and φ rounded to the zone step (φ wrapped to (−180, 180])."""
+        step = ZONE_STEP_DEG
+        theta = round(float(np.nan_to_num(theta_deg, nan=0.0)) / step) * step
+        phi = round(((float(phi_deg) + 180.0) % 360.0 - 180.0) / step) * step
+        return round(theta, 6), round(0.0 if theta == 0 else phi, 6)
+
+    def kernels(self, zone: tuple[float, float], which: np.ndarray) -> np.ndarray:
+        """(C, len(which), K, K) unit-sum kernels of candidates ``which`` (indices into ``candidates``)."""
+        which = np.atleast_1d(np.asarray(which, dtype=int))
+        missing = [int(j) for j in which if zone + (int(j),) not in self._kernels]
+        if missing:
+            k = self.psf_map.kernels(zone[0], zone[1], self.candidates.index[missing])
+            for n, j in enumerate(missing):
+                self._kernels[zone + (j,)] = k[:, n]
+            self.kernel_sets_computed += len(missing)
+        return np.stack([self._kernels[zone + (int(j),)] for j in which], axis=1)
+
+    def models(self, zone: tuple[float, float], which: np.ndarray) -> np.ndarray:
+        """(planes, slopes, len(which), n, n//2+1) folded model power of each Bayer plane (``evidence``)."""
+        which = np.atleast_1d(np.asarray(which, dtype=int))
+        n_plane = self.window_px // 2
+        missing = [int(j) for j in which if zone + (int(j),) not in self._models]
+        if missing:
+            k = self.kernels(zone, np.asarray(missing))                       # (C, m, K, K)
+            per_channel = np.stack([[folded_model(k[c], n_plane, a) for a in self.slopes]
+                                    for c in range(k.shape[0])])               # (C, A, m, n, n/2+1)
+            for n, j in enumerate(missing):
+                self._models[zone + (j,)] = per_channel[:, :, n].astype(np.float32)
+        stacked = np.stack([self._models[zone + (int(j),)] for j in which], axis=2)  # (C, A, D, n, m)
+        return stacked[list(PLANE_CHANNELS)]
