@@ -7,8 +7,9 @@ drop an error on the way:
 * no errors (the design): a ``tensor``-mode map over the lens's shared, disk-cached PSF tensor
   (the paper's rotated radial tensor; fast, and what the benchmark renders with), or ``exact``;
 * with errors (a calibrated or simulated built camera): an ``exact``-mode map whose kernels are
-  traced through the perturbed lens at every (θ, φ) (``optics.perturb``), with the optical centre
-  taken as calibrated (the whole-image shift of a decenter is the centre's, not the PSFs').
+  traced through the perturbed lens at every (θ, φ) (``optics.perturb``), each centred where the
+  design's chief ray lands, so a kernel is displaced by exactly the built camera's landing error
+  relative to the nominal pixel → field mapping the decoder and the point cloud use.
 
 ``sha256`` keys caches of anything derived from the camera (e.g. decoder kernels).
 """
@@ -53,15 +54,19 @@ class BuiltCamera:
     def sha256(self) -> str:
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()
 
-    def psf_map(self, mode: str | None = None):
-        """The camera's ``PsfMap``: tensor mode for the design, exact mode (perturbed lens) otherwise."""
+    def psf_map(self, mode: str | None = None, centre_calibrated: bool = False):
+        """The camera's ``PsfMap``: tensor mode for the design, exact mode (perturbed lens) otherwise.
+
+        ``centre_calibrated``: take the on-axis landing shift out of every kernel (for images whose
+        optical centre was moved to the nominal one, as ``bmi eval`` renders its perturbed rows).
+        """
         from .lenses import lens_tensor
         from .render import PsfMap
 
         mode = mode or ("tensor" if self.is_nominal else "exact")
         perturbation = None if self.is_nominal else self.perturbation
         return PsfMap(lens_tensor(self.lens_name), self.sensor(), mode=mode, perturbation=perturbation,
-                      centre_calibrated=perturbation is not None)
+                      centre_calibrated=centre_calibrated and perturbation is not None)
 
     @classmethod
     def from_calibration(cls, calibration, geometry: SensorGeometry | None = None) -> "BuiltCamera":

@@ -40,8 +40,11 @@ class RenderedScene:
     def __init__(self, rgb: np.ndarray, range_m: np.ndarray, row0: int = 0, col0: int = 0,
                  lens: str = "bmi_monocentric", geometry: SensorGeometry = BMI_SENSOR, name: str = "scene",
                  psf_mode: str = "exact", zone_px: int = DEFAULT_ZONE_PX, block_px: int = BLOCK_PX, label: str = "",
-                 tensor=None):
-        """``tensor`` (a PsfTensor) overrides the lens's default one: a calibrated or perturbed lens."""
+                 tensor=None, perturbation=None):
+        """``tensor`` (a PsfTensor) overrides the lens's default one; ``perturbation``
+        (``optics.perturb.Perturbation``, ``exact`` mode only) makes the camera a built one with those
+        hardware errors: every zone's kernels are traced through the perturbed lens, and the image
+        lands where the built camera puts it (the decenter's whole-image shift included)."""
         if rgb.ndim != 3 or rgb.shape[2] != 3 or range_m.shape != rgb.shape[:2]:
             raise ValueError(f"scene needs rgb H×W×3 and range_m H×W, got {rgb.shape} and {range_m.shape}")
         self.rgb = np.asarray(rgb, dtype=np.float32)
@@ -55,12 +58,19 @@ class RenderedScene:
         self.zone_px = zone_px
         self.block_px = block_px
         self.label = label
+        self.perturbation = perturbation if perturbation is not None and np.any(perturbation.to_vector()) else None
+        if self.perturbation is not None and psf_mode != "exact":
+            raise ValueError("a built camera's hardware errors need psf_mode='exact' (the radial tensor cannot "
+                             "hold decenter or tilt)")
         self._blocks: dict[tuple[int, int], np.ndarray] = {}
         self._psf_map = None  # one kernel memo for all blocks: zones straddle block borders
 
     def metadata(self) -> dict:
-        return {"source": self.name, "label": self.label, "lens": self.lens, "psf_mode": self.psf_mode,
+        meta = {"source": self.name, "label": self.label, "lens": self.lens, "psf_mode": self.psf_mode,
                 "scene_window": [self.row0, self.col0, *self.rgb.shape[:2]], "zone_px": self.zone_px}
+        if self.perturbation is not None:
+            meta["injected_perturbation"] = self.perturbation.to_dict()
+        return meta
 
     def _block(self, br: int, bc: int) -> np.ndarray:
         key = (br, bc)
@@ -69,7 +79,7 @@ class RenderedScene:
 
             tensor = self.tensor if self.tensor is not None else _tensor(self.lens)
             if self._psf_map is None:
-                self._psf_map = PsfMap(tensor, self.geometry, mode=self.psf_mode)
+                self._psf_map = PsfMap(tensor, self.geometry, mode=self.psf_mode, perturbation=self.perturbation)
             margin = tensor.spec.kernel_px
             h, w = self.rgb.shape[:2]
             # block in scene coordinates, then with margin, clipped to the scene

@@ -99,8 +99,17 @@ def _run(args) -> int:
     rgb, depth = rgb[:height, :width], depth[:height, :width]
     row0, col0 = (0, 0) if (height, width) == (geometry.height_px, geometry.width_px) else \
         _window(geometry, height, width, args.field_deg, args.azimuth_deg)
+    perturbation = None
+    if args.perturb:
+        from bmi_sdk.optics.perturb import Perturbation
+
+        perturbation = Perturbation()
+        for term in args.perturb:
+            perturbation = perturbation.with_term(term)
+        if args.psf_mode != "exact":
+            raise ValueError("--perturb needs --psf-mode exact: the radial tensor cannot hold a built camera's errors")
     source = RenderedScene(rgb, depth, row0, col0, geometry=geometry, tensor=tensor, label=label,
-                           psf_mode=args.psf_mode)
+                           psf_mode=args.psf_mode, perturbation=perturbation)
     model = SensorModel(additive_sigma=args.noise)
     device = FirmwareDevice(source=source, geometry=geometry, model=model, seed=args.seed, lens=lens_name)
     with open_camera("sim://", device=device) as cam:
@@ -135,6 +144,9 @@ def register(subparsers) -> None:
     p.add_argument("--lens", choices=("monocentric", "fisheye"), default="monocentric")
     p.add_argument("--psf-mode", choices=("exact", "tensor"), default="exact",
                    help="exact: trace each zone's field; tensor: interpolate the radial tensor (faster)")
+    p.add_argument("--perturb", action="append", metavar="NAME=VALUE",
+                   help="render through a built camera with this hardware error (repeat; the names and units of "
+                        "bmi calibrate --simulate, e.g. decenter_um=10,0 stray_light_fraction=0.03); exact mode")
     p.add_argument("--seed", type=int, default=0, help="noise seed")
     p.add_argument("--preview", action="store_true", help="also write PNG previews of the coded image and scene")
     p.set_defaults(handler=_run)

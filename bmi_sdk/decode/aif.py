@@ -39,8 +39,8 @@ def wiener_blend(rgb: np.ndarray, inv_depth: np.ndarray, candidate_inv: np.ndarr
     needed = np.unique(np.concatenate([lo[frac < 1], lo[frac > 0] + 1]))
     kernels = kernels_of(needed)                                # (3, n, K, K)
     k = kernels.shape[-1]
-    spectrum = sfft.rfft2(rgb.transpose(2, 0, 1), workers=1)    # (3, h, w/2+1)
-    s = prior_spectrum_rect(h, w)
+    spectrum = sfft.rfft2(np.ascontiguousarray(rgb.transpose(2, 0, 1), np.float32), workers=1)  # complex64
+    s = prior_spectrum_rect(h, w).astype(np.float32)
     out = np.zeros(inv_depth.shape + (3,), np.float32)
     for n, j in enumerate(needed):
         weight = np.where(lo == j, 1.0 - frac, 0.0) + np.where(lo + 1 == j, frac, 0.0)
@@ -50,8 +50,8 @@ def wiener_blend(rgb: np.ndarray, inv_depth: np.ndarray, candidate_inv: np.ndarr
             otf = sfft.rfft2(np.roll(padded, (-(k // 2), -(k // 2)), axis=(0, 1)), workers=1)
             power = otf.real ** 2 + otf.imag ** 2
             beta = _prior_level(spectrum[c], power, s, noise_sigma, h * w)
-            restored = sfft.irfft2(np.conj(otf) * spectrum[c] / (power + noise_sigma ** 2 / (beta * s)), s=(h, w),
-                                   workers=1)
+            gain = np.conj(otf) / (power + np.float32(noise_sigma ** 2 / beta) / s)
+            restored = sfft.irfft2(gain * spectrum[c], s=(h, w), workers=1)
             out[..., c] += (weight * restored[core]).astype(np.float32)
     return out
 

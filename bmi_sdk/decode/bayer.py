@@ -9,6 +9,8 @@ demosaicing enters the likelihood.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 PLANE_OFFSETS = ((0, 0), (0, 1), (1, 0), (1, 1))
@@ -35,8 +37,21 @@ def normalised_planes(raw: np.ndarray, black_level_dn: float, white_level_dn: fl
     return np.stack([x[r::2, c::2] for r, c in PLANE_OFFSETS])
 
 
-NOISE_BLOCK_PX = 8
+NOISE_BLOCK_PX = 16
 NOISE_PERCENTILE = 10.0
+
+
+@lru_cache(maxsize=1)
+def _null_percentile() -> float:
+    """The ``NOISE_PERCENTILE``-th percentile of the block MAD estimate for pure unit noise (seeded draw).
+
+    Dividing by it removes the bias of picking the lowest blocks: with noise alone the estimator
+    returns the noise σ.
+    """
+    rng = np.random.default_rng(0)
+    blocks = rng.standard_normal((20000, NOISE_BLOCK_PX * NOISE_BLOCK_PX))
+    med = np.median(blocks, axis=1, keepdims=True)
+    return float(np.percentile(MAD_TO_SIGMA * np.median(np.abs(blocks - med), axis=1), NOISE_PERCENTILE))
 
 
 def estimate_noise_sigma(planes: np.ndarray) -> float:
@@ -45,9 +60,10 @@ def estimate_noise_sigma(planes: np.ndarray) -> float:
     The detail of noise alone has σ equal to the noise's; image detail adds to it where the coded
     image is sharp (far depths pass frequencies up to the plane's Nyquist). So the detail is
     cut into ``NOISE_BLOCK_PX``² blocks, each block gets a MAD estimate, and the
-    ``NOISE_PERCENTILE``-th percentile over blocks and planes is returned: the flattest
-    (most blurred or textureless) blocks, where the detail is noise. Under signal-dependent
-    (photon) noise this is the noise of those blocks, a lower bound elsewhere.
+    ``NOISE_PERCENTILE``-th percentile over blocks and planes, divided by the same percentile for
+    noise alone (``_null_percentile``), is returned: the flattest (most blurred or textureless)
+    blocks, where the detail is noise. Under signal-dependent (photon) noise this is the noise of
+    those blocks, a lower bound elsewhere.
     """
     per_block = []
     b = NOISE_BLOCK_PX
@@ -62,4 +78,4 @@ def estimate_noise_sigma(planes: np.ndarray) -> float:
         blocks = detail[:hb * b, :wb * b].reshape(hb, b, wb, b).transpose(0, 2, 1, 3).reshape(hb * wb, b * b)
         med = np.median(blocks, axis=1, keepdims=True)
         per_block.append(MAD_TO_SIGMA * np.median(np.abs(blocks - med), axis=1))
-    return float(np.percentile(np.concatenate(per_block), NOISE_PERCENTILE))
+    return float(np.percentile(np.concatenate(per_block), NOISE_PERCENTILE)) / _null_percentile()

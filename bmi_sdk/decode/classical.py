@@ -11,14 +11,20 @@ Steps (each in its own module):
 3. ``evidence``: a coarse pass over every ``coarse_step``-th candidate picks the block's depth
    range (best coarse candidate of any window ± one coarse step); the fine pass scores only the
    candidates inside it. The report counts the candidate evaluations this leaves out.
-4. Refinement (parabola in 1/d) and the Laplace 1σ of 1/d, scaled by ``sigma_scale`` and floored
-   by ``sigma_floor_inv_per_m`` (calibrated on training scenes, ``docs/decoder.md``).
-5. Confidence-weighted fill: 1/d is replaced by its inverse-variance weighted mean over a
-   Gaussian neighbourhood of ``fill_windows`` windows, which leaves confident windows as they
-   are and gives textureless ones (flat evidence, large σ) their neighbours' depth; σ becomes the
-   neighbourhood's pooled σ, never smaller than the window's own would allow.
+4. Refinement (parabola in 1/d) and the 1σ of 1/d. The Laplace σ_L of the likelihood alone is
+   far too small (the Gaussian image prior is only a model: a window that mixes two depths, or
+   a texture whose spectrum is not 1/f², fits one candidate "confidently" and wrongly), so the
+   reported σ is σ² = (a σ_L)² + (b s)² + c², s the spread (std) of 1/d over the 3 × 3
+   neighbouring windows (large across depth edges and in clutter), with (a, b, c) =
+   (``sigma_laplace_scale``, ``sigma_spread_scale``, ``sigma_floor_inv_per_m``) fitted by maximum
+   likelihood on scenes apart from the benchmark (``bmi bench decoder --fit-sigma``).
+5. Optional confidence-weighted fill (``fill_windows`` > 0): 1/d is replaced by its
+   inverse-variance weighted mean over a Gaussian neighbourhood, which gives textureless windows
+   their neighbours' depth (off by default: on the benchmark it spreads the far background into
+   small near objects, ``bmi bench decoder``).
 6. 1/d and σ are interpolated bilinearly to every pixel; ``aif`` deconvolves each block with the
-   kernels of its pixels' depths.
+   kernels of its pixels' depths, on every ``aif_step``-th candidate (a deconvolution costs two
+   FFTs per channel; neighbouring candidates' kernels differ little).
 """
 
 from __future__ import annotations
@@ -48,11 +54,14 @@ class ClassicalConfig:
     stride_px: int = 16
     candidates: int = 48
     coarse_step: int = 4
-    slopes: tuple = (1.6, 2.0, 2.4, 2.8, 3.2)
+    slopes: tuple = (2.0,)
     block_windows: int = 16
-    sigma_scale: float = 1.0
-    sigma_floor_inv_per_m: float = 0.0
-    fill_windows: float = 1.5
+    # σ model fitted by `bmi bench decoder` (seed 777, 8 tiles per region, default knobs)
+    sigma_laplace_scale: float = 1.0
+    sigma_spread_scale: float = 1.85
+    sigma_floor_inv_per_m: float = 0.117
+    fill_windows: float = 0.0
+    aif_step: int = 2
     noise_sigma: float | None = None
 
     def __post_init__(self):
@@ -60,8 +69,8 @@ class ClassicalConfig:
             raise ValueError(f"window_px must be a multiple of 4 and >= 16, got {self.window_px}")
         if self.stride_px % 2 or self.stride_px < 2:
             raise ValueError(f"stride_px must be even and >= 2, got {self.stride_px}")
-        if self.block_windows < 1 or self.coarse_step < 1:
-            raise ValueError("block_windows and coarse_step must be >= 1")
+        if self.block_windows < 1 or self.coarse_step < 1 or self.aif_step < 1:
+            raise ValueError("block_windows, coarse_step and aif_step must be >= 1")
         if not self.slopes:
             raise ValueError("at least one prior slope is needed")
 
@@ -78,7 +87,9 @@ class DecodeResult:
     aif: np.ndarray                # H × W × 3 float32 linear RGB (relative illumination undone), 0 outside
     valid: np.ndarray              # H × W bool
     grid_inv_depth: np.ndarray     # window grid 1/d (m⁻¹), NaN in skipped blocks
-    grid_sigma_inv: np.ndarray     # window grid 1σ of 1/d
+    grid_sigma_inv: np.ndarray     # window grid reported 1σ of 1/d (step 4)
+    grid_sigma_laplace: np.ndarray  # window grid Laplace σ_L of 1/d
+    grid_spread: np.ndarray        # window grid 3 × 3 spread of 1/d
     stats: dict = field(default_factory=dict)
 
 
@@ -176,7 +187,10 @@ class ClassicalDecoder:
         if bar is not None:
             bar.close()
         t0 = time.perf_counter()
-        sig = np.maximum(sig * cfg.sigma_scale, cfg.sigma_floor_inv_per_m)
+        sigma_laplace = sig
+        spread = local_spread(inv)
+        sig = np.sqrt((cfg.sigma_laplace_scale * sigma_laplace) ** 2 + (cfg.sigma_spread_scale * spread) ** 2
+                      + cfg.sigma_floor_inv_per_m ** 2)
         inv, sig = confidence_fill(inv, sig, cfg.fill_windows)
         timings["fill_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -197,7 +211,7 @@ class ClassicalDecoder:
                  "candidate_evaluations": evaluations["done"],
                  "candidate_evaluations_exhaustive": evaluations["full"],
                  "kernel_sets_computed": self.zones.kernel_sets_computed, "timings_s": timings}
-        return DecodeResult(depth, depth_sigma, aif, valid, inv, sig, stats)
+        return DecodeResult(depth, depth_sigma, aif, valid, inv, sig, sigma_laplace, spread, stats)
 
     # -- all-in-focus -----------------------------------------------------------------------------
     def _aif(self, raw, black, white, cfa, inv_px, valid, geometry, row0, col0, noise) -> np.ndarray:
@@ -207,7 +221,9 @@ class ClassicalDecoder:
         halo = self.zones.psf_map.kernel_px + 8
         halo += halo % 2
         out = np.zeros((height, width, 3), np.float32)
-        cand_inv = self.candidates.inv_depth_per_m
+        n_cand = len(self.candidates)
+        aif_cands = np.unique(np.r_[np.arange(0, n_cand, cfg.aif_step), n_cand - 1])
+        cand_inv = self.candidates.inv_depth_per_m[aif_cands]
         for r in range(0, height, block):
             for c in range(0, width, block):
                 r1, c1 = min(r + block, height), min(c + block, width)
@@ -222,7 +238,8 @@ class ClassicalDecoder:
                 zone = ZoneKernels.zone(float(np.nan_to_num(theta[0], nan=geometry.max_field_deg)), float(phi[0]))
                 inv_core = np.where(core_valid, inv_px[r:r1, c:c1], np.nanmedian(inv_px[r:r1, c:c1][core_valid]))
                 core = (slice(halo, halo + r1 - r), slice(halo, halo + c1 - c))
-                aif = wiener_blend(rgb, inv_core, cand_inv, lambda idx, z=zone: self.zones.kernels(z, idx), noise, core)
+                aif = wiener_blend(rgb, inv_core, cand_inv, lambda idx, z=zone: self.zones.kernels(z, aif_cands[idx]),
+                                   noise, core)
                 falloff = relative_illumination(geometry, row0 + r, col0 + c, r1 - r, c1 - c)
                 out[r:r1, c:c1] = np.where(core_valid[..., None] & (falloff[..., None] > 0),
                                            aif / np.maximum(falloff, 1e-6)[..., None], 0.0)
@@ -234,6 +251,17 @@ def _reflect(index: np.ndarray, size: int) -> np.ndarray:
     period = 2 * (size - 1)
     index = np.abs(index) % period
     return np.where(index >= size, period - index, index)
+
+
+def local_spread(inv: np.ndarray) -> np.ndarray:
+    """Standard deviation of the finite 1/d values in each window's 3 × 3 neighbourhood (0 when alone)."""
+    ok = np.isfinite(inv)
+    x = np.where(ok, inv, 0.0)
+    n = ndimage.uniform_filter(ok.astype(np.float64), 3, mode="nearest")
+    safe = np.where(n > 0, n, 1.0)
+    mean = ndimage.uniform_filter(x, 3, mode="nearest") / safe
+    mean_sq = ndimage.uniform_filter(x * x, 3, mode="nearest") / safe
+    return np.where(ok, np.sqrt(np.maximum(mean_sq - mean ** 2, 0.0)), np.nan)
 
 
 def confidence_fill(inv: np.ndarray, sig: np.ndarray, radius_windows: float) -> tuple[np.ndarray, np.ndarray]:

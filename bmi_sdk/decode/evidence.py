@@ -34,12 +34,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft as sfft
 
-BETA_RATIO = 2.0
+BETA_RATIO = 2.0 ** 0.5
 """Spacing of the prior-level grid (factor between neighbours); refined by a parabola in log β."""
 BETA_MARGIN = (0.25, 16.0)
 """The β grid spans the windows' moment estimates times these factors: a wrong (too blurred) kernel
 explains fine detail only with a much larger β, so the grid reaches further up than down."""
-MAX_BETA_LEVELS = 32
+MAX_BETA_LEVELS = 48
 
 
 def hann_taper(n: int) -> np.ndarray:
@@ -58,12 +58,22 @@ def prior_spectrum(n_full: int, slope: float = 2.0, floor_cycles: float | None =
     return (f[:, None] ** 2 + f[None, :] ** 2 + f0 ** 2) ** (-0.5 * slope)
 
 
+def fold_power(power_full: np.ndarray, n_plane: int) -> np.ndarray:
+    """(..., n, n//2+1): a 2n × 2n full-resolution power spectrum folded onto a plane's rfft bins.
+
+    A plane samples every second full-resolution pixel, so plane bin (u, v) receives full-resolution
+    bins (u + a n, v + b n), a, b ∈ {0, 1} (the aliases), each with weight ¼ in expectation; the
+    constant is absorbed into the prior level β.
+    """
+    folded = power_full[..., :n_plane, :] + power_full[..., n_plane:, :]
+    folded = folded[..., :, :n_plane] + folded[..., :, n_plane:]
+    return folded[..., :, :n_plane // 2 + 1]
+
+
 def folded_model(kernels: np.ndarray, n_plane: int, slope: float = 2.0) -> np.ndarray:
     """(..., n_plane, n_plane // 2 + 1) model power Σ_aliases |K(f)|² S(f) of a plane's rfft bins.
 
-    ``kernels`` (..., K, K) are full-resolution, centred, unit-sum kernels (K ≤ 2 n_plane). The plane
-    samples every second full-resolution pixel; plane bin (u, v) receives full-resolution bins
-    (u + a n, v + b n), a, b ∈ {0, 1}, of the 2n-point DFT.
+    ``kernels`` (..., K, K) are full-resolution, centred, unit-sum kernels (K ≤ 2 n_plane).
     """
     n_full = 2 * n_plane
     k = kernels.shape[-1]
@@ -72,9 +82,7 @@ def folded_model(kernels: np.ndarray, n_plane: int, slope: float = 2.0) -> np.nd
     padded = np.zeros(kernels.shape[:-2] + (n_full, n_full), np.float64)
     padded[..., :k, :k] = kernels
     power = np.abs(np.fft.fft2(padded)) ** 2 * prior_spectrum(n_full, slope)  # the kernel's shift only changes phase
-    folded = (power[..., :n_plane, :] + power[..., n_plane:, :])
-    folded = folded[..., :, :n_plane] + folded[..., :, n_plane:]
-    return folded[..., :, :n_plane // 2 + 1]
+    return fold_power(power, n_plane)
 
 
 def rfft_multiplicity(n_plane: int) -> np.ndarray:
@@ -136,7 +144,8 @@ class Evidence:
         edge = (best == 0) | (best == d - 1)
         j = np.where(best == 0, 1, d - 2)
         gap = np.abs(x[j] - x[best])
-        h_edge = 2.0 * np.maximum(take(j) - take(best), 0.0) / gap ** 2
+        with np.errstate(invalid="ignore", divide="ignore"):  # only read where best is an end (gap > 0)
+            h_edge = 2.0 * np.maximum(take(j) - take(best), 0.0) / gap ** 2
         inv = np.where(edge, x[best], vertex)
         h = np.where(edge, h_edge, h)
         sigma_inv = 1.0 / np.sqrt(np.maximum(h, 1e-12))
