@@ -51,12 +51,13 @@ def _run(args) -> int:
                          decoders=decoders, classical_config=config)
     if args.json:
         for row in rows:
-            print(json.dumps({k: row[k] for k in ("condition", "decoder", "region", *KEYS, "sigma_z_rms") if k in row}))
+            print(json.dumps({k: row[k] for k in ("condition", "decoder", "region", *KEYS, "sigma_z_rms", "sigma_z_std")
+                              if k in row}))
         return 0
-    print("| condition | decoder | region | AbsRel | RMSE (m) | δ<1.25 | δ<1.25² | δ<1.25³ | PSNR (dB) | SSIM | σ z RMS |")
+    print("| condition | decoder | region | AbsRel | RMSE (m) | δ<1.25 | δ<1.25² | δ<1.25³ | PSNR (dB) | SSIM | σ z std |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        z = f"{r['sigma_z_rms']:.2f}" if "sigma_z_rms" in r else "–"
+        z = f"{r['sigma_z_std']:.2f}" if "sigma_z_std" in r else "–"
         print(f"| {r['condition']} | {r['decoder']} | {r['region']} | {r['absrel']:.3f} | {r['rmse_m']:.3f} | "
               f"{r['delta1']:.3f} | {r['delta2']:.3f} | {r['delta3']:.3f} | {r['psnr_db']:.2f} | {r['ssim']:.3f} | {z} |")
     return 0

@@ -69,9 +69,13 @@ EXACT = {
     "nominal_exact": Perturbation(),
     "decenter_10um": Perturbation(decenter_um=(10.0, 0.0)),
     "tilt_1arcmin": Perturbation(tilt_arcmin=(1.0, 0.0)),
+    "built_camera": Perturbation(decenter_um=(10.0, 0.0), psf_shift_px=(0.5, 0.0), stray_light_fraction=0.03,
+                                 sensor_radius_error_pct=0.5),
 }
 """Conditions rendered with exact-mode kernels of the (perturbed) lens at σ = ``STANDARD_SIGMA``; decenter
-along the sensor's +col, tilt about it; ``nominal_exact`` is their reference (module doc)."""
+along the sensor's +col, tilt about it; ``built_camera`` is the decoding issue's perturbed camera (decenter
+10 µm, PSF shift 0.5 px, stray light 3 %, sensor radius +0.5 %) with every error in its kernels;
+``nominal_exact`` is their reference (module doc)."""
 
 
 def noise_conditions() -> dict:
@@ -241,8 +245,8 @@ def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition:
     """Rows {condition, decoder, region, metrics…} for one condition over pre-rendered tiles.
 
     ``model``: an ``OnnxModel`` (decoder ``cnn``: demosaiced network input) or a ``ClassicalTiles``
-    (raw tile in; its rows add ``sigma_z_rms``, the RMS of (depth error / reported 1σ) over all
-    valid pixels of the region: 1 for an honest σ).
+    (raw tile in; its rows add ``sigma_z_rms`` and ``sigma_z_std``, the RMS and the standard deviation
+    of z = (depth error / reported 1σ) over all valid pixels of the region: 1 for an honest σ).
     """
     geometry = lens_geometry(bench.lens)
     m, t = bench.margin_px, bench.tile_px
@@ -261,7 +265,7 @@ def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition:
             aif_hwc, depth_m, depth_sigma_m = model(raw, geometry, item["row0"], item["col0"])
             valid &= np.isfinite(depth_m)
             z = (depth_m[valid] - item["range_m"][valid]) / depth_sigma_m[valid]
-            z_sums.setdefault(item["region"], []).append((float(np.sum(z ** 2)), int(z.size)))
+            z_sums.setdefault(item["region"], []).append((float(np.sum(z)), float(np.sum(z ** 2)), int(z.size)))
         else:
             seen = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, window_cfa(CFA_PATTERN, item["row0"], item["col0"]))
             aif, depth = model(network_input(seen, geometry, item["row0"], item["col0"]))
@@ -274,8 +278,10 @@ def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition:
         row = {"condition": condition, "decoder": getattr(model, "name", "cnn"), "region": region,
                **mean_metrics(region_rows)}
         if region in z_sums:
-            total, count = map(sum, zip(*z_sums[region]))
-            row["sigma_z_rms"] = float(np.sqrt(total / max(count, 1)))
+            z_sum, z2_sum, count = map(sum, zip(*z_sums[region]))
+            count = max(count, 1)
+            row["sigma_z_rms"] = float(np.sqrt(z2_sum / count))
+            row["sigma_z_std"] = float(np.sqrt(max(z2_sum / count - (z_sum / count) ** 2, 0.0)))
         rows.append(row)
     return rows
 
