@@ -22,8 +22,8 @@ def _run(args) -> int:
         print(f"classical decoder, camera {report['camera']['sha256'][:12]}…, "
               f"calibration {report['calibration_id'] or 'nominal PSFs'}, noise σ {stats['noise_sigma']:.4f}")
         print(f"blocks run {stats['blocks_run']}, skipped {stats['blocks_skipped']} (outside the image circle); "
-              f"candidate evaluations {stats['candidate_evaluations']} of {stats['candidate_evaluations_exhaustive']} "
-              f"(the coarse pass left out the rest); peak memory {report['peak_rss_mb']:.0f} MB")
+              f"candidate evaluations {stats['candidate_evaluations']} (coarse + fine) against "
+              f"{stats['candidate_evaluations_exhaustive']} exhaustive; peak memory {report['peak_rss_mb']:.0f} MB")
         print("stages: " + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in stats["timings_s"].items()))
         print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_sigma.npy, confidence.png, depth_mm.png, "
               f"points.ply ({report['ply_points']} points, with σ), report.json")

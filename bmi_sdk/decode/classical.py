@@ -8,9 +8,9 @@ Steps (each in its own module):
    processed in blocks of ``block_windows``² windows; each block is one zone (θ, φ of its centre)
    whose kernels come from ``kernels.ZoneKernels``. Blocks whose pixels all lie outside the image
    circle are skipped.
-3. ``evidence``: a coarse pass over every ``coarse_step``-th candidate picks the block's depth
-   range (best coarse candidate of any window ± one coarse step); the fine pass scores only the
-   candidates inside it. The report counts the candidate evaluations this leaves out.
+3. ``evidence``: a coarse pass over every ``coarse_step``-th candidate; the fine pass scores, for
+   the whole block, the union of every window's best coarse candidate ± one coarse step. The
+   report counts the candidate evaluations done (coarse + fine) against the exhaustive count.
 4. Refinement (parabola in 1/d) and the 1σ of 1/d. The Laplace σ_L of the likelihood alone is
    far too small (the Gaussian image prior is only a model: a window that mixes two depths, or
    a texture whose spectrum is not 1/f², fits one candidate "confidently" and wrongly), so the
@@ -166,17 +166,13 @@ class ClassicalDecoder:
             self.zones.models(zone, coarse)
             t2 = time.perf_counter()
             coarse_nll = self._block_nll(spectra, zone, coarse, noise ** 2, taper_energy)
-            best = coarse[np.argmin(coarse_nll, axis=1)]
-            lo = max(int(best.min()) - cfg.coarse_step, 0)
-            hi = min(int(best.max()) + cfg.coarse_step, n_cand - 1)
-            which = np.arange(lo, hi + 1)
+            best = np.unique(coarse[np.argmin(coarse_nll, axis=1)])
+            reach = np.arange(-cfg.coarse_step, cfg.coarse_step + 1)
+            which = np.unique(np.clip(best[:, None] + reach[None, :], 0, n_cand - 1))
             t3 = time.perf_counter()
             self.zones.models(zone, which)
             t4 = time.perf_counter()
             nll = self._block_nll(spectra, zone, which, noise ** 2, taper_energy)
-            if len(which) < 3:  # a refinement needs a bracket
-                which = np.arange(max(0, lo - 1), min(n_cand, lo + 2))
-                nll = self._block_nll(spectra, zone, which, noise ** 2, taper_energy)
             depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
             inv[br:br + nr, bc:bc + nc] = 1.0 / depth_b
             sig[br:br + nr, bc:bc + nc] = sigma_b
