@@ -19,7 +19,7 @@ def _loaded_after(statement: str, modules: tuple[str, ...]) -> dict:
 
 
 @pytest.mark.parametrize("statement, absent", [
-    ("import bmi_sdk.nn.metrics", ("torch", "kornia")),
+    ("import bmi_sdk.nn.metrics", ("torch",)),
     ("import bmi_sdk.nn.data", ("torch",)),
     ("import bmi_sdk.runtime", ("torch", "jax", "bmi_sdk.nn", "bmi_sdk.bench", "bmi_sdk.cli")),
 ])

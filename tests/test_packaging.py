@@ -76,3 +76,27 @@ def test_installed_wheel_runs_bmi_lens(wheel):
     lens = subprocess.run([str(venv / "bin" / "bmi"), "lens"], cwd=run, env=env, capture_output=True, text=True)
     assert lens.returncode == 0, lens.stderr
     assert "lens bmi_monocentric" in lens.stdout and "f_number                          1.78858" in lens.stdout
+
+
+NOT_IMPORTED = {"jaxlib": "jax's compiled backend: jax imports it; declared to pin it to jax's version"}
+"""Declared dependencies the code does not import itself, each with the reason it is declared."""
+
+
+def test_every_declared_dependency_is_imported():
+    """A dependency nothing imports costs every install and misleads readers (kornia was one)."""
+    import importlib.metadata
+    import re
+    import tomllib
+
+    import grimp
+
+    def norm(name):
+        return re.sub(r"[-_.]+", "-", name).lower()
+
+    graph = grimp.build_graph(*PACKAGES, include_external_packages=True, cache_dir=None)
+    imported = {m.split(".")[0] for m in graph.modules if not m.startswith(PACKAGES)}
+    module_dists = importlib.metadata.packages_distributions()
+    used = {norm(d) for m in imported for d in module_dists.get(m, ())}
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    names = {norm(re.split(r"[<>=!~\[ ;]", d)[0]) for d in declared}
+    assert sorted(names - used - set(NOT_IMPORTED)) == []
