@@ -20,6 +20,7 @@ demo: $(STAMP)
 	$(VENV)/bin/bmi demo
 
 test: $(STAMP)
+	$(VENV)/bin/lint-imports --no-cache  # the import contracts in pyproject.toml (docs/architecture.md)
 	$(PY) -m pytest
 
 clean:

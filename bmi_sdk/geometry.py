@@ -59,6 +59,17 @@ class SensorGeometry:
         if len(self.radial_table_mm) and np.any(np.diff(self.radial_table_mm) <= 0):
             raise ValueError("chief-ray table must be strictly increasing (the lens folds the field)")
 
+    def __repr__(self) -> str:
+        """The scalar fields, and the chief-ray table as its length and range: its ~240 floats
+        would otherwise fill every signature that has a geometry default (``help(FirmwareDevice)``)."""
+        scalars = ", ".join(f"{f}={getattr(self, f)!r}" for f in ("width_px", "height_px", "pitch_um", "radius_mm",
+                                                                    "cx_px", "cy_px", "max_field_deg"))
+        if not self.field_table_deg:
+            return f"SensorGeometry({scalars})"
+        table = (f"<{len(self.field_table_deg)} points, {self.field_table_deg[0] + 0.0:g}–{self.field_table_deg[-1]:g}° → "
+                 f"{self.radial_table_mm[0] + 0.0:g}–{self.radial_table_mm[-1]:g} mm>")
+        return f"SensorGeometry({scalars}, chief_ray_table={table})"
+
     @classmethod
     def for_lens(cls, lens, max_field_deg: float = 60.0, **kwargs) -> "SensorGeometry":
         """The sensor behind ``lens``: its image surface's radius and the real chief-ray table.

@@ -10,18 +10,18 @@
 
 The perturbation model itself lives in ``bmi_sdk.optics.perturb`` (re-exported
 here as ``Perturbation``); docs/calibration.md describes the file format.
+
+Importing the package changes no process-wide state: jax switches to float64
+only inside the fit (``model.float64``), and jaxopt's "no longer maintained"
+warning is silenced only around its import (``model._solver_module``).
 """
 
-import warnings as _warnings
+from bmi_sdk.optics.perturb import PARAMETERS, UNITS, Perturbation
 
-_warnings.filterwarnings("ignore", message="JAXopt is no longer maintained")
-
-from bmi_sdk.optics.perturb import PARAMETERS, UNITS, Perturbation  # noqa: E402
-
-from .extract import Extraction, Spot, extract_spots  # noqa: E402
-from .fit import FitResult, fit_calibration  # noqa: E402
-from .io import SCHEMA, Calibration, load_calibration, write_calibration  # noqa: E402
-from .targets import (CalibrationError, CapturePlan, Captures, PointSource, PointSourceScene, Target,  # noqa: E402
+from .extract import Extraction, Spot, extract_spots
+from .fit import FitResult, fit_calibration
+from .io import SCHEMA, Calibration, load_calibration, write_calibration
+from .targets import (CalibrationError, CapturePlan, Captures, PointSource, PointSourceScene, Target,
                       load_captures, simulate_captures, standard_target)
 
 __all__ = [

@@ -29,7 +29,7 @@ from bmi_sdk.optics.perturb import (PAPER_RANGES, PARAMETERS, SIZES, VECTOR_NAME
                                     trace_spots)
 
 from .extract import Extraction
-from .model import ENGINE, UNITS, linearisation_arrays, make_solver, spot_patches
+from .model import ENGINE, UNITS, in_float64, linearisation_arrays, make_solver, spot_patches
 from .targets import CHANNEL_NM, CalibrationError
 
 MIN_FIT_SPOTS = 4
@@ -260,10 +260,13 @@ def _degeneracies(corr, sigma, free):
     return found
 
 
+@in_float64
 def fit_calibration(extraction: Extraction, free: dict | None = None, method: str = "lm", max_outer: int = 4,
                     inner_maxiter: int = 10, lens_name: str = "bmi_monocentric", geometry=BMI_SENSOR,
                     initial: Perturbation | None = None, channels=None, spread_px: float | None = None) -> FitResult:
-    """Fit the hardware errors to ``extraction``'s spots (held-out sources kept for the check)."""
+    """Fit the hardware errors to ``extraction``'s spots (held-out sources kept for the check).
+
+    jax runs in float64 for the duration of the call only (``model.float64``)."""
     t_start = time.perf_counter()
     fit_spots = [s for s in extraction.spots if not s.source.held_out]
     held = [s for s in extraction.spots if s.source.held_out]

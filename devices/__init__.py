@@ -28,6 +28,7 @@ from pathlib import Path
 from urllib.parse import parse_qs, urlsplit
 
 from .camera import STRATEGIES, StreamCamera
+from .camera_protocol import Camera
 from .dng import load_raw, save_dng
 from .errors import (CameraError, ConfigurationError, DeviceBusyError, DeviceNotFoundError, DeviceRemovedError,
                      GrabTimeoutError, IncompleteFrameError, ProtocolError, RawFileError)
@@ -35,6 +36,7 @@ from .frame import FrameStatus, RawFrame, Roi
 from .replay import ReplayCamera
 
 __all__ = [
+    "Camera",
     "open_camera", "list_devices", "DeviceInfo", "StreamCamera", "ReplayCamera", "RawFrame", "FrameStatus", "Roi",
     "load_raw", "save_dng", "STRATEGIES", "CameraError", "ConfigurationError", "DeviceBusyError",
     "DeviceNotFoundError", "DeviceRemovedError", "GrabTimeoutError", "IncompleteFrameError", "ProtocolError",

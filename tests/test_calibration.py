@@ -11,6 +11,7 @@ import pytest
 from bmi_sdk.optics.perturb import VECTOR_NAMES, Perturbation
 from calibration import (CalibrationError, CapturePlan, PointSource, Target, extract_spots, fit_calibration,
                          load_calibration, load_captures, simulate_captures, write_calibration)
+from calibration.model import in_float64
 
 DIAG = math.degrees(math.atan2(2250, 3000))
 PLAN = CapturePlan(kernel_px=21, roi_margin_px=10)
@@ -42,6 +43,17 @@ def test_single_injected_term_is_recovered_alone(single):
     assert held["chi2_reduced"] < 1.5 < 10 < held["chi2_reduced_nominal"]
 
 
+def test_fit_runs_in_float64_and_leaves_jax_in_float32(single):
+    import jax
+
+    from calibration.model import linearisation_arrays
+
+    assert single[3].patches["model"].dtype == np.float64  # the jax model's prediction, computed in the fit
+    assert jax.config.jax_enable_x64 is False
+    with pytest.raises(RuntimeError, match="float64"):
+        linearisation_arrays([], np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), [1])
+
+
 def test_near_degenerate_pairs_are_reported(single):
     pairs = {frozenset(d["parameters"]) for d in single[3].degeneracies if len(d["parameters"]) == 2}
     # shift against tilt: a tilt about the lens centre is almost a rotation of the view
@@ -58,6 +70,7 @@ def test_fit_started_far_from_the_truth_converges(single):
     assert np.all(np.abs(far.vector - near.vector) < near.sigma)
 
 
+@in_float64  # the jax solver is called directly below, as the fit calls it
 def test_perfect_lens_fits_to_zero_and_scipy_agrees():
     captures = simulate_captures(TARGET, PLAN, Perturbation(), seed=5)
     extraction = extract_spots(captures)
@@ -181,6 +194,7 @@ def test_calibration_file_round_trip_and_validation(single, tmp_path):
     again = load_calibration(tmp_path / "calib.json")
     assert again.id == calib.id and again.perturbation == result.estimate
     _runtime_accepts_only_a_matching_frame(tmp_path / "calib.json", calib.id, doc)
+    _validation_changes_no_process_state(tmp_path / "calib.json", doc)
     tensor = again.tensor()
     assert tensor.data.shape == (3, 2, 1, 21, 21) and np.allclose(tensor.data.sum(axis=(-1, -2)), 1.0, atol=1e-5)
     doc["parameters"]["decenter_um"]["value"] = [0.0, 0.0]
@@ -209,6 +223,26 @@ def _runtime_accepts_only_a_matching_frame(path, calibration_id, doc):
         calibration_for(SimpleNamespace(lens=frame.lens, device={"serial": "BMI-OTHER"}), path)
     with pytest.raises(ValueError, match="taken through 'fisheye'"):
         calibration_for(SimpleNamespace(lens={"name": "fisheye"}, device=frame.device), path)
+
+
+def _validation_changes_no_process_state(path, doc):
+    """A fresh process: importing ``calibration`` and validating a file in the runtime leave jax's
+    precision and the warning filters as they were."""
+    script = f"""
+import json, sys, warnings
+from types import SimpleNamespace
+import jax
+before = (jax.config.jax_enable_x64, list(warnings.filters))
+import calibration
+after_import = (jax.config.jax_enable_x64, list(warnings.filters))
+from bmi_sdk.runtime.job import calibration_for
+frame = SimpleNamespace(lens={{"name": {doc["lens"]["name"]!r}}}, device={{"serial": {doc["device"]["serial"]!r}}})
+calibration_for(frame, {str(path)!r})
+after_validation = (jax.config.jax_enable_x64, list(warnings.filters))
+print(json.dumps([before == after_import, before == after_validation, jax.config.jax_enable_x64]))
+"""
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    assert json.loads(out.stdout.splitlines()[-1]) == [True, True, False]
 
 
 def test_cli_refuses_ambiguous_input(tmp_path):

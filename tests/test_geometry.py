@@ -68,3 +68,19 @@ def test_lens_mapping_and_serialisation():
     assert plane.field_angles(*plane.pixel_of_field(45.0, 10.0))[0] == pytest.approx(45.0, abs=1e-6)
     with pytest.raises(ValueError, match="radius_mm must be > 0"):
         SensorGeometry(radius_mm=0.0)
+
+
+def test_repr_summarises_the_chief_ray_table():
+    """The table's ~640 floats made ``help(FirmwareDevice)`` (a geometry default) unreadable."""
+    import pydoc
+    import re
+
+    from firmware_sim import FirmwareDevice
+
+    text = repr(BMI_SENSOR)
+    assert len(text) < 250 and "radius_mm=7.199" in text
+    assert f"<{len(BMI_SENSOR.field_table_deg)} points, 0–" in text
+    assert repr(SensorGeometry()) == ("SensorGeometry(width_px=6000, height_px=4500, pitch_um=2.0, radius_mm=7.199, "
+                                      "cx_px=None, cy_px=None, max_field_deg=60.0)")
+    doc = pydoc.render_doc(FirmwareDevice, renderer=pydoc.plaintext)
+    assert len(re.findall(r"\d\.\d", doc)) < 50

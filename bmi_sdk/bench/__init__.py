@@ -11,12 +11,12 @@ from __future__ import annotations
 import math
 import platform
 import re
-import resource
 import sys
 import time
 from pathlib import Path
 
 from ..io_atomic import write_bytes
+from ..resources import cpu_seconds, peak_rss_mb  # noqa: F401  (the targets import them from here)
 
 DOCS = Path(__file__).resolve().parents[2] / "docs" / "benchmarks.md"
 
@@ -27,18 +27,6 @@ def machine_line() -> str:
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
     return (f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
             f"load average {load} when written (wall times on a shared machine scale with it; CPU times do not)")
-
-
-def cpu_seconds() -> float:
-    """CPU time of this process plus its finished child processes (workers of a pool)."""
-    me = resource.getrusage(resource.RUSAGE_SELF)
-    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far (Linux reports KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def markdown_table(header: list[str], rows: list[list]) -> str:

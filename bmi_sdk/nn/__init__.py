@@ -5,20 +5,46 @@ Public API:
 * ``DualHeadMimoUNet``, ``ModelConfig``, ``PRESETS``, ``preset_config`` — the network (``model``);
 * ``total_loss`` and its terms ``content_loss``, ``fft_loss``, ``silog_loss`` (``losses``);
 * ``CacheSpec``, ``build_cache``, ``PairCache``, ``simulate_sensor`` — training pairs (``data``);
-* ``TrainConfig``, ``train``, ``load_weights`` (``train``); ``export_with_manifest`` (``export``);
+* ``TrainConfig``, ``load_weights`` and the training loop ``train.train`` (``train``);
+  ``export_with_manifest`` (``export``);
 * ``depth_metrics``, ``image_metrics`` (``metrics``); ``Benchmark``, ``run_benchmark`` (``evaluate``).
 
-torch is imported by the modules that need it; ``metrics`` and ``data`` are numpy only.
+The names resolve lazily (PEP 562): ``bmi_sdk.nn.X`` imports only the
+submodule that defines X. So ``import bmi_sdk.nn.metrics`` (numpy only) does
+not load torch (4 s); ``model``, ``losses``, ``train`` and ``export`` do.
+``bmi_sdk.nn.train`` is therefore always the submodule (importing a submodule
+binds its name on the package); the function is ``bmi_sdk.nn.train.train``.
 """
 
-from bmi_sdk.nn.data import CacheSpec, PairCache, build_cache, simulate_sensor
-from bmi_sdk.nn.evaluate import Benchmark, run_benchmark
-from bmi_sdk.nn.export import export_with_manifest
-from bmi_sdk.nn.losses import content_loss, fft_loss, silog_loss, total_loss
-from bmi_sdk.nn.metrics import depth_metrics, image_metrics
-from bmi_sdk.nn.model import PRESETS, DualHeadMimoUNet, ModelConfig, preset_config
-from bmi_sdk.nn.train import TrainConfig, load_weights, train
+from __future__ import annotations
 
-__all__ = ["DualHeadMimoUNet", "ModelConfig", "PRESETS", "preset_config", "total_loss", "content_loss", "fft_loss",
-           "silog_loss", "CacheSpec", "build_cache", "PairCache", "simulate_sensor", "TrainConfig", "train",
-           "load_weights", "export_with_manifest", "depth_metrics", "image_metrics", "Benchmark", "run_benchmark"]
+import importlib
+
+_HOME = {
+    "CacheSpec": "data", "PairCache": "data", "build_cache": "data", "simulate_sensor": "data",
+    "Benchmark": "evaluate", "run_benchmark": "evaluate",
+    "export_with_manifest": "export",
+    "content_loss": "losses", "fft_loss": "losses", "silog_loss": "losses", "total_loss": "losses",
+    "depth_metrics": "metrics", "image_metrics": "metrics",
+    "PRESETS": "model", "DualHeadMimoUNet": "model", "ModelConfig": "model", "preset_config": "model",
+    "TrainConfig": "train", "load_weights": "train",
+}
+"""Public name → the submodule that defines it."""
+
+__all__ = list(_HOME)
+
+
+def __getattr__(name: str):
+    """A public name (from its submodule) or a submodule, imported on first use."""
+    if name in _HOME:
+        value = getattr(importlib.import_module(f"{__name__}.{_HOME[name]}"), name)
+    elif name in _HOME.values():
+        value = importlib.import_module(f"{__name__}.{name}")
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value  # resolved once
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_HOME))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import time
 
-from ..bench import peak_rss_mb
+from ..resources import peak_rss_mb
 from .model import Model, select_model
 from .outputs import write_outputs, write_report
 from .pipeline import InferenceResult, frame_lens_name, infer_frame
