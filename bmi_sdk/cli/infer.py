@@ -4,12 +4,26 @@ from __future__ import annotations
 
 
 def _run(args) -> int:
-    from bmi_sdk.runtime import run_job
+    import sys
+    import warnings
 
-    result, report = run_job(args.raw, args.out, model_path=args.model, calibration_id=args.calibration_id,
-                             calibration_path=args.calibration,
-                             tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
-                             ply_step_px=args.ply_step, progress=not args.quiet)
+    from bmi_sdk.runtime import run_job
+    from bmi_sdk.runtime.quality import FrameQualityWarning
+
+    def show(message, category, *rest, **kw):  # frame-quality findings as one line on stderr, not a source line
+        if issubclass(category, FrameQualityWarning):
+            print(f"bmi infer: warning: {message}", file=sys.stderr)
+        else:
+            original(message, category, *rest, **kw)
+    original, warnings.showwarning = warnings.showwarning, show
+    try:
+        result, report = run_job(args.raw, args.out, model_path=args.model, calibration_id=args.calibration_id,
+                                 calibration_path=args.calibration,
+                                 tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
+                                 ply_step_px=args.ply_step, progress=not args.quiet, overwrite=args.overwrite,
+                                 allow_test_pattern=args.allow_test_pattern)
+    finally:
+        warnings.showwarning = original
     if report["calibration_note"]:
         print(f"note: {report['calibration_note']}")
     t = report["stage_timings_s"]
@@ -40,4 +54,9 @@ def register(subparsers) -> None:
     p.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: all cores)")
     p.add_argument("--ply-step", type=int, default=1, help="one point per N×N pixels in points.ply (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier run's results in --out (they are replaced only once all new files "
+                        "are written)")
+    p.add_argument("--allow-test-pattern", action="store_true",
+                   help="decode a frame flagged as the camera's test pattern (refused by default)")
     p.set_defaults(handler=_run)

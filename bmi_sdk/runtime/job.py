@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 
 from ..bench import peak_rss_mb
 from .model import Model, select_model
+from .output_set import OutputSet
 from .outputs import write_outputs, write_report
 from .pipeline import InferenceResult, frame_lens_name, infer_frame
+from .quality import FrameQualityWarning, quality_gate
 
 
 def load_model_for(frame, model_path: str | os.PathLike | None = None, calibration_id: str | None = None,
@@ -53,16 +56,35 @@ def calibration_for(frame, calibration_path: str | os.PathLike, calibration_id: 
             "corrected_tensor_sha256": calib.doc["corrected_tensor"]["npz_sha256"]}
 
 
-def run_job(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None = None,
-            model_path: str | os.PathLike | None = None, calibration_id: str | None = None,
-            calibration_path: str | os.PathLike | None = None, tile_px: int = 512,
-            threads: int | None = None, overlap_px: int | None = None, ply_step_px: int = 1,
-            progress: bool = False) -> tuple[InferenceResult, dict]:
+def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = False,
+            **options) -> tuple[InferenceResult, dict]:
     """Read (if a path), infer, write outputs and ``report.json`` into ``out_dir``; return (result, report).
+
+    ``options`` are ``_job_into``'s. The outputs are one set (``OutputSet``):
+    ``out_dir`` is checked before any work (writable; no earlier results
+    unless ``overwrite``) and changes only once every file is written.
+    """
+    with OutputSet(out_dir, overwrite=overwrite) as output_set:
+        result, report = _job_into(frame_or_path, output_set.staging, **options)
+        report["files"] = {name: os.path.join(out_dir, name) for name in report["files"]}
+        write_report(output_set.staging, report)  # with the paths the files will have
+        output_set.commit()
+    return result, report
+
+
+def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None = None,
+              model_path: str | os.PathLike | None = None, calibration_id: str | None = None,
+              calibration_path: str | os.PathLike | None = None, tile_px: int = 512,
+              threads: int | None = None, overlap_px: int | None = None, ply_step_px: int = 1,
+              progress: bool = False, allow_test_pattern: bool = False) -> tuple[InferenceResult, dict]:
+    """The job, written into ``out_dir`` (``run_job``'s staging folder).
 
     ``calibration_path`` (a ``bmi calibrate`` file) selects the model trained
     on that calibration's corrected PSF tensor, after ``calibration_for``'s
     checks; without such a model the nominal one runs and the report says so.
+    The frame passes ``quality_gate`` first: its findings go to
+    ``warnings.warn`` (``FrameQualityWarning``) and the report's
+    ``frame_quality``; a test pattern is refused unless ``allow_test_pattern``.
     """
     from devices import load_raw
 
@@ -70,6 +92,9 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None = 
     t0 = time.perf_counter()
     frame = load_raw(frame_or_path) if isinstance(frame_or_path, (str, os.PathLike)) else frame_or_path
     timings["read_raw_s"] = time.perf_counter() - t0
+    quality = quality_gate(frame, allow_test_pattern)
+    for message in quality.warnings:
+        warnings.warn(message, FrameQualityWarning, stacklevel=3)
     calibration = None
     if calibration_path is not None:
         calibration = calibration_for(frame, calibration_path, calibration_id)
@@ -96,6 +121,7 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None = 
         "calibration_file": calibration,
         "frame": {"frame_id": frame.frame_id, "shape": list(frame.data.shape), "roi": vars(frame.roi),
                   "lens": frame.lens, "device": frame.device, "source": frame.source},
+        "frame_quality": quality.to_dict(),
         **result.summary(),
         "stage_timings_s": timings,
         "peak_rss_mb": peak_rss_mb(),
