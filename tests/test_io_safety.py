@@ -159,3 +159,36 @@ def test_frames_from_two_cameras_are_not_one_calibration():
         device_from_frames("captures.json", {}, [a, b])
     assert device_from_frames("captures.json", {"lens": {"name": "x"}}, [a])["serial"] == a.device["serial"]
     np.testing.assert_equal(a.device["serial"] != b.device["serial"], True)
+
+
+def _point_captures(perturbation, peak_fill=0.5, seed=4):
+    from calibration.targets import CapturePlan, PointSource, Target, simulate_captures
+
+    target = Target(tuple(PointSource(t, a, 4.0, peak_fill=peak_fill) for t, a in ((0.0, 0.0), (30.0, 0.0),
+                                                                                 (30.0, 90.0))))
+    return simulate_captures(target, CapturePlan(kernel_px=21, roi_margin_px=10), perturbation, seed=seed)
+
+
+@pytest.mark.parametrize("case, cause", [
+    ("decenter_500um", "landed outside the ROIs"),
+    ("swapped", "light and dark frames are swapped"),
+    ("dim", "raise the exposure"),
+])
+def test_calibration_names_the_real_cause_when_no_spot_is_seen(case, cause):
+    from bmi_sdk.optics.perturb import Perturbation
+    from calibration.extract import extract_spots
+    from calibration.targets import CalibrationError
+
+    if case == "decenter_500um":
+        captures = _point_captures(Perturbation(decenter_um=(500.0, 0.0)))
+    elif case == "dim":
+        captures = _point_captures(Perturbation(), peak_fill=0.008)  # lit, but no pixel 20 DN above dark
+    else:
+        captures = _point_captures(Perturbation())
+        swap = {"light": "dark", "dark": "light"}
+        captures.frames = [[(swap[kind], e, f) for kind, e, f in spot] for spot in captures.frames]
+    with pytest.raises(CalibrationError) as info:
+        extract_spots(captures)
+    assert cause in str(info.value)
+    others = {"landed outside the ROIs", "light and dark frames are swapped", "raise the exposure"} - {cause}
+    assert not any(o in str(info.value) for o in others)
