@@ -139,3 +139,14 @@ def test_a_black_frame_is_decoded_with_a_warning_on_stderr_and_in_the_report(mod
     report = json.loads((tmp_path / "o" / "report.json").read_text())
     assert report["frame_quality"]["signal_fraction"] < MIN_SIGNAL_FRACTION
     assert any("black" in w for w in report["frame_quality"]["warnings"])
+
+
+def test_an_incomplete_frame_is_one_line_not_a_traceback(model, tmp_path, capsys):
+    from devices import FrameStatus
+
+    frame = _capture("chart")
+    frame.status = FrameStatus.INCOMPLETE
+    frame.save_dng(tmp_path / "cut.dng")
+    code = main(["infer", str(tmp_path / "cut.dng"), "--out", str(tmp_path / "o"), "--model", str(model)])
+    err = capsys.readouterr().err
+    assert code == 1 and "incomplete" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1

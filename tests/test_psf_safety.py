@@ -130,3 +130,10 @@ def test_a_sound_shard_from_before_hashes_is_kept_and_given_one(tmp_path):
     np.testing.assert_array_equal(again.data[:, 1], good.data[:, 1])
     with np.load(path) as z:
         assert "sha256" in z.files
+
+
+def test_tensor_metadata_of_the_wrong_json_shape_is_a_clear_error(tmp_path):
+    (tmp_path / "t.npz").write_bytes(b"")
+    (tmp_path / "t.json").write_text("[]")
+    with pytest.raises(ValueError, match="holds a JSON list, expected an object"):
+        PsfTensor.load(tmp_path / "t.npz")

@@ -334,7 +334,12 @@ class PsfTensor:
         meta_path = path.with_suffix(".json")
         if not meta_path.exists():
             raise FileNotFoundError(f"{meta_path}: PSF tensor metadata missing")
-        meta = json.loads(meta_path.read_text())
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{meta_path}: not JSON ({exc})") from None
+        if not isinstance(meta, dict):
+            raise ValueError(f"{meta_path}: holds a JSON {type(meta).__name__}, expected an object")
         if meta.get("schema") != SCHEMA:
             raise ValueError(f"{meta_path}: schema {meta.get('schema')!r}, expected {SCHEMA!r}")
         digest = hashlib.sha256(path.read_bytes()).hexdigest()
