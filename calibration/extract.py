@@ -34,6 +34,7 @@ from bmi_sdk.sensor import cfa_channel_map, relative_illumination
 from .targets import CalibrationError, Captures, PointSource, design_landing_px
 
 MIN_PEAK_SNR = 10.0
+SPOT_BOX_PX = 7  # side of the box summed to tell a dim spot from none (a spot's core; docs/reliability.md)
 
 
 @dataclass
@@ -71,6 +72,32 @@ class Extraction:
 def _box3(a):
     p = np.pad(a, 1)
     return sum(p[i:i + a.shape[0], j:j + a.shape[1]] for i in range(3) for j in range(3))
+
+
+def _why_no_signal(stats: dict, read_var: float) -> str:
+    """Why the lamp-on frames show (almost) no pixel clearly above the dark ones.
+
+    Judged from the best ``SPOT_BOX_PX``-square sum of the signal in each ROI,
+    in units of its read noise: a spot too dim for bright pixels still stands
+    out there; a spot that missed its ROI leaves noise (a few σ at most), and
+    lamp-on frames darker than the dark frames mean swapped kinds.
+    """
+    from scipy.ndimage import uniform_filter
+
+    best, worst = -np.inf, np.inf
+    for _, _, signal, n_rep, n_dark in stats.values():
+        sigma_box = np.sqrt(SPOT_BOX_PX**2 * read_var * (1.0 / n_rep + 1.0 / n_dark))
+        box = uniform_filter(signal, SPOT_BOX_PX, mode="constant") * SPOT_BOX_PX**2 / sigma_box
+        best, worst = max(best, float(box.max())), min(worst, float(box.min()))
+    if worst < -MIN_PEAK_SNR and best < MIN_PEAK_SNR:
+        return ("the lamp-on frames are darker than the dark frames (down to "
+                f"{worst:.0f} σ): light and dark frames are swapped; check the kinds in captures.json")
+    if best < MIN_PEAK_SNR:
+        return (f"no light from any source reached its ROI (at most {best:.1f} σ): the spots landed outside the "
+                "ROIs planned around the design positions, e.g. a lens decentered or tilted far beyond tolerance "
+                "(check the mounting, or raise roi_margin_px), or the lamps were off")
+    return ("too few bright pixels to measure the noise (photon transfer), though light reached the ROIs "
+            f"(up to {best:.0f} σ): raise the exposure")
 
 
 def extract_spots(captures: Captures, geometry=BMI_SENSOR) -> Extraction:
@@ -117,7 +144,7 @@ def extract_spots(captures: Captures, geometry=BMI_SENSOR) -> Extraction:
     read_var = float(np.mean(read_vars))
     x, y = np.concatenate(xs), np.concatenate(ys) - read_var
     if len(x) < 10:
-        raise CalibrationError("too few bright pixels to measure the noise (photon transfer): raise the exposure")
+        raise CalibrationError(_why_no_signal(stats, read_var))
     slope = float(np.sum(x * y) / np.sum(x * x))
     spots = []
     simultaneous = not plan.one_lamp_at_a_time

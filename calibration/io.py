@@ -124,14 +124,19 @@ def load_calibration(path) -> Calibration:
         doc = json.loads(path.read_text())
     except FileNotFoundError:
         raise CalibrationError(f"{path}: no such calibration file") from None
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise CalibrationError(f"{path}: not JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise CalibrationError(f"{path}: holds a JSON {type(doc).__name__}, expected an object")
     if doc.get("schema") != SCHEMA:
         raise CalibrationError(f"{path}: schema {doc.get('schema')!r}, expected {SCHEMA!r}")
     for key in ("calibration_id", "device", "parameters", "captures", "nominal_tensor", "corrected_tensor",
                 "stray_light_spread_px"):
         if key not in doc:
             raise CalibrationError(f"{path}: missing {key!r}")
+    for key in ("device", "parameters", "corrected_tensor"):
+        if not isinstance(doc[key], dict):
+            raise CalibrationError(f"{path}: {key!r} is a JSON {type(doc[key]).__name__}, expected an object")
     params = doc["parameters"]
     for name in PARAMETERS:
         entry = params.get(name)

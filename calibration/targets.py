@@ -278,18 +278,55 @@ def load_captures(folder) -> Captures:
     if not path.exists():
         raise CalibrationError(f"{folder}: no captures.json (write captures with `bmi calibrate --simulate ... "
                                "--save-captures DIR` or follow CapturePlan.steps with the real camera)")
-    meta = json.loads(path.read_text())
+    try:
+        meta = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise CalibrationError(f"{path}: not JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise CalibrationError(f"{path}: holds a JSON {type(meta).__name__}, expected an object")
     if meta.get("schema") != CAPTURES_SCHEMA:
         raise CalibrationError(f"{path}: schema {meta.get('schema')!r}, expected {CAPTURES_SCHEMA!r}")
+    for key, kind in (("target", dict), ("plan", dict), ("device", dict), ("frames", list)):
+        if not isinstance(meta.get(key), kind):
+            raise CalibrationError(f"{path}: {key!r} must be a JSON {'object' if kind is dict else 'array'}")
     target, plan = Target.from_dict(meta["target"]), CapturePlan.from_dict(meta["plan"])
     frames = [[] for _ in target.sources]
     for item in meta["frames"]:
+        if not isinstance(item, dict) or not {"file", "pixel_sha256", "source", "kind", "exposure_us"} <= set(item):
+            raise CalibrationError(f"{path}: each entry of 'frames' is an object with file, pixel_sha256, "
+                                   f"source, kind, exposure_us; got {item!r}"[:300])
         frame = load_raw(folder / item["file"])
         if pixel_sha256(frame.data) != item["pixel_sha256"]:
             raise CalibrationError(f"{folder / item['file']}: pixels do not match captures.json (file changed)")
         frames[item["source"]].append((item["kind"], int(item["exposure_us"]), frame))
+    device = device_from_frames(path, meta["device"], [f for spot in frames for _, _, f in spot])
     injected = None if meta.get("injected") is None else Perturbation.from_dict(meta["injected"])
-    return Captures(target, plan, frames, meta["device"], injected, folder)
+    return Captures(target, plan, frames, device, injected, folder)
+
+
+def device_from_frames(listing_path, listed: dict, frames) -> dict:
+    """The camera the captures come from, as the frames themselves record it (their DNG sidecars).
+
+    ``captures.json`` is a listing a person may have copied or edited; the
+    frames carry the serial the camera stamped. Frames from more than one
+    camera, or a listing whose serial or model contradicts the frames, are
+    refused: a calibration is only valid for the camera that took it.
+    """
+    serials = sorted({str(f.device.get("serial")) for f in frames})
+    if len(serials) > 1:
+        raise CalibrationError(f"{listing_path}: the frames come from several cameras ({', '.join(serials)}); "
+                               "a calibration is for one camera")
+    device = dict(listed)
+    if frames:
+        for key in ("model", "serial", "firmware_version"):
+            from_frame = frames[0].device.get(key)
+            if key in ("model", "serial") and listed.get(key) is not None and from_frame is not None \
+                    and listed[key] != from_frame:
+                raise CalibrationError(f"{listing_path} names {key} {listed[key]!r}, but the frames were taken "
+                                       f"by {from_frame!r}")
+            if from_frame is not None:
+                device[key] = from_frame
+    return device
 
 
 def simulate_captures(target: Target, plan: CapturePlan, perturbation: Perturbation, seed: int,

@@ -41,13 +41,37 @@ def pixel_sha256(data: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(data, dtype="<u2").tobytes()).hexdigest()
 
 
-def save_dng(frame: RawFrame, path) -> None:
-    """Write ``frame`` to ``path`` (a .dng) and its sidecar, atomically."""
+def _is_sidecar_of(side: Path, dng: Path) -> bool:
+    """Whether ``side`` is a BMI raw sidecar written for a DNG named like ``dng`` (so replacing it loses nothing
+    that the DNG beside it does not carry)."""
+    try:
+        doc = json.loads(side.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(doc, dict) and doc.get("schema") == SIDECAR_SCHEMA and doc.get("dng") == dng.name
+
+
+def save_dng(frame: RawFrame, path, overwrite: bool = True) -> None:
+    """Write ``frame`` to ``path`` (a .dng) and its sidecar, atomically.
+
+    The sidecar ``<name>.json`` never replaces a JSON file that is not the
+    sidecar of ``<name>.dng`` (e.g. a calibration file of the same name):
+    ``FileExistsError``, nothing written. With ``overwrite=False`` an existing
+    DNG or sidecar is refused too (``bmi acquire`` never replaces a capture).
+    """
     import tifffile
 
     path = Path(path)
     if path.suffix.lower() != ".dng":
         raise ValueError(f"DNG files end in .dng, got {path}")
+    side = sidecar_path(path)
+    if not overwrite:
+        for existing in (path, side):
+            if existing.exists():
+                raise FileExistsError(f"{existing} exists; refusing to replace it")
+    if side.exists() and not _is_sidecar_of(side, path):
+        raise FileExistsError(f"{side} exists and is not the sidecar of {path.name}; refusing to replace it "
+                              "(choose another name for the DNG)")
     data = np.ascontiguousarray(frame.data, dtype=np.uint16)
     if data.ndim != 2:
         raise ValueError(f"a raw frame is H×W, got shape {data.shape}")
@@ -74,7 +98,7 @@ def save_dng(frame: RawFrame, path) -> None:
     with atomic_path(path) as tmp:
         tifffile.imwrite(tmp, data, photometric=32803, subfiletype=0, compression=None,
                          metadata=None, extratags=extratags)
-    write_json(sidecar_path(path), frame.metadata() | {"dng": path.name, "pixel_sha256": pixel_sha256(data)})
+    write_json(side, frame.metadata() | {"dng": path.name, "pixel_sha256": pixel_sha256(data)})
 
 
 def _cfa_string(raw) -> str:
@@ -83,6 +107,49 @@ def _cfa_string(raw) -> str:
     if pattern.shape != (2, 2):
         raise RawFileError(f"not a 2×2 Bayer raw file (CFA pattern shape {pattern.shape})")
     return "".join(desc[i] for i in pattern.reshape(-1))  # LibRaw names the second green 'G' too
+
+
+_SIDECAR_FIELDS = ("frame_id", "status", "cfa", "black_level_dn", "white_level_dn", "exposure_us", "analog_gain",
+                   "temperature_c", "device_timestamp_ns", "readout_timestamp_ns", "host_timestamp_ns", "roi",
+                   "geometry", "lens", "device", "skipped_frames", "test_pattern", "source", "calibration_id")
+
+
+def _read_sidecar(side: Path) -> dict:
+    """The sidecar as a JSON object; ``RawFileError`` naming the problem for bad JSON or another shape."""
+    try:
+        meta = json.loads(side.read_text())
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise RawFileError(f"sidecar {side} is not valid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise RawFileError(f"sidecar {side} holds a JSON {type(meta).__name__}, expected an object")
+    return meta
+
+
+def _check_sidecar_fields(path: Path, meta: dict, shape: tuple) -> None:
+    """Refuse a sidecar whose fields are missing, of the wrong shape, or whose ROI does not lie on the sensor
+    and match the pixels: a wrong ROI would give every pixel the wrong field angle."""
+    missing = [k for k in _SIDECAR_FIELDS if k not in meta]
+    if missing:
+        raise RawFileError(f"{path}: sidecar lacks {', '.join(missing)}")
+    for key in ("roi", "geometry", "lens", "device"):
+        if not isinstance(meta[key], dict):
+            raise RawFileError(f"{path}: sidecar field {key!r} is a JSON {type(meta[key]).__name__}, "
+                               "expected an object")
+    try:
+        roi = Roi(**meta["roi"])
+        geometry = SensorGeometry.from_dict(meta["geometry"])
+    except (TypeError, KeyError, ValueError) as exc:
+        raise RawFileError(f"{path}: sidecar roi/geometry malformed ({exc})") from None
+    values = (roi.x_px, roi.y_px, roi.width_px, roi.height_px)
+    if not all(isinstance(v, int) and not isinstance(v, bool) for v in values):
+        raise RawFileError(f"{path}: sidecar ROI values must be integers (px), got {roi}")
+    if roi.x_px < 0 or roi.y_px < 0 or roi.x_px + roi.width_px > geometry.width_px \
+            or roi.y_px + roi.height_px > geometry.height_px:
+        raise RawFileError(f"{path}: sidecar ROI {roi} lies outside the "
+                           f"{geometry.width_px}×{geometry.height_px} sensor")
+    if (roi.height_px, roi.width_px) != tuple(shape):
+        raise RawFileError(f"{path}: sidecar ROI {roi.width_px}×{roi.height_px} does not match the "
+                           f"{shape[1]}×{shape[0]} pixels")
 
 
 def load_raw(path, require_bmi: bool = True) -> RawFrame:
@@ -119,7 +186,7 @@ def load_raw(path, require_bmi: bool = True) -> RawFrame:
     elif not side.is_file():
         problem = f"its sidecar {side.name} is missing (geometry and lens identity unknown)"
     else:
-        meta = json.loads(side.read_text())
+        meta = _read_sidecar(side)
         if meta.get("schema") != SIDECAR_SCHEMA:
             problem = f"sidecar {side.name} has schema {meta.get('schema')!r}, expected {SIDECAR_SCHEMA!r}"
         elif meta.get("pixel_sha256") != pixel_sha256(data):
@@ -134,6 +201,7 @@ def load_raw(path, require_bmi: bool = True) -> RawFrame:
                         host_timestamp_ns=0, roi=Roi(0, 0, w, h), geometry=BMI_SENSOR, lens={},
                         device={"model": camera_model}, cfa=cfa, is_bmi=False,
                         source={"foreign_raw_reason": problem})
+    _check_sidecar_fields(path, meta, data.shape)
     if cfa != meta["cfa"] or black[0] != meta["black_level_dn"] or white != meta["white_level_dn"]:
         raise RawFileError(f"{path}: DNG tags (CFA {cfa}, black {black[0]}, white {white}) disagree with the "
                            f"sidecar ({meta['cfa']}, {meta['black_level_dn']}, {meta['white_level_dn']})")

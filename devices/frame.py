@@ -104,11 +104,15 @@ class RawFrame:
             "calibration_id": self.calibration_id, "shape": list(self.data.shape),
         }
 
-    def save_dng(self, path) -> None:
-        """Write a DNG (readable by rawpy) and its JSON sidecar ``<path>.json``, both atomically."""
+    def save_dng(self, path, overwrite: bool = True) -> None:
+        """Write a DNG (readable by rawpy) and its JSON sidecar ``<path>.json``, both atomically.
+
+        A same-named JSON that is not this DNG's sidecar is never replaced;
+        ``overwrite=False`` refuses an existing DNG or sidecar too (``devices.dng.save_dng``).
+        """
         from .dng import save_dng
 
-        save_dng(self, path)
+        save_dng(self, path, overwrite=overwrite)
 
 
 class BufferPool:

@@ -42,9 +42,25 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("cancelled", file=sys.stderr)
         return 130
-    except (ValueError, FileNotFoundError, OSError) as exc:  # clear message, no traceback
+    except Exception as exc:
+        if not isinstance(exc, _user_error_types()):
+            raise  # a bug: keep the traceback
         print(f"bmi {args.command}: error: {exc}", file=sys.stderr)
         return 1
+
+
+def _user_error_types() -> tuple[type, ...]:
+    """Errors that carry a message for the user (bad input, a refused file, a camera that refused or failed).
+
+    ``devices.errors.CameraError`` is looked up in ``sys.modules`` rather than
+    imported: a command that raised one has loaded it, and ``bmi --help``
+    stays free of the device stack.
+    """
+    types: list[type] = [ValueError, OSError]  # OSError covers FileNotFoundError, FileExistsError, TimeoutError
+    camera_errors = sys.modules.get("devices.errors")
+    if camera_errors is not None:
+        types.append(camera_errors.CameraError)
+    return tuple(types)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -134,7 +134,7 @@ def _run(args) -> int:
                     f"+ warm-up {model.warmup_s:.2f} s", t0)
 
     t0 = time.perf_counter()
-    result, report = run_job(frame, out, model=model, progress=True)
+    result, report = run_job(frame, out, model=model, progress=True, overwrite=True)  # the demo regenerates its folder
     for name, value in result.timings_s.items():
         print(f"            {name[:-2]:>10}: {value:7.2f} s")
     _stage(timings, f"infer {result.tiles_run} tiles ({result.tiles_skipped} skipped) + write outputs "

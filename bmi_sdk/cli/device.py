@@ -10,7 +10,9 @@ def register(subparsers) -> None:
     acq = subparsers.add_parser("acquire", help="grab raw frames from a camera and write them as DNG + JSON sidecar")
     acq.add_argument("--device", default="sim://", help="camera URI: sim://, tcp://127.0.0.1:PORT, replay://DIR")
     acq.add_argument("--count", type=int, default=1, help="frames to write")
-    acq.add_argument("--out", required=True, help="output folder")
+    acq.add_argument("--out", required=True,
+                     help="output folder; files are frame_<UTC start of the run>_<frame id>.dng, and an "
+                          "existing file is never replaced")
     acq.add_argument("--scene", help="scene for sim:// (flat, flat:0.3, dark, chart, image:PATH, or a registered one)")
     acq.add_argument("--exposure-us", type=int, help="exposure time in µs")
     acq.add_argument("--gain", type=float, help="analog gain (×)")
@@ -50,6 +52,7 @@ def _acquire(args) -> int:
         uri += ("&" if "?" in uri else "?") + f"scene={args.scene}"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    run_stamp = _run_stamp()
     written = bad = 0
     with open_camera(uri) as cam:
         if args.exposure_us is not None:
@@ -74,7 +77,7 @@ def _acquire(args) -> int:
                         if not frame.complete:
                             bad += 1
                             continue
-                        frame.save_dng(out / f"frame_{frame.frame_id:08d}.dng")
+                        frame.save_dng(out / f"frame_{run_stamp}_{frame.frame_id:08d}.dng", overwrite=False)
                     written += 1
                     bar.update(1)
         finally:
@@ -82,6 +85,14 @@ def _acquire(args) -> int:
         stats = dict(cam.stats)
     print(f"wrote {written} DNG files to {out} (skipped {bad} incomplete/corrupt; link stats {stats})")
     return 0
+
+
+def _run_stamp() -> str:
+    """The run's start, UTC to the millisecond, for file names: frame ids restart in every device session,
+    so ids alone would make a second run into the same folder reuse the first run's names."""
+    now_ns = time.time_ns()
+    return time.strftime("%Y%m%dT%H%M%S", time.gmtime(now_ns // 1_000_000_000)) + \
+        f"{now_ns // 1_000_000 % 1000:03d}Z"
 
 
 def _serve(args) -> int:

@@ -4,7 +4,11 @@ from __future__ import annotations
 
 
 def _run(args) -> int:
+    import sys
+    import warnings
+
     from bmi_sdk.runtime import run_job
+    from bmi_sdk.runtime.quality import FrameQualityWarning
 
     config = None
     if args.decoder == "classical":
@@ -12,11 +16,22 @@ def _run(args) -> int:
 
         config = ClassicalConfig(window_px=args.window_px, stride_px=args.stride_px, candidates=args.candidates,
                                  noise_sigma=args.noise_sigma)
-    result, report = run_job(args.raw, args.out, model_path=args.model, calibration_id=args.calibration_id,
-                             calibration_path=args.calibration,
-                             tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
-                             ply_step_px=args.ply_step, progress=not args.quiet, decoder=args.decoder,
-                             classical_config=config)
+
+    def show(message, category, *rest, **kw):  # frame-quality findings as one line on stderr, not a source line
+        if issubclass(category, FrameQualityWarning):
+            print(f"bmi infer: warning: {message}", file=sys.stderr)
+        else:
+            original(message, category, *rest, **kw)
+    original, warnings.showwarning = warnings.showwarning, show
+    try:
+        result, report = run_job(args.raw, args.out, model_path=args.model, calibration_id=args.calibration_id,
+                                 calibration_path=args.calibration,
+                                 tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
+                                 ply_step_px=args.ply_step, progress=not args.quiet, overwrite=args.overwrite,
+                                 allow_test_pattern=args.allow_test_pattern, decoder=args.decoder,
+                                 classical_config=config)
+    finally:
+        warnings.showwarning = original
     if report["decoder"] == "classical":
         stats = report["decoder_stats"]
         print(f"classical decoder, camera {report['camera']['sha256'][:12]}…, "
@@ -67,4 +82,9 @@ def register(subparsers) -> None:
     p.add_argument("--noise-sigma", type=float, default=None,
                    help="classical: raw noise σ in units of full scale (default: estimated from the frame)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier run's results in --out (they are replaced only once all new files "
+                        "are written)")
+    p.add_argument("--allow-test-pattern", action="store_true",
+                   help="decode a frame flagged as the camera's test pattern (refused by default)")
     p.set_defaults(handler=_run)

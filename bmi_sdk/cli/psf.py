@@ -19,11 +19,13 @@ def _export(args) -> int:
     from bmi_sdk.io_atomic import save_npy
     from bmi_sdk.optics import fit_pupil, get_lens, psf_from_pupil
 
-    if not 0 <= args.field_deg <= 90:
-        raise ValueError(f"--field-deg must lie in [0, 90], got {args.field_deg}")
+    from bmi_sdk.optics.export_limits import check_export_request, check_kernel
+
     lens = get_lens(args.lens)
+    check_export_request(lens, args.field_deg, args.depth_m, args.wavelength_nm, args.pitch_um)
     fit = fit_pupil(lens, args.field_deg, args.depth_m, args.wavelength_nm * 1e-3)
     psf = psf_from_pupil(fit, args.kernel_px, args.pitch_um, args.oversample)
+    check_kernel(psf, args.kernel_px)
     save_npy(args.out, psf.kernel.astype(np.float32))
     print(f"wrote {args.out}: {args.kernel_px}×{args.kernel_px}, sum 1, energy captured {psf.energy_captured:.5f}, "
           f"pupil fit residual {fit.fit_rms_waves:.1e} waves")

@@ -40,6 +40,8 @@ class Glass:
         """Refractive index at ``wavelength_um`` (scalar or array)."""
         lam = np.asarray(wavelength_um, dtype=np.float64)
         lo, hi = self.valid_um
+        if not np.all(np.isfinite(lam)):
+            raise ValueError(f"glass {self.name}: wavelength must be a finite number of µm, got {lam.min()}")
         if np.any(lam < lo) or np.any(lam > hi):
             raise ValueError(
                 f"glass {self.name}: wavelength {lam.min():.4f}–{lam.max():.4f} µm outside the "

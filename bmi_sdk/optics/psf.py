@@ -30,6 +30,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from ..memory_budget import check_fits
 from .pupil import PupilFit
 
 DEFAULT_OVERSAMPLE = 5
@@ -108,6 +109,13 @@ def pupil_function(fit: PupilFit, l_grid: np.ndarray, m_grid: np.ndarray, apertu
     return transmission * amp * np.exp(-2j * np.pi * w)
 
 
+def estimate_psf_bytes(kernel_px: int, oversample: int, n_pupil_l: int, n_pupil_m: int) -> float:
+    """Peak memory of ``psf_from_pupil``: 28 B per sub-sample² (field, intensity) and 48 B per pupil sample
+    (pupil, wavefront, apertures), an upper bound on peaks measured from 41 to 801 px and oversample 3 to 101."""
+    n_sub = kernel_px * oversample
+    return 28.0 * n_sub * n_sub + 48.0 * n_pupil_l * n_pupil_m
+
+
 def psf_from_pupil(fit: PupilFit, kernel_px: int, pitch_um: float = 2.0, oversample: int = DEFAULT_OVERSAMPLE,
                    guard: float = DEFAULT_GUARD, aperture_l_scale: float = 1.0, rotation_deg: float = 0.0,
                    offset_px: tuple[float, float] = (0.0, 0.0), scale: float = 1.0) -> Psf:
@@ -122,7 +130,9 @@ def psf_from_pupil(fit: PupilFit, kernel_px: int, pitch_um: float = 2.0, oversam
     that does not land on a pixel centre); ``scale`` s > 0 returns the
     intensity I(x/s)/s² (a PSF s times larger about the chief ray) before the
     pixel box. Both are exact (they move the transform's sample positions)
-    and the defaults leave the result bit-identical.
+    and the defaults leave the result bit-identical. A request whose memory
+    (``estimate_psf_bytes``) exceeds ``memory_budget.limit_bytes`` is refused
+    before anything is allocated.
     """
     if not scale > 0:
         raise ValueError(f"scale must be > 0, got {scale}")
@@ -142,6 +152,9 @@ def psf_from_pupil(fit: PupilFit, kernel_px: int, pitch_um: float = 2.0, oversam
         m_half = fit.m_half
     n_l = 2 * int(np.ceil(l_half / d_l)) + 1
     n_m = 2 * int(np.ceil(m_half / d_l)) + 1
+    check_fits(estimate_psf_bytes(kernel_px, oversample, n_l, n_m),
+               f"a {kernel_px}×{kernel_px} px PSF at oversample {oversample} ({n_l}×{n_m} pupil samples)",
+               "lower kernel_px or oversample")
     l_off = (np.arange(n_l) - n_l // 2) * d_l
     m_off = (np.arange(n_m) - n_m // 2) * d_l
     if rotation_deg % 360.0 != 0.0:
@@ -157,5 +170,8 @@ def psf_from_pupil(fit: PupilFit, kernel_px: int, pitch_um: float = 2.0, oversam
     op = _pixel_operator(kernel_px, oversample)
     pixels = np.maximum(op @ intensity @ op.T, 0.0) * pitch_mm**2 / scale**2
     total_power = lam_mm**2 * np.sum(np.abs(pupil) ** 2)
+    if not (np.isfinite(pixels).all() and pixels.sum() > 0 and np.isfinite(total_power) and total_power > 0):
+        raise ValueError(f"the PSF at field {fit.field_deg:g}°, {fit.depth_m:g} m, {fit.wavelength_um * 1e3:g} nm "
+                         "is not finite: the field lies beyond what this lens images (docs/reliability.md)")
     captured = float(pixels.sum() * d_l * d_l / total_power)
     return Psf(kernel=pixels / pixels.sum(), energy_captured=captured, pitch_um=pitch_um, pupil_samples=(n_l, n_m))

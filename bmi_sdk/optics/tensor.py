@@ -17,6 +17,7 @@ import hashlib
 import json
 import math
 import os
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -104,6 +105,50 @@ def compute_kernels(lens: Lens, spec: TensorSpec, field_deg, depth_m) -> np.ndar
             out[c, i] = sum(weight * mono[i, lam] for lam, weight in channel)
     out /= out.sum(axis=(2, 3), keepdims=True)
     return out.astype(np.float32)
+
+
+class PsfCacheWarning(UserWarning):
+    """A cached PSF shard failed its checks and is being recomputed."""
+
+
+def _shard_digest(psf: np.ndarray, filled: np.ndarray) -> str:
+    """SHA-256 of a shard's arrays (shape, dtype and bytes), recorded in the shard when it is written."""
+    h = hashlib.sha256()
+    for a in (np.ascontiguousarray(psf, dtype="<f4"), np.ascontiguousarray(filled, dtype=bool)):
+        h.update(repr(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _verified_shard(path: Path, psf_shape: tuple) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(psf, filled, legacy) of a cache shard, or ``ValueError`` saying what is wrong with it.
+
+    Checks: a readable npz (zip CRCs catch truncation and bit flips), the
+    expected arrays and shapes, the SHA-256 recorded at write time (``legacy``:
+    none recorded, from before it was), and that every filled kernel is finite
+    with unit sum: a shard that would decode to NaN or to an all-zero frame is
+    never used.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except Exception as exc:  # zipfile, zlib and numpy raise many types for a damaged file
+        raise ValueError(f"unreadable: {type(exc).__name__}: {exc}") from None
+    if "psf" not in arrays or "filled" not in arrays:
+        raise ValueError(f"arrays {sorted(arrays)}, expected psf and filled")
+    psf, filled = arrays["psf"], arrays["filled"]
+    if psf.shape != psf_shape or filled.shape != psf_shape[:2] or filled.dtype != bool:
+        raise ValueError(f"psf {psf.shape}, filled {filled.shape} {filled.dtype}; expected {psf_shape}")
+    legacy = "sha256" not in arrays
+    if not legacy and str(arrays["sha256"]) != _shard_digest(psf, filled):
+        raise ValueError("content does not match the SHA-256 recorded when it was written")
+    kernels = psf[filled].astype(np.float64)
+    if not np.isfinite(kernels).all():
+        raise ValueError("non-finite kernel values")
+    sums = kernels.sum(axis=(-2, -1))
+    if kernels.size and not np.allclose(sums, 1.0, atol=1e-3):
+        raise ValueError(f"kernel sums {sums.min():.4g}..{sums.max():.4g}, expected 1")
+    return psf, filled, legacy
 
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -223,22 +268,37 @@ class PsfTensor:
         return self.cache_dir / f"theta_{i:04d}.npz"
 
     def _load_shard(self, i: int) -> None:
+        """Take the cached kernels of field index ``i``, if its shard passes ``_verified_shard``.
+
+        A shard that fails (truncated, edited, non-finite, another shape) is
+        never used: a ``PsfCacheWarning`` names it and its entries stay
+        unfilled, so ``ensure`` recomputes them and rewrites the shard.
+        """
         if self.cache_dir is None or i in self._shards_loaded:
             return
         self._shards_loaded.add(i)
         path = self._shard_path(i)
-        if path.exists():
-            with np.load(path, allow_pickle=False) as z:
-                filled = z["filled"]
-                self.data[:, i][filled] = z["psf"][filled]
-                self.filled[:, i] |= filled
+        if not path.exists():
+            return
+        expected = (len(self.spec.channels), len(self.spec.depth_m))
+        try:
+            psf, filled, legacy = _verified_shard(path, expected + (self.spec.kernel_px,) * 2)
+        except ValueError as exc:
+            warnings.warn(f"PSF cache shard {path} is unusable ({exc}); recomputing it", PsfCacheWarning,
+                          stacklevel=3)
+            return
+        self.data[:, i][filled] = psf[filled]
+        self.filled[:, i] |= filled
+        if legacy:  # written before shards carried a hash: record one now that its values passed the checks
+            self._store_shard(i)
 
     def _store_shard(self, i: int) -> None:
         if self.cache_dir is None:
             return
         self.cache_dir.mkdir(parents=True, exist_ok=True)
+        psf, filled = self.data[:, i], self.filled[:, i]
         with atomic_path(self._shard_path(i), suffix=".npz") as tmp:
-            np.savez(tmp, psf=self.data[:, i], filled=self.filled[:, i])
+            np.savez(tmp, psf=psf, filled=filled, sha256=np.array(_shard_digest(psf, filled)))
 
     # -- files ----------------------------------------------------------------
     def metadata(self) -> dict:
@@ -274,7 +334,12 @@ class PsfTensor:
         meta_path = path.with_suffix(".json")
         if not meta_path.exists():
             raise FileNotFoundError(f"{meta_path}: PSF tensor metadata missing")
-        meta = json.loads(meta_path.read_text())
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{meta_path}: not JSON ({exc})") from None
+        if not isinstance(meta, dict):
+            raise ValueError(f"{meta_path}: holds a JSON {type(meta).__name__}, expected an object")
         if meta.get("schema") != SCHEMA:
             raise ValueError(f"{meta_path}: schema {meta.get('schema')!r}, expected {SCHEMA!r}")
         digest = hashlib.sha256(path.read_bytes()).hexdigest()

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 
 from ..resources import peak_rss_mb
 from .model import Model, select_model
+from .output_set import OutputSet
 from .outputs import write_outputs, write_report
 from .pipeline import InferenceResult, frame_lens_name, infer_frame
+from .quality import FrameQualityWarning, quality_gate
 
 
 def load_model_for(frame, model_path: str | os.PathLike | None = None, calibration_id: str | None = None,
@@ -56,37 +59,53 @@ def calibration_for(frame, calibration_path: str | os.PathLike, calibration_id: 
 DECODERS = ("cnn", "classical")
 DEFAULT_DECODER = "cnn"
 """The end-to-end network stays the default until the classical decoder beats it on ``bmi eval``
-(docs/results.md, decoder comparison)."""
+(docs/results.md, "Decoders")."""
 
 
-def run_job(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None = None,
-            model_path: str | os.PathLike | None = None, calibration_id: str | None = None,
-            calibration_path: str | os.PathLike | None = None, tile_px: int = 512,
-            threads: int | None = None, overlap_px: int | None = None, ply_step_px: int = 1,
-            progress: bool = False, decoder: str = DEFAULT_DECODER, classical_config=None,
-            classical_decoder=None) -> tuple[InferenceResult, dict]:
+def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = False, decoder: str = DEFAULT_DECODER,
+            **options) -> tuple[InferenceResult, dict]:
     """Read (if a path), decode, write outputs and ``report.json`` into ``out_dir``; return (result, report).
 
-    ``decoder``: ``cnn`` (the shipped end-to-end network) or ``classical`` (``runtime.classical``:
-    the evidence of the camera's own kernels, no network; writes the depth 1σ too).
-    ``calibration_path`` (a ``bmi calibrate`` file), after ``calibration_for``'s checks: for
-    ``cnn`` it selects the model trained on that calibration's corrected PSF tensor (without
-    one the nominal model runs and the report says so); for ``classical`` the decoder uses
-    that camera's corrected kernels at every (θ, φ). ``classical_decoder`` reuses a built
-    decoder (its kernels) across frames of one camera.
+    ``decoder``: ``cnn`` (the shipped end-to-end network; ``options`` are ``_job_into``'s) or
+    ``classical`` (``runtime.classical``: the evidence of the camera's own kernels, no network,
+    writes the depth 1σ too; ``options`` are ``_classical_into``'s). The outputs are one set
+    (``OutputSet``): ``out_dir`` is checked before any work (writable; no earlier results
+    unless ``overwrite``) and changes only once every file is written.
     """
     if decoder not in DECODERS:
         raise ValueError(f"unknown decoder {decoder!r}; one of {DECODERS}")
-    if decoder == "classical":
-        return _run_classical(frame_or_path, out_dir, calibration_path=calibration_path,
-                              calibration_id=calibration_id, ply_step_px=ply_step_px, progress=progress,
-                              config=classical_config, decoder=classical_decoder)
+    job = _classical_into if decoder == "classical" else _job_into
+    with OutputSet(out_dir, overwrite=overwrite) as output_set:
+        result, report = job(frame_or_path, output_set.staging, **options)
+        report["files"] = {name: os.path.join(out_dir, name) for name in report["files"]}
+        write_report(output_set.staging, report)  # with the paths the files will have
+        output_set.commit()
+    return result, report
+
+
+def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None = None,
+              model_path: str | os.PathLike | None = None, calibration_id: str | None = None,
+              calibration_path: str | os.PathLike | None = None, tile_px: int = 512,
+              threads: int | None = None, overlap_px: int | None = None, ply_step_px: int = 1,
+              progress: bool = False, allow_test_pattern: bool = False) -> tuple[InferenceResult, dict]:
+    """The job, written into ``out_dir`` (``run_job``'s staging folder).
+
+    ``calibration_path`` (a ``bmi calibrate`` file) selects the model trained
+    on that calibration's corrected PSF tensor, after ``calibration_for``'s
+    checks; without such a model the nominal one runs and the report says so.
+    The frame passes ``quality_gate`` first: its findings go to
+    ``warnings.warn`` (``FrameQualityWarning``) and the report's
+    ``frame_quality``; a test pattern is refused unless ``allow_test_pattern``.
+    """
     from devices import load_raw
 
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     frame = load_raw(frame_or_path) if isinstance(frame_or_path, (str, os.PathLike)) else frame_or_path
     timings["read_raw_s"] = time.perf_counter() - t0
+    quality = quality_gate(frame, allow_test_pattern)
+    for message in quality.warnings:
+        warnings.warn(message, FrameQualityWarning, stacklevel=3)
     calibration = None
     if calibration_path is not None:
         calibration = calibration_for(frame, calibration_path, calibration_id)
@@ -114,6 +133,7 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None = 
         "calibration_file": calibration,
         "frame": {"frame_id": frame.frame_id, "shape": list(frame.data.shape), "roi": vars(frame.roi),
                   "lens": frame.lens, "device": frame.device, "source": frame.source},
+        "frame_quality": quality.to_dict(),
         **result.summary(),
         "stage_timings_s": timings,
         "peak_rss_mb": peak_rss_mb(),
@@ -123,19 +143,35 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None = 
     return result, report
 
 
-def _run_classical(frame_or_path, out_dir, *, calibration_path, calibration_id, ply_step_px, progress, config,
-                   decoder) -> tuple:
-    """``run_job`` with the classical decoder (its docstring)."""
+def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibration_id: str | None = None,
+                    ply_step_px: int = 1, progress: bool = False, allow_test_pattern: bool = False,
+                    classical_config=None, classical_decoder=None, model=None, model_path=None,
+                    tile_px: int | None = None, threads: int | None = None, overlap_px: int | None = None) -> tuple:
+    """The classical decoder's job, written into ``out_dir`` (``run_job``'s staging folder).
+
+    ``calibration_path``, after ``calibration_for``'s checks, makes the decoder use that camera's
+    corrected kernels at every (θ, φ) (``BuiltCamera.from_calibration``); nothing is retrained.
+    ``classical_decoder`` reuses a built decoder (its memoised kernels) across frames of one camera.
+    The network's options (``model``, ``model_path``) are refused; its tiling options
+    (``tile_px``, ``threads``, ``overlap_px``) do not apply and are ignored.
+    """
     from devices import load_raw
 
     from ..built_camera import BuiltCamera
     from ..decode import ClassicalConfig
-    from .classical import classical_decoder, decode_frame
+    from .classical import classical_decoder as build_decoder
+    from .classical import decode_frame
 
+    if model is not None or model_path is not None:
+        raise ValueError("--model names a network; the classical decoder uses none (drop --model or use "
+                         "--decoder cnn)")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     frame = load_raw(frame_or_path) if isinstance(frame_or_path, (str, os.PathLike)) else frame_or_path
     timings["read_raw_s"] = time.perf_counter() - t0
+    quality = quality_gate(frame, allow_test_pattern)
+    for message in quality.warnings:
+        warnings.warn(message, FrameQualityWarning, stacklevel=3)
     calibration = None
     lens = frame_lens_name(frame) or "bmi_monocentric"
     camera = BuiltCamera(lens_name=lens, geometry=frame.geometry)
@@ -145,8 +181,7 @@ def _run_classical(frame_or_path, out_dir, *, calibration_path, calibration_id, 
         calibration = calibration_for(frame, calibration_path, calibration_id)
         camera = BuiltCamera.from_calibration(load_calibration(calibration_path), geometry=frame.geometry)
     t0 = time.perf_counter()
-    if decoder is None:
-        decoder = classical_decoder(camera, config or ClassicalConfig())
+    decoder = classical_decoder or build_decoder(camera, classical_config or ClassicalConfig())
     result = decode_frame(decoder, frame, camera, progress=progress)
     timings["decode_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -163,6 +198,7 @@ def _run_classical(frame_or_path, out_dir, *, calibration_path, calibration_id, 
         "calibration_file": calibration,
         "frame": {"frame_id": frame.frame_id, "shape": list(frame.data.shape), "roi": vars(frame.roi),
                   "lens": frame.lens, "device": frame.device, "source": frame.source},
+        "frame_quality": quality.to_dict(),
         **result.summary(),
         "stage_timings_s": timings,
         "peak_rss_mb": peak_rss_mb(),

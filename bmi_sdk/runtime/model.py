@@ -17,11 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..memory_budget import check_fits
 from ..model_io import INPUT_CHANNELS, INPUT_NAME, OUTPUT_NAMES
 from ..model_manifest import ModelError, verify_model
 
 MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 DEFAULT_MODEL = MODELS_DIR / "default.onnx"
+TILE_BYTES_PER_PX = 700  # onnxruntime's peak per tile pixel, packaged model: 754 B/px at 512, 670 at 1024 measured
 
 
 def session_options(threads: int | None = None, optimization: str = "all"):
@@ -86,6 +88,8 @@ class Model:
             tile_px = fixed[0]
         if tile_px is None or tile_px <= 0 or tile_px % multiple:
             raise ValueError(f"tile_px must be a positive multiple of {multiple}, got {tile_px}")
+        check_fits(TILE_BYTES_PER_PX * tile_px * tile_px, f"a {tile_px}×{tile_px} px inference tile",
+                   "lower --tile-px (512 is the default)")
         self.tile_px = int(tile_px)
         self.threads = int(threads or os.cpu_count() or 1)
         self.optimization = optimization

@@ -1,0 +1,63 @@
+"""Refuse work whose memory, estimated from its arguments, would not fit: before allocating, with the numbers.
+
+A PSF with ``--oversample 1001`` needs ~24 GB and an inference tile of
+100000 px 224 GiB: left to run, the first wakes the kernel's OOM killer
+(which may take other processes with it) and the second dies with a NumPy
+traceback. Callers estimate their peak from the arguments (formulas measured
+in docs/reliability.md) and call ``check_fits`` first.
+
+The limit is 4 GiB or 75 % of the memory available now (``MemAvailable``),
+whichever is less, or ``BMI_MAX_MEMORY_MB`` when set. No PSF or tile the SDK
+uses comes near 4 GiB (a full-frame ``bmi infer`` peaks at 1.6 GB); past it
+a request is a typo or needs a deliberate ``BMI_MAX_MEMORY_MB``.
+"""
+
+from __future__ import annotations
+
+import os
+
+ENV_LIMIT = "BMI_MAX_MEMORY_MB"
+AVAILABLE_SHARE = 0.75
+DEFAULT_CAP_BYTES = 4 * 2**30
+
+
+class MemoryBudgetError(ValueError):
+    """The estimated memory of a request exceeds the limit; nothing was allocated."""
+
+
+def _available_bytes() -> int | None:
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def limit_bytes() -> tuple[int, str]:
+    """(limit in bytes, where it comes from)."""
+    text = os.environ.get(ENV_LIMIT)
+    if text:
+        try:
+            mb = float(text)
+        except ValueError:
+            raise MemoryBudgetError(f"{ENV_LIMIT}={text!r} is not a number of MB") from None
+        return int(mb * 2**20), f"{ENV_LIMIT}={text}"
+    available = _available_bytes()
+    if available is None or available * AVAILABLE_SHARE >= DEFAULT_CAP_BYTES:
+        return DEFAULT_CAP_BYTES, "the default cap"
+    return int(available * AVAILABLE_SHARE), f"{AVAILABLE_SHARE:.0%} of the {available / 2**30:.1f} GiB available"
+
+
+def check_fits(estimate_bytes: float, what: str, hint: str = "") -> None:
+    """Raise ``MemoryBudgetError`` when ``estimate_bytes`` exceeds ``limit_bytes()``; ``what`` names the request."""
+    limit, source = limit_bytes()
+    if estimate_bytes > limit:
+        raise MemoryBudgetError(f"{what} needs about {estimate_bytes / 2**30:.1f} GiB, more than the "
+                                f"{limit / 2**30:.1f} GiB limit ({source}; {ENV_LIMIT} sets it)"
+                                + (f"; {hint}" if hint else ""))

@@ -1,0 +1,68 @@
+"""A run's output files as one set: staged in a hidden folder, moved into place only when all are written.
+
+``bmi infer`` writes seven files and ``report.json``. Written one by one into
+the output folder, a run that fails half-way (disk full, Ctrl-C, a crash)
+would leave new files beside an earlier run's, with nothing to tell them apart.
+``OutputSet`` writes them into ``OUT/.bmi-infer-XXXX/`` (same file system, so
+a rename moves them), then removes the old ``report.json``, renames each file
+into ``OUT`` and renames ``report.json`` last. So:
+
+* a failure while writing leaves ``OUT`` exactly as it was;
+* ``report.json`` in ``OUT`` marks a complete set from one run (the renames
+  take microseconds; a kill between them leaves no report, never a wrong one).
+
+It also refuses, before any work is done, an ``OUT`` that holds an earlier
+run's results (unless ``overwrite``) or that cannot be written to.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+REPORT_NAME = "report.json"
+RESULT_NAMES = ("aif.npy", "aif.png", "aif_preview.png", "depth.npy", "depth_mm.png", "depth_preview.png",
+                "points.ply", REPORT_NAME)
+STAGING_PREFIX = ".bmi-infer-"
+
+
+class OutputSet:
+    """Stage one run's outputs in ``staging``; ``commit`` moves them into ``out_dir``. Use as a context manager."""
+
+    def __init__(self, out_dir: str | os.PathLike, overwrite: bool = False):
+        self.out_dir = Path(out_dir)
+        self.overwrite = overwrite
+        self.staging: Path | None = None
+        if self.out_dir.exists() and not self.out_dir.is_dir():
+            raise NotADirectoryError(f"output folder {self.out_dir} is a file")
+        earlier = [n for n in RESULT_NAMES if (self.out_dir / n).exists()]
+        if earlier and not overwrite:
+            raise FileExistsError(f"{self.out_dir} holds an earlier run's results ({', '.join(earlier)}); "
+                                  "pass --overwrite (overwrite=True) to replace them, or choose another folder")
+
+    def __enter__(self) -> "OutputSet":
+        """Create the staging folder ``self.staging`` (this is the writability check)."""
+        try:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            self.staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.out_dir))
+        except OSError as exc:
+            raise PermissionError(f"cannot write the outputs into {self.out_dir}: {exc.strerror or exc}") from None
+        return self
+
+    def commit(self) -> dict[str, str]:
+        """Move every staged file into ``out_dir``, ``report.json`` last; return {name: final path}."""
+        assert self.staging is not None, "commit() inside the with block"
+        names = sorted(p.name for p in self.staging.iterdir())
+        with contextlib.suppress(FileNotFoundError):
+            (self.out_dir / REPORT_NAME).unlink()  # the old set is no longer complete from here on
+        for name in sorted(names, key=lambda n: n == REPORT_NAME):
+            os.replace(self.staging / name, self.out_dir / name)
+        return {name: str(self.out_dir / name) for name in names}
+
+    def __exit__(self, *exc) -> None:
+        if self.staging is not None:
+            shutil.rmtree(self.staging, ignore_errors=True)
+            self.staging = None

@@ -1,0 +1,104 @@
+"""Frame-quality gate: is this raw frame worth decoding?
+
+The network turns any frame into a plausible-looking depth map, including a
+saturated, black, pure-noise or test-pattern frame. Before inference
+``assess_frame`` measures, over the image circle:
+
+* ``saturated_fraction``: pixels at the white level (clipped: their PSF code
+  is lost);
+* ``signal_fraction``: median signal above black as a fraction of the range
+  (black frames, a capped lens);
+* ``structure``: correlation of each pixel with its same-colour neighbour two
+  pixels along (a blurred optical image is smooth, ~0.9 and above; pure noise,
+  a flat field or a dark frame is near 0: there is nothing to decode depth from);
+* the frame's ``test_pattern`` flag (pixels from the digital test generator,
+  not the sensor).
+
+The thresholds come from measured frames (docs/reliability.md). A frame that
+fails one of them is decoded but warned about; a test-pattern frame is refused
+unless ``allow_test_pattern``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+MAX_SATURATED_FRACTION = 0.01
+MIN_SIGNAL_FRACTION = 0.01
+MIN_STRUCTURE = 0.5
+
+
+class FrameQualityWarning(UserWarning):
+    """A frame ``assess_frame`` finds doubtful (saturated, black, no structure); it is still decoded."""
+
+
+class TestPatternFrameError(ValueError):
+    """The frame's pixels come from the camera's test-pattern generator."""
+
+    __test__ = False  # not a pytest test class
+
+
+@dataclass
+class FrameQuality:
+    saturated_fraction: float
+    signal_fraction: float
+    structure: float
+    test_pattern: bool
+    warnings: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _image_circle(frame) -> np.ndarray:
+    roi = frame.roi
+    mask = frame.geometry.valid_mask(roi.y_px, roi.x_px, roi.height_px, roi.width_px)
+    return mask if mask.shape == frame.data.shape and mask.any() else np.ones(frame.data.shape, bool)
+
+
+def _neighbour_correlation(signal: np.ndarray, mask: np.ndarray) -> float:
+    """Correlation of pixel (r, c) with (r, c + 2): same CFA colour, one cell apart."""
+    a, b = signal[:, :-2], signal[:, 2:]
+    both = mask[:, :-2] & mask[:, 2:]
+    a, b = a[both], b[both]
+    if a.size < 2:
+        return 0.0
+    a = a - a.mean()
+    b = b - b.mean()
+    denom = np.sqrt((a * a).sum() * (b * b).sum())
+    return float((a * b).sum() / denom) if denom > 0 else 0.0
+
+
+def assess_frame(frame) -> FrameQuality:
+    """Measure ``frame`` (a ``devices.RawFrame``) and list what is wrong with it, in words a user can act on."""
+    data = np.asarray(frame.data, dtype=np.float64)
+    mask = _image_circle(frame)
+    span = max(1.0, float(frame.white_level_dn - frame.black_level_dn))
+    signal = (data - frame.black_level_dn) / span
+    saturated = float((data[mask] >= frame.white_level_dn).mean())
+    level = float(np.median(signal[mask]))
+    structure = _neighbour_correlation(signal, mask)
+    quality = FrameQuality(saturated, level, structure, bool(getattr(frame, "test_pattern", False)))
+    if quality.test_pattern:
+        quality.warnings.append("the frame is a test pattern (TEST_PATTERN register set), not a sensor image")
+    if saturated > MAX_SATURATED_FRACTION:
+        quality.warnings.append(f"{saturated:.1%} of the pixels are saturated (limit {MAX_SATURATED_FRACTION:.0%}): "
+                                "depth there is unknown; lower the exposure or gain")
+    if level < MIN_SIGNAL_FRACTION:
+        quality.warnings.append(f"median signal {level:.2%} of the range (limit {MIN_SIGNAL_FRACTION:.0%}): "
+                                "the frame is black; raise the exposure or gain, or check the lens cap")
+    elif structure < MIN_STRUCTURE and saturated <= MAX_SATURATED_FRACTION:
+        quality.warnings.append(f"no optical structure (neighbour correlation {structure:.2f}, limit "
+                                f"{MIN_STRUCTURE}): the frame is noise or a flat field; depth will be meaningless")
+    return quality
+
+
+def quality_gate(frame, allow_test_pattern: bool = False) -> FrameQuality:
+    """``assess_frame``, refusing a test-pattern frame unless ``allow_test_pattern`` (``TestPatternFrameError``)."""
+    quality = assess_frame(frame)
+    if quality.test_pattern and not allow_test_pattern:
+        raise TestPatternFrameError("the frame is a test pattern, not a sensor image: its depth map would be "
+                                    "meaningless (turn the camera's test pattern off, or pass --allow-test-pattern)")
+    return quality

@@ -1,0 +1,152 @@
+"""`bmi infer` without traps (issue 14): the output set is all-or-nothing and never silently replaced, the
+output folder is checked before inference, and frames that cannot carry depth are flagged or refused."""
+
+from __future__ import annotations
+
+import errno
+import json
+import warnings
+
+import pytest
+import torch
+from torch import nn
+
+from bmi_sdk.cli import main
+from bmi_sdk.runtime import export_model, run_job
+from bmi_sdk.runtime.quality import (MAX_SATURATED_FRACTION, MIN_SIGNAL_FRACTION, MIN_STRUCTURE,
+                                     FrameQualityWarning, TestPatternFrameError, assess_frame)
+from devices import Roi, open_camera
+from firmware_sim import FirmwareDevice, make_source
+
+ROI = Roi(2980, 2240, 96, 64)
+
+
+class PassThrough(nn.Module):
+    """aif = the demosaiced input, depth = 1 + θ/60°: a model that follows the contract and costs nothing."""
+
+    def forward(self, x):
+        return x[:, :3] * 1.0, 1.0 + x[:, 3:4]
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    return export_model(PassThrough(), tmp_path_factory.mktemp("m") / "pass.onnx", preset="test-pass")
+
+
+def _capture(scene="chart", test_pattern=0, exposure_us=None):
+    with open_camera("sim://", device=FirmwareDevice(source=make_source(scene), seed=1)) as cam:
+        cam.settings.roi = ROI
+        cam.settings.test_pattern = test_pattern
+        if exposure_us:
+            cam.settings.exposure_us = exposure_us
+        return cam.capture()
+
+
+@pytest.fixture(scope="module")
+def dng(tmp_path_factory):
+    path = tmp_path_factory.mktemp("raw") / "frame.dng"
+    _capture().save_dng(path)
+    return path
+
+
+def _snapshot(folder):
+    return {p.name: p.read_bytes() for p in folder.iterdir()}
+
+
+def test_earlier_results_are_refused_without_overwrite(model, dng, tmp_path):
+    out = tmp_path / "out"
+    run_job(dng, out, model_path=model, tile_px=64, threads=1)
+    before = _snapshot(out)
+    with pytest.raises(FileExistsError, match="earlier run's results.*--overwrite"):
+        run_job(dng, out, model_path=model, tile_px=64, threads=1)
+    assert _snapshot(out) == before
+    _, report = run_job(dng, out, model_path=model, tile_px=64, threads=1, overwrite=True)
+    assert json.loads((out / "report.json").read_text())["stage_timings_s"] == report["stage_timings_s"]
+    assert report["files"]["depth.npy"] == str(out / "depth.npy") and (out / "depth.npy").is_file()
+    assert sorted(p.name for p in out.iterdir()) == sorted(before)  # no staging folder left
+
+
+def test_a_run_that_fails_while_writing_leaves_the_earlier_set_untouched(model, dng, tmp_path, monkeypatch):
+    import bmi_sdk.runtime.outputs as outputs
+
+    out = tmp_path / "out"
+    run_job(dng, out, model_path=model, tile_px=64, threads=1)
+    before = _snapshot(out)
+
+    def disk_full(path, *args, **kw):  # the point cloud is written after the images and depth maps
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(outputs, "write_ply", disk_full)
+    with pytest.raises(OSError, match="No space left"):
+        run_job(dng, out, model_path=model, tile_px=64, threads=1, overwrite=True)
+    assert _snapshot(out) == before  # not one new file beside the old ones, no staging folder
+
+
+def test_an_unwritable_out_is_refused_before_inference(model, dng, tmp_path, monkeypatch, capsys):
+    import bmi_sdk.runtime.job as job
+
+    def must_not_run(*args, **kw):
+        raise AssertionError("inference ran before the output folder was checked")
+    monkeypatch.setattr(job, "infer_frame", must_not_run)
+    (tmp_path / "a_file").write_text("x")
+    with pytest.raises(OSError):
+        run_job(dng, tmp_path / "a_file" / "out", model_path=model, tile_px=64)
+    with pytest.raises(OSError, match="is a file"):
+        run_job(dng, tmp_path / "a_file", model_path=model, tile_px=64)
+    code = main(["infer", str(dng), "--out", str(tmp_path / "a_file" / "out"), "--model", str(model)])
+    err = capsys.readouterr().err
+    assert code == 1 and err.startswith("bmi infer: error: cannot write the outputs") and "Traceback" not in err
+
+
+def test_quality_metrics_tell_bad_frames_from_images():
+    good = assess_frame(_capture("chart"))
+    assert good.warnings == [] and good.structure > MIN_STRUCTURE
+    dark = assess_frame(_capture("dark"))
+    assert dark.signal_fraction < MIN_SIGNAL_FRACTION and any("black" in w for w in dark.warnings)
+    saturated = assess_frame(_capture("chart", exposure_us=1_000_000))
+    assert saturated.saturated_fraction > MAX_SATURATED_FRACTION and any("saturated" in w for w in saturated.warnings)
+    flat = assess_frame(_capture("flat:0.3"))
+    assert flat.structure < MIN_STRUCTURE and any("no optical structure" in w for w in flat.warnings)
+    noise_frame = _capture("chart")
+    noise_frame.data = torch.randint(noise_frame.black_level_dn, noise_frame.white_level_dn,
+                                     noise_frame.data.shape, generator=torch.Generator().manual_seed(0)).numpy()
+    noise = assess_frame(noise_frame)
+    assert abs(noise.structure) < 0.1 and any("noise" in w for w in noise.warnings)
+
+
+def test_test_pattern_frames_are_refused_unless_asked(model, tmp_path, capsys):
+    frame = _capture("chart", test_pattern=1)
+    assert frame.test_pattern
+    with pytest.raises(TestPatternFrameError, match="--allow-test-pattern"):
+        run_job(frame, tmp_path / "a", model_path=model, tile_px=64)
+    assert not (tmp_path / "a" / "report.json").exists()
+    with pytest.warns(FrameQualityWarning, match="test pattern"):
+        _, report = run_job(frame, tmp_path / "b", model_path=model, tile_px=64, allow_test_pattern=True)
+    assert report["frame_quality"]["test_pattern"] is True
+    frame.save_dng(tmp_path / "tp.dng")
+    assert main(["infer", str(tmp_path / "tp.dng"), "--out", str(tmp_path / "c"), "--model", str(model)]) == 1
+    err = capsys.readouterr().err
+    assert "test pattern" in err and "Traceback" not in err
+
+
+def test_a_black_frame_is_decoded_with_a_warning_on_stderr_and_in_the_report(model, tmp_path, capsys):
+    _capture("dark").save_dng(tmp_path / "dark.dng")
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        code = main(["infer", str(tmp_path / "dark.dng"), "--out", str(tmp_path / "o"), "--model", str(model),
+                     "--tile-px", "64", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 0 and "bmi infer: warning: median signal" in err
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert report["frame_quality"]["signal_fraction"] < MIN_SIGNAL_FRACTION
+    assert any("black" in w for w in report["frame_quality"]["warnings"])
+
+
+def test_an_incomplete_frame_is_one_line_not_a_traceback(model, tmp_path, capsys):
+    from devices import FrameStatus
+
+    frame = _capture("chart")
+    frame.status = FrameStatus.INCOMPLETE
+    frame.save_dng(tmp_path / "cut.dng")
+    code = main(["infer", str(tmp_path / "cut.dng"), "--out", str(tmp_path / "o"), "--model", str(model)])
+    err = capsys.readouterr().err
+    assert code == 1 and "incomplete" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
