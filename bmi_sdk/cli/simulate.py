@@ -71,6 +71,8 @@ def _write_preview(path: Path, linear_rgb) -> None:
 
 
 def _run(args) -> int:
+    from tqdm import tqdm
+
     from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
     from bmi_sdk.optics import PsfTensor, TensorSpec, get_lens
     from bmi_sdk.sensor import SensorModel
@@ -103,9 +105,13 @@ def _run(args) -> int:
                            psf_mode=args.psf_mode)
     model = SensorModel(additive_sigma=args.noise)
     device = FirmwareDevice(source=source, geometry=geometry, model=model, seed=args.seed, lens=lens_name)
-    with open_camera("sim://", device=device) as cam:
+    # The device renders as it reads out (minutes for a large scene or a cold PSF cache); its heartbeats
+    # keep the capture alive and move this bar, so a slow render is told apart from a dead device.
+    with tqdm(total=height, desc="render", unit="row") as bar, \
+            open_camera("sim://", device=device, on_progress=lambda _id, done, _total: bar.update(done - bar.n)) as cam:
         cam.settings.roi = Roi(col0, row0, width, height)
         frame = cam.capture()
+        bar.update(height - bar.n)
         frame.save_dng(args.out)
     print(f"wrote {args.out} (+ .json sidecar): {width}×{height} at sensor offset (row {row0}, col {col0}), "
           f"noise {'photon model' if args.noise is None else f'σ = {args.noise}'}, {time.perf_counter() - t0:.1f} s")
