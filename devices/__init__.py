@@ -154,7 +154,8 @@ def open_camera(uri: str = "sim://", *, device=None, on_frame=None, on_disconnec
                 timeout_s: float = 5.0):
     """Open the camera at ``uri`` (see the module doc); use it as a context manager.
 
-    ``on_progress(frame_id, rows_done, rows_total)``: heartbeats of a readout in progress (a slow scene).
+    ``on_progress(frame_id, done, total)``: heartbeats of a readout in progress (a slow scene); done and
+    total count the device's units of work (render blocks for a scene seen through the lens, else rows).
     """
     parts = urlsplit(uri)
     query = {k: v[-1] for k, v in parse_qs(parts.query).items()}

@@ -45,7 +45,7 @@ class StreamCamera:
     """A camera reached through ``connect()``, which returns a fresh connected socket (and a cleanup).
 
     ``token``: sent (AUTH) on every connect, for a device that wants one; ``on_progress(frame_id,
-    rows_done, rows_total)`` is called on the link thread for each heartbeat of a readout in progress.
+    done, total)`` is called on the link thread for each heartbeat of a readout in progress.
     """
 
     def __init__(self, uri: str, connect: Callable[[], tuple[socket.socket, Callable[[], None]]],
@@ -328,12 +328,12 @@ class StreamCamera:
                 return
         self.on_frame(self._hand_out(frame))  # the buffer returns once the callback keeps no reference to the frame
 
-    def progress(self, frame_id: int, rows_done: int, rows_total: int) -> None:
+    def progress(self, frame_id: int, done: int, total: int) -> None:
         with self._cond:
             self._alive_s = time.monotonic()
             self._cond.notify_all()
         if self.on_progress is not None:
-            self.on_progress(frame_id, rows_done, rows_total)
+            self.on_progress(frame_id, done, total)
 
     def device_error(self, reason: str) -> None:
         with self._cond:

@@ -41,8 +41,8 @@ class FrameSink(Protocol):
 
     def link_closed(self, reason: str) -> None: ...
 
-    def progress(self, frame_id: int, rows_done: int, rows_total: int) -> None:
-        """The device is still reading out ``frame_id`` (a heartbeat)."""
+    def progress(self, frame_id: int, done: int, total: int) -> None:
+        """The device is still reading out ``frame_id`` (a heartbeat); ``done`` of ``total`` units of work."""
 
     def device_error(self, reason: str) -> None:
         """The device reported a failure no request asked about (a readout that failed)."""
@@ -214,6 +214,8 @@ class StreamLink:
             reason = f"protocol error: {exc}"
         except CameraError as exc:
             reason = str(exc)
+        except Exception as exc:  # e.g. a user's on_frame / on_progress callback: say so, not "closed by host"
+            reason = f"link reader stopped by {type(exc).__name__}: {exc}"
         finally:
             self.closed_reason = reason
             self._replies.put((None, reason))

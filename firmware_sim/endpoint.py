@@ -77,6 +77,8 @@ class _ReadoutJob:
         self.started_s = time.monotonic()
         self.frame_id = device.regs.get("FRAME_COUNTER")
         self.rows_done = self.rows_total = 0
+        self._window = device.regs.roi()  # fixed while acquiring
+        self._source = device.source
         self.result: tuple | None = None  # (header, payload, payload CRC32)
         self.error: BaseException | None = None
         self._wake = wake
@@ -93,6 +95,17 @@ class _ReadoutJob:
 
     def _progress(self, frame_id: int, rows_done: int, rows_total: int) -> None:
         self.frame_id, self.rows_done, self.rows_total = frame_id, rows_done, rows_total
+
+    def work(self) -> tuple[int, int]:
+        """(done, total) for a heartbeat: the source's own measure of its slow work (render blocks) when it
+        has one, else rows read out."""
+        measure = getattr(self._source, "work", None)
+        if measure is not None:
+            x, y, w, h = self._window
+            got = measure(y, x, h, w)
+            if got is not None:
+                return got
+        return self.rows_done, self.rows_total
 
     def _run(self) -> None:
         try:
@@ -292,8 +305,7 @@ class _Connection:
             self._job, self._last_beat = job, job.started_s
         elif (self._job is not None and not self._job.cancel.is_set()
               and now - self._last_beat >= self.device.heartbeat_s):
-            j = self._job
-            self._reply(Msg.PROGRESS, PROGRESS.pack(j.frame_id, j.rows_done, j.rows_total))
+            self._reply(Msg.PROGRESS, PROGRESS.pack(self._job.frame_id, *self._job.work()))
             self._last_beat = now
 
     def _finished(self, job: _ReadoutJob) -> None:

@@ -44,7 +44,7 @@ class Msg(enum.IntEnum):
     FRAME = 9        # device → host: frame header + payload + CRC32 (may be cut short: incomplete)
     PING = 10        # host → device: empty; keep-alive, answered by ACK
     AUTH = 11        # host → device: the shared token (1 … MAX_TOKEN_BYTES bytes); answered by ACK
-    PROGRESS = 12    # device → host: u64 frame id, u32 rows read out, u32 rows in the window (heartbeat)
+    PROGRESS = 12    # device → host: u64 frame id, u32 work done, u32 work total (heartbeat of a readout)
     ERROR = 13       # device → host: JSON {"code", "reason", "in_reply_to"}: a refused message or a failure
 
 

@@ -393,3 +393,20 @@ def test_acquire_warns_when_frames_are_test_patterns(tmp_path):
                              capture_output=True, text=True, timeout=BOUND_S * 2)
     assert run.returncode == 0, run.stderr
     assert "test pattern" in run.stderr and "2 of 2" in run.stderr
+
+
+def test_a_rendered_scene_reports_its_render_progress_in_blocks():
+    from bmi_sdk.optics import PsfTensor, TensorSpec, get_lens
+    from bmi_sdk.scenes import generate_scene
+    from firmware_sim import RenderedScene
+
+    scene = generate_scene(96, 128, 0)
+    tensor = PsfTensor(get_lens(), TensorSpec(depth_m=(0.7, 1.5, 3.0, 10.0)))
+    src = RenderedScene(scene.rgb, scene.range_m, 1000, 1100, block_px=64, zone_px=32, psf_mode="tensor",
+                        tensor=tensor)
+    window = (1000, 1100, 96, 128)  # rows 1000-1095 touch block rows 15-17, cols 1100-1227 block cols 17-19
+    assert src.work(*window) == (0, 9)
+    src.irradiance(1000, 1100, 20, 128)  # a strip in block row 15 only
+    assert src.work(*window) == (3, 9)
+    src.irradiance(*window)
+    assert src.work(*window) == (9, 9)
