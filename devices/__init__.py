@@ -11,7 +11,9 @@ URIs:
 * ``sim://[NAME][?scene=SPEC&seed=N&faults=SPEC&serial=N]`` — a simulated camera
   in this process (``firmware_sim``), served over an in-process socket pair with
   the same protocol as TCP. A named device lives as long as the process, like a
-  plugged-in camera (its registers persist between opens); giving ``seed``,
+  plugged-in camera (its scene, frame counter and fault ledger persist between
+  opens; the registers a host writes return to defaults when it closes, see
+  docs/protocol.md); giving ``seed``,
   ``faults`` or ``serial`` builds it anew, ``scene`` (see
   ``firmware_sim.make_source``) loads a scene into it. ``open_camera(uri,
   device=FirmwareDevice(...))`` serves a device you built.
