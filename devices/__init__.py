@@ -45,10 +45,10 @@ from .frame import FrameStatus, RawFrame, Roi
 from .replay import ReplayCamera
 
 __all__ = [
-    "open_camera", "list_devices", "DeviceInfo", "StreamCamera", "ReplayCamera", "RawFrame", "FrameStatus", "Roi",
-    "load_raw", "save_dng", "STRATEGIES", "AccessDeniedError", "CameraError", "ConfigurationError", "DeviceBusyError",
-    "DeviceFaultError", "DeviceNotFoundError", "DeviceRemovedError", "GrabTimeoutError", "IncompleteFrameError", "ProtocolError",
-    "RawFileError",
+    "open_camera", "list_devices", "parse_tcp_address", "DeviceInfo", "StreamCamera", "ReplayCamera", "RawFrame",
+    "FrameStatus", "Roi", "load_raw", "save_dng", "STRATEGIES", "AccessDeniedError", "CameraError",
+    "ConfigurationError", "DeviceBusyError", "DeviceFaultError", "DeviceNotFoundError", "DeviceRemovedError",
+    "GrabTimeoutError", "IncompleteFrameError", "ProtocolError", "RawFileError",
 ]
 
 _SIM_DEVICES: dict = {}

@@ -33,7 +33,6 @@ import zlib
 
 from .device import FirmwareDevice
 from .faults import Fault
-from .readout import ReadoutCancelled
 from .registers import RegError
 from .wire import (ACK, CRC, DEFAULT_IDLE_TIMEOUT_S, ENVELOPE, HEADER, HOST_BODY_BYTES, PROGRESS, REG_ACCESS,
                    REG_REPLY, U32, Msg, WireError, check_host_body, envelope, error_body, json_body, parse_envelope)
@@ -111,9 +110,7 @@ class _ReadoutJob:
         try:
             header, payload = self.device.frame_bytes(self.cancel, self._progress)
             self.result = (header, payload, zlib.crc32(payload))
-        except ReadoutCancelled as exc:
-            self.error = exc
-        except Exception as exc:  # a failing source must reach the host as an ERROR, not a thread traceback
+        except Exception as exc:  # ReadoutCancelled, or a failing source: the host gets ERROR, not a traceback
             self.error = exc
         finally:
             self.done.set()

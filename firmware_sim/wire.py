@@ -8,6 +8,9 @@ Lengths are checked *before* anything is allocated: an envelope longer than
 ``MAX_BODY_BYTES`` or a frame header whose ``payload_len`` disagrees with its
 width × height is refused with ``WireError``, so a hostile or broken length
 field cannot exhaust memory.
+
+The timing both ends rely on (reply deadline, heartbeat period, longest stall,
+idle timeout) is defined here once and read by the device and the host.
 """
 
 from __future__ import annotations
