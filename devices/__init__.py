@@ -192,9 +192,7 @@ def list_devices(tcp_ports: tuple[int, ...] = (), host: str = "127.0.0.1", timeo
     if "sim0" not in sims:
         found.append(DeviceInfo("sim://", MODEL_NAME, "BMI-00000001", False))
     for name, dev in sims.items():
-        busy = not dev.claim()
-        if not busy:
-            dev.release()
+        busy = dev.claimed  # a look, not a claim: release() would reset the registers
         found.append(DeviceInfo("sim://" if name == "sim0" else f"sim://{name}", MODEL_NAME,
                                 dev.describe()["serial"], busy))
     for port in tcp_ports:

@@ -77,6 +77,11 @@ class FirmwareDevice:
             self._claimed = True
             return True
 
+    @property
+    def claimed(self) -> bool:
+        """Whether a host holds the device now."""
+        return self._claimed
+
     def release(self) -> None:
         """The host let go (closed or lost the link): the session registers return to their defaults."""
         with self._lock:
