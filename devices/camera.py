@@ -9,6 +9,11 @@ incomplete and corrupt frames all give their buffer back. Counters in
 ``stats`` say what happened: ``lost`` counts frame ids that never reached the
 host (dropped on the device or link), ``discarded`` those the host had no
 buffer for, ``replaced`` those latest_only overwrote.
+
+Timeouts in ``grab`` and ``capture`` count *silence*: a device that is still
+reading out a frame (a scene rendered through the lens can take minutes) sends
+PROGRESS heartbeats, each of which restarts the wait; only a device that says
+nothing for ``timeout_s`` is given up on. ``on_progress`` sees the heartbeats.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from bmi_sdk.geometry import SensorGeometry
 from firmware_sim.registers import BY_NAME, RegError
 from firmware_sim.wire import FLAG_TEST_PATTERN, FrameHeader
 
-from .errors import (CameraError, ConfigurationError, DeviceRemovedError, GrabTimeoutError)
+from .errors import CameraError, ConfigurationError, DeviceFaultError, DeviceRemovedError, GrabTimeoutError
 from .frame import BufferPool, FrameStatus, RawFrame, Roi
 from .link import StreamLink
 from .settings import Settings, refused, specs_from_register_map
@@ -37,16 +42,25 @@ _STAT_KEYS = ("delivered", "complete", "incomplete", "corrupt", "lost", "discard
 
 
 class StreamCamera:
-    """A camera reached through ``connect()``, which returns a fresh connected socket (and a cleanup)."""
+    """A camera reached through ``connect()``, which returns a fresh connected socket (and a cleanup).
+
+    ``token``: sent (AUTH) on every connect, for a device that wants one; ``on_progress(frame_id,
+    done, total)`` is called on the link thread for each heartbeat of a readout in progress.
+    """
 
     def __init__(self, uri: str, connect: Callable[[], tuple[socket.socket, Callable[[], None]]],
                  on_frame: Callable[[RawFrame], None] | None = None,
-                 on_disconnect: Callable[[str], None] | None = None, io_timeout_s: float = 5.0):
+                 on_disconnect: Callable[[str], None] | None = None, io_timeout_s: float = 5.0,
+                 token: bytes | None = None, on_progress: Callable[[int, int, int], None] | None = None):
         self.uri = uri
         self._connect = connect
         self.on_frame = on_frame
         self.on_disconnect = on_disconnect
+        self.on_progress = on_progress
         self.io_timeout_s = io_timeout_s
+        self._token = token
+        self._alive_s = time.monotonic()  # when the device last showed life (frame or heartbeat)
+        self._fault: str | None = None  # an unsolicited device ERROR not yet raised to the user
         self._cond = threading.Condition()
         self._queue: collections.deque[RawFrame] = collections.deque()
         self._pool: BufferPool | None = None
@@ -70,6 +84,8 @@ class StreamCamera:
         self._removed = None
         self._link = StreamLink(sock, self, io_timeout_s=self.io_timeout_s)
         try:
+            if self._token is not None:
+                self._link.authenticate(self._token)
             self.info = self._link.hello()
         except CameraError:
             self._link.close()
@@ -148,6 +164,12 @@ class StreamCamera:
             raise refused(name, value, err)
         self._applied[name] = int(value)
 
+    def ping(self) -> None:
+        """Keep-alive: tell the device this host is still here. A TCP device drops a host that sends
+        nothing for its idle timeout (``info["link"]["idle_timeout_s"]``) while not streaming; call this
+        while you wait between captures."""
+        self._check_link().ping()
+
     def read_register(self, name: str) -> int:
         """Raw register read by name (see firmware_sim.registers), e.g. ``FRAME_COUNTER``."""
         if name not in BY_NAME:
@@ -169,6 +191,7 @@ class StreamCamera:
                                      f"{MAX_BUFFER_BYTES >> 30} GiB")
         self._strategy = strategy
         self._pool = BufferPool(buffers, (roi.height_px, roi.width_px))
+        self._fault = None
         self._streaming = True
         try:
             link.start(0)
@@ -195,14 +218,18 @@ class StreamCamera:
         return 0 if self._pool is None else self._pool.free
 
     def _wait_until(self, ready, timeout_s: float, removed_hint: str = "") -> None:
-        """Wait on the condition (held by the caller) until ``ready()``; raise if removed or timed out."""
-        deadline = time.monotonic() + timeout_s
+        """Wait on the condition (held by the caller) until ``ready()``; raise if removed, if the device
+        reported a failure, or after ``timeout_s`` without a frame or a heartbeat."""
+        start = time.monotonic()
         while not ready():
             if self._removed is not None:
                 raise DeviceRemovedError(f"{self.uri}: {self._removed}{removed_hint}")
-            left = deadline - time.monotonic()
+            if self._fault is not None:
+                fault, self._fault = self._fault, None
+                raise DeviceFaultError(f"{self.uri}: {fault}")
+            left = max(start, self._alive_s) + timeout_s - time.monotonic()
             if left <= 0:
-                raise GrabTimeoutError(f"no frame from {self.uri} within {timeout_s} s")
+                raise GrabTimeoutError(f"no frame and no heartbeat from {self.uri} for {timeout_s} s")
             self._cond.wait(left)
 
     def grab(self, timeout_s: float = 5.0) -> RawFrame:
@@ -232,6 +259,7 @@ class StreamCamera:
             raise ConfigurationError("capture() while streaming; use grab() or stop() first")
         with self._cond:
             self._oneshot = []
+            self._fault = None
         try:
             link.start(1)
             with self._cond:
@@ -284,6 +312,7 @@ class StreamCamera:
                 source=self.info.get("source"))
             self.stats["delivered"] += 1
             self.stats[status.value] += 1
+            self._alive_s = time.monotonic()
             if self._oneshot is not None:
                 self._oneshot.append(self._hand_out(frame))
                 self._cond.notify_all()
@@ -298,6 +327,18 @@ class StreamCamera:
                 self._cond.notify_all()
                 return
         self.on_frame(self._hand_out(frame))  # the buffer returns once the callback keeps no reference to the frame
+
+    def progress(self, frame_id: int, done: int, total: int) -> None:
+        with self._cond:
+            self._alive_s = time.monotonic()
+            self._cond.notify_all()
+        if self.on_progress is not None:
+            self.on_progress(frame_id, done, total)
+
+    def device_error(self, reason: str) -> None:
+        with self._cond:
+            self._fault = reason
+            self._cond.notify_all()
 
     def link_closed(self, reason: str) -> None:
         with self._cond:

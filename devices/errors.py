@@ -15,6 +15,14 @@ class DeviceBusyError(CameraError):
     """Another host (or another open_camera in this process) holds the camera."""
 
 
+class AccessDeniedError(CameraError, PermissionError):
+    """The device wants a token (``tcp://HOST:PORT?token=…``) and none or a wrong one was given."""
+
+
+class DeviceFaultError(CameraError):
+    """The device reported that it could not deliver (a readout failed); the link is still up."""
+
+
 class DeviceRemovedError(CameraError, ConnectionError):
     """The link dropped (unplugged, device reset, stream ended mid-frame). ``reconnect()`` may recover."""
 

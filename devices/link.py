@@ -5,8 +5,11 @@ control replies (handed to the waiting request) and frames, which it decodes
 into a buffer the ``FrameSink`` provides: every length is checked against the
 protocol limits before a byte is allocated or read, a short FRAME message is
 reported as incomplete, a payload CRC mismatch as corrupt, and a stream that
-ends or goes silent mid-message as a disconnect. Nothing blocks forever: socket
-reads poll a stop flag, requests and partial messages have timeouts.
+ends or goes silent mid-message as a disconnect. PROGRESS heartbeats (a
+readout in progress) go to ``FrameSink.progress``; an ERROR answers the request
+it names or, unsolicited, goes to ``FrameSink.device_error``. Nothing blocks
+forever: socket reads poll a stop flag, requests and partial messages have
+timeouts (``wire.REPLY_TIMEOUT_S``, which the device honours while it reads out).
 """
 
 from __future__ import annotations
@@ -21,10 +24,10 @@ from typing import Protocol
 import numpy as np
 
 from firmware_sim.registers import RegError
-from firmware_sim.wire import (ACK, CRC, ENVELOPE, HEADER, REG_ACCESS, REG_REPLY, U32, FrameHeader, Msg, WireError,
-                               envelope, parse_envelope, unpack12)
+from firmware_sim.wire import (ACK, CRC, ENVELOPE, HEADER, PROGRESS, REG_ACCESS, REG_REPLY, REPLY_TIMEOUT_S, U32,
+                               FrameHeader, Msg, WireError, envelope, parse_envelope, unpack12)
 
-from .errors import CameraError, DeviceBusyError, DeviceRemovedError, ProtocolError
+from .errors import AccessDeniedError, CameraError, DeviceBusyError, DeviceRemovedError, ProtocolError
 from .frame import FrameStatus
 
 POLL_S = 0.2
@@ -38,6 +41,24 @@ class FrameSink(Protocol):
 
     def link_closed(self, reason: str) -> None: ...
 
+    def progress(self, frame_id: int, done: int, total: int) -> None:
+        """The device is still reading out ``frame_id`` (a heartbeat); ``done`` of ``total`` units of work."""
+
+    def device_error(self, reason: str) -> None:
+        """The device reported a failure no request asked about (a readout that failed)."""
+
+
+def _parse_error(body: bytes) -> dict:
+    """An ERROR body as a dict with code, reason, in_reply_to; a malformed one is a protocol error itself."""
+    try:
+        err = json.loads(body)
+        if not isinstance(err, dict):
+            raise ValueError("not an object")
+        return {"code": str(err.get("code", "?")), "reason": str(err.get("reason", "")),
+                "in_reply_to": int(err.get("in_reply_to", 0))}
+    except (ValueError, TypeError) as exc:
+        raise WireError(f"malformed ERROR body ({exc})") from None
+
 
 class _Closed(Exception):
     pass
@@ -45,7 +66,7 @@ class _Closed(Exception):
 
 class StreamLink:
     def __init__(self, sock: socket.socket, sink: FrameSink, io_timeout_s: float = 5.0,
-                 request_timeout_s: float = 5.0):
+                 request_timeout_s: float = REPLY_TIMEOUT_S):
         self.sock = sock
         self.sink = sink
         self.io_timeout_s = io_timeout_s
@@ -54,6 +75,7 @@ class StreamLink:
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
         self.closed_reason: str | None = None
+        self._device_said: str | None = None  # the reason of the last unsolicited ERROR
         self._rx = bytearray()
         sock.settimeout(POLL_S)
         self._thread = threading.Thread(target=self._read_loop, name="bmi-host-link", daemon=True)
@@ -69,6 +91,8 @@ class StreamLink:
                 reply = None
             if reply == Msg.BUSY:
                 raise DeviceBusyError(json.loads(reply_body).get("reason", "device busy"))
+            if reply == Msg.ERROR:
+                self._raise_refusal(msg, reply_body)
             raise DeviceRemovedError(f"link is down: {self.closed_reason}")
         with self._send_lock:
             timeout_s = self.request_timeout_s
@@ -84,9 +108,25 @@ class StreamLink:
             raise DeviceRemovedError(f"link dropped while waiting for {msg.name}: {reply_body}")
         if reply == Msg.BUSY:
             raise DeviceBusyError(json.loads(reply_body).get("reason", "device busy"))
+        if reply == Msg.ERROR:
+            self._raise_refusal(msg, reply_body)
         if reply != expect:
             raise ProtocolError(f"device answered {msg.name} with {reply.name}, expected {expect.name}")
         return reply_body
+
+    @staticmethod
+    def _raise_refusal(msg: Msg, err: dict) -> None:
+        if err["code"].startswith("auth"):
+            raise AccessDeniedError(f"device refused {msg.name}: {err['reason']}")
+        raise ProtocolError(f"device refused {msg.name} ({err['code']}): {err['reason']}")
+
+    def authenticate(self, token: bytes) -> None:
+        """Send the shared token (a device with a token accepts nothing before it)."""
+        ACK.unpack(self.request(Msg.AUTH, token, Msg.ACK))
+
+    def ping(self) -> None:
+        """Keep-alive: a round trip that tells the device this host is still here."""
+        ACK.unpack(self.request(Msg.PING, b"", Msg.ACK))
 
     def hello(self) -> dict:
         return json.loads(self.request(Msg.HELLO, b"", Msg.HELLO))
@@ -153,14 +193,29 @@ class StreamLink:
                 msg, length = parse_envelope(self._read_exact(ENVELOPE.size, "a message envelope", idle_ok=True))
                 if msg == Msg.FRAME:
                     self._read_frame(length)
+                    continue
+                body = self._read_exact(length, msg.name) if length else b""
+                if msg == Msg.PROGRESS:
+                    if length != PROGRESS.size:
+                        raise WireError(f"PROGRESS body is {length} bytes, expected {PROGRESS.size}")
+                    self.sink.progress(*PROGRESS.unpack(body))
+                elif msg == Msg.ERROR:
+                    err = _parse_error(body)
+                    if err["in_reply_to"]:
+                        self._replies.put((msg, err))
+                    else:
+                        self._device_said = f"{err['reason']} ({err['code']})"
+                        self.sink.device_error(self._device_said)
                 else:
-                    self._replies.put((msg, self._read_exact(length, msg.name) if length else b""))
+                    self._replies.put((msg, body))
         except _Closed as exc:
-            reason = str(exc)
+            reason = str(exc) if self._device_said is None else f"{exc}; the device said: {self._device_said}"
         except WireError as exc:
             reason = f"protocol error: {exc}"
         except CameraError as exc:
             reason = str(exc)
+        except Exception as exc:  # e.g. a user's on_frame / on_progress callback: say so, not "closed by host"
+            reason = f"link reader stopped by {type(exc).__name__}: {exc}"
         finally:
             self.closed_reason = reason
             self._replies.put((None, reason))

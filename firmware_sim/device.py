@@ -3,7 +3,8 @@
 ``FirmwareDevice`` is what the camera's firmware holds. It knows nothing of
 sockets: ``firmware_sim.endpoint`` serves it over a stream (TCP or an
 in-process socket pair). One host at a time may hold the device (``claim``),
-as with a real camera.
+as with a real camera; when it lets go (``release``), the registers it could
+write return to their defaults, so one host's settings never reach the next.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -22,7 +24,7 @@ from . import registers as R
 from .faults import FaultInjector, FaultPlan
 from .readout import Readout
 from .sources import IrradianceSource, PolarChart
-from .wire import FLAG_TEST_PATTERN, FrameHeader, packed_size, pack12
+from .wire import FLAG_TEST_PATTERN, HEARTBEAT_S, FrameHeader, packed_size, pack12
 
 MODEL_NAME = "BMI-SIM"
 
@@ -46,10 +48,15 @@ class FirmwareDevice:
 
     def __init__(self, source: IrradianceSource | None = None, serial: int = 1, seed: int = 0,
                  faults: FaultPlan | None = None, geometry: SensorGeometry = BMI_SENSOR,
-                 model: SensorModel = SensorModel(), lens: str = "bmi_monocentric"):
+                 model: SensorModel = SensorModel(), lens: str = "bmi_monocentric", heartbeat_s: float = HEARTBEAT_S):
+        """``heartbeat_s``: how often a readout in progress tells the host it is alive (PROGRESS)."""
         if (geometry.width_px, geometry.height_px) != (R.SENSOR_WIDTH_PX, R.SENSOR_HEIGHT_PX):
             raise ValueError(f"the firmware drives a {R.SENSOR_WIDTH_PX}×{R.SENSOR_HEIGHT_PX} sensor, "
                              f"geometry is {geometry.width_px}×{geometry.height_px}")
+        if not 0 < heartbeat_s <= HEARTBEAT_S:
+            raise ValueError(f"heartbeat_s must be in (0, {HEARTBEAT_S:g}] s (hosts rely on that bound), "
+                             f"got {heartbeat_s}")
+        self.heartbeat_s = float(heartbeat_s)
         self.regs = R.RegisterFile(serial)
         self.seed = int(seed)
         self.geometry = geometry
@@ -70,10 +77,16 @@ class FirmwareDevice:
             self._claimed = True
             return True
 
+    @property
+    def claimed(self) -> bool:
+        """Whether a host holds the device now."""
+        return self._claimed
+
     def release(self) -> None:
+        """The host let go (closed or lost the link): the session registers return to their defaults."""
         with self._lock:
             self._claimed = False
-            self.regs.set_status(R.Status.ACQUIRING, False)
+            self.regs.reset_session()
 
     # -- world ----------------------------------------------------------------
     def load_source(self, source: IrradianceSource) -> None:
@@ -101,6 +114,7 @@ class FirmwareDevice:
             "registers": R.describe(), "cfa": CFA_PATTERN, "bit_depth": self.model.adc_bits,
             "white_level_dn": self.model.white_level_dn, "geometry": self.geometry.to_dict(),
             "lens": self.lens, "sensor_model": self.model.to_dict(), "source": self._source.metadata(),
+            "heartbeat_s": self.heartbeat_s,
         }
 
     # -- registers ------------------------------------------------------------
@@ -121,8 +135,13 @@ class FirmwareDevice:
         return time.monotonic_ns() - self._boot_ns
 
     # -- readout --------------------------------------------------------------
-    def read_out(self) -> ReadoutResult:
-        """Expose and read one frame with the current registers (advances FRAME_COUNTER)."""
+    def read_out(self, cancel: threading.Event | None = None,
+                 progress: Callable[[int, int, int], None] | None = None) -> ReadoutResult:
+        """Expose and read one frame with the current registers; FRAME_COUNTER advances when it is done.
+
+        ``cancel`` abandons the readout between strips (``ReadoutCancelled``; the frame id is not used
+        up); ``progress(frame_id, rows_done, rows_total)`` is called between strips.
+        """
         with self._lock:
             regs = self.regs
             frame_id = regs.get("FRAME_COUNTER")
@@ -132,15 +151,18 @@ class FirmwareDevice:
             black = regs.get("BLACK_LEVEL_DN")
             pattern = R.TestPattern(regs.get("TEST_PATTERN"))
             source = self._source
-            regs.set_internal("FRAME_COUNTER", (frame_id + 1) & R.U32_MAX)
-            temp_mc = int(25_000 + 15_000 * (1 - math.exp(-(frame_id + 1) / 2000)))
-            regs.set_internal("SENSOR_TEMP_MILLI_C", temp_mc)
         start_ns = self.now_ns()
         if pattern == R.TestPattern.OFF:
             rng = np.random.default_rng([self.seed, frame_id])
-            pixels = self._readout.sensor_frame(source, roi, exposure_us, gain_milli / 1000, black, rng)
+            strip_progress = None if progress is None else (lambda done, total: progress(frame_id, done, total))
+            pixels = self._readout.sensor_frame(source, roi, exposure_us, gain_milli / 1000, black, rng,
+                                                cancel=cancel, progress=strip_progress)
         else:
             pixels = self._readout.test_pattern(pattern, roi, frame_id)
+        with self._lock:
+            regs.set_internal("FRAME_COUNTER", (frame_id + 1) & R.U32_MAX)
+            temp_mc = int(25_000 + 15_000 * (1 - math.exp(-(frame_id + 1) / 2000)))
+            regs.set_internal("SENSOR_TEMP_MILLI_C", temp_mc)
         x, y, w, h = roi
         header = FrameHeader(
             frame_id=frame_id, device_ts_ns=start_ns, readout_ts_ns=self.now_ns(), exposure_us=exposure_us,
@@ -149,7 +171,8 @@ class FirmwareDevice:
             payload_len=packed_size(w * h), flags=FLAG_TEST_PATTERN if pattern else 0)
         return ReadoutResult(header, pixels)
 
-    def frame_bytes(self) -> tuple[FrameHeader, bytes]:
-        """Read out one frame and pack its payload (RAW12) as it goes on the wire."""
-        result = self.read_out()
+    def frame_bytes(self, cancel: threading.Event | None = None,
+                    progress: Callable[[int, int, int], None] | None = None) -> tuple[FrameHeader, bytes]:
+        """Read out one frame (see ``read_out``) and pack its payload (RAW12) as it goes on the wire."""
+        result = self.read_out(cancel, progress)
         return result.header, pack12(result.pixels)

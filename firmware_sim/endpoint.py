@@ -2,76 +2,181 @@
 
 The same connection loop runs over a TCP socket (``FirmwareServer``, loopback
 only, what ``bmi firmware-sim serve`` starts) and over an in-process socket
-pair (``connect_in_process``), so the host code, framing and faults are the
-same in both. The loop answers commands (docs/protocol.md) and, while
-acquiring, reads out and sends frames as fast as the link takes them (the
-simulator does not wait out the exposure in real time). Every blocking call has
-a timeout and every loop checks a stop event, so nothing can hang.
+pair (``InProcessLink``), so the host code, framing and faults are the same in
+both. The loop answers commands (docs/protocol.md) and, while acquiring, has
+frames read out and sends them as fast as the link takes them (the simulator
+does not wait out the exposure in real time).
+
+A readout runs on a worker thread (``_ReadoutJob``) so the loop keeps
+answering commands while a slow source (a scene rendered through the lens)
+takes minutes: it sends a PROGRESS heartbeat every ``device.heartbeat_s``,
+answers STOP at once (abandoning the readout between strips) and holds a
+stalled frame without blocking. A TCP host that sends no whole message for
+``idle_timeout_s`` (except while frames stream to it) is dropped with an ERROR
+saying why, so one idle or trickling client cannot lock the camera; with a
+token, nothing but AUTH is accepted before the token matches, and an
+unauthenticated connection never holds the camera. Every blocking call has a
+timeout and every loop checks a stop event, so nothing can hang.
 """
 
 from __future__ import annotations
 
+import atexit
+import hmac
 import ipaddress
 import select
 import socket
 import threading
 import time
+import weakref
 import zlib
 
 from .device import FirmwareDevice
 from .faults import Fault
 from .registers import RegError
-from .wire import (ACK, CRC, HEADER, REG_ACCESS, REG_REPLY, U32, Msg, WireError, envelope, json_body,
-                   parse_envelope)
+from .wire import (ACK, CRC, DEFAULT_IDLE_TIMEOUT_S, ENVELOPE, HEADER, HOST_BODY_BYTES, PROGRESS, REG_ACCESS,
+                   REG_REPLY, U32, Msg, WireError, check_host_body, envelope, error_body, json_body, parse_envelope)
 
 SEND_TIMEOUT_S = 10.0
 POLL_S = 0.05
 
 
-def _recv_exact(sock: socket.socket, n: int) -> bytes:
-    buf = bytearray(n)
-    view = memoryview(buf)
-    got = 0
-    while got < n:
-        k = sock.recv_into(view[got:])
-        if k == 0:
-            raise ConnectionError("host closed the link")
-        got += k
-    return bytes(buf)
+# -- readouts off the connection thread ---------------------------------------------
+_LIVE_JOBS: "weakref.WeakSet[_ReadoutJob]" = weakref.WeakSet()
+_JOBS_LOCK = threading.Lock()
+_EXITING = False
+
+
+@atexit.register
+def _cancel_readouts_at_exit() -> None:
+    """Cancel running readouts and wait for them before the interpreter finalises.
+
+    A daemon thread still inside C++ (scipy's FFT in the renderer) when Python
+    finalises is ended by a forced unwind, which C++ answers with
+    ``terminate called without an active exception`` (SIGABRT). ``atexit``
+    runs while the interpreter is intact; each readout stops at its next strip.
+    """
+    global _EXITING
+    with _JOBS_LOCK:
+        _EXITING = True
+        jobs = list(_LIVE_JOBS)
+    for job in jobs:
+        job.cancel.set()
+    for job in jobs:
+        job.thread.join()
+
+
+class _ReadoutJob:
+    """One frame read out and packed on a worker thread; ``wake`` is written when it is done."""
+
+    def __init__(self, device: FirmwareDevice, wake: socket.socket):
+        self.device = device
+        self.cancel = threading.Event()
+        self.done = threading.Event()
+        self.started_s = time.monotonic()
+        self.frame_id = device.regs.get("FRAME_COUNTER")
+        self.rows_done = self.rows_total = 0
+        self._window = device.regs.roi()  # fixed while acquiring
+        self._source = device.source
+        self.result: tuple | None = None  # (header, payload, payload CRC32)
+        self.error: BaseException | None = None
+        self._wake = wake
+        self.thread = threading.Thread(target=self._run, name="bmi-fw-readout", daemon=True)
+
+    def start(self) -> bool:
+        """False when the process is exiting (no new readouts then)."""
+        with _JOBS_LOCK:
+            if _EXITING:
+                return False
+            _LIVE_JOBS.add(self)
+            self.thread.start()
+        return True
+
+    def _progress(self, frame_id: int, rows_done: int, rows_total: int) -> None:
+        self.frame_id, self.rows_done, self.rows_total = frame_id, rows_done, rows_total
+
+    def work(self) -> tuple[int, int]:
+        """(done, total) for a heartbeat: the source's own measure of its slow work (render blocks) when it
+        has one, else rows read out."""
+        measure = getattr(self._source, "work", None)
+        if measure is not None:
+            x, y, w, h = self._window
+            got = measure(y, x, h, w)
+            if got is not None:
+                return got
+        return self.rows_done, self.rows_total
+
+    def _run(self) -> None:
+        try:
+            header, payload = self.device.frame_bytes(self.cancel, self._progress)
+            self.result = (header, payload, zlib.crc32(payload))
+        except Exception as exc:  # ReadoutCancelled, or a failing source: the host gets ERROR, not a traceback
+            self.error = exc
+        finally:
+            self.done.set()
+            try:
+                self._wake.send(b"\0")
+            except OSError:
+                pass
+
+
+class _Drop(Exception):
+    """The device ends this session (it has said why, where it could)."""
 
 
 class _Connection:
     """One host session: commands in, frames out, until the host leaves or ``stop`` is set."""
 
-    def __init__(self, device: FirmwareDevice, sock: socket.socket, stop: threading.Event):
+    def __init__(self, device: FirmwareDevice, sock: socket.socket, stop: threading.Event,
+                 token: bytes | None = None, idle_timeout_s: float | None = None):
         self.device = device
         self.sock = sock
         self.stop = stop
+        self.token = token
+        self.idle_timeout_s = idle_timeout_s
         self.remaining = 0  # frames still to send; -1: until STOP
+        self._rx = bytearray()
+        self._authed = token is None
+        self._claimed = False
+        self._job: _ReadoutJob | None = None
+        self._held: tuple | None = None  # (send at, header, payload, crc): a frame a STALL fault holds back
+        self._quiet_since = time.monotonic()
+        self._last_beat = 0.0
+        self._wake_r, self._wake_w = socket.socketpair()
 
+    # -- session ---------------------------------------------------------------------
     def run(self) -> None:
-        self.sock.settimeout(SEND_TIMEOUT_S)
-        if not self.device.claim():
-            try:
-                body = json_body({"reason": f"device {self.device.describe()['serial']} is held by another host"})
-                self.sock.sendall(envelope(Msg.BUSY, body) + body)
-            except OSError:
-                pass
-            self._close()
-            return
         try:
+            self.sock.settimeout(SEND_TIMEOUT_S)
+            if self._authed and not self._claim():
+                return
             while not self.stop.is_set():
-                readable, _, _ = select.select([self.sock], [], [], 0 if self.remaining else POLL_S)
-                if readable:
-                    self._command()
-                elif self.remaining:
-                    if not self._send_frame():
-                        return
-        except (OSError, ConnectionError, WireError):
-            pass  # host gone or speaking garbage: drop the link like hardware would
+                readable, _, _ = select.select([self.sock, self._wake_r], [], [], self._wait_s())
+                if self._wake_r in readable:
+                    self._wake_r.recv(4096)
+                if self.sock in readable:
+                    data = self.sock.recv(1 << 16)
+                    if not data:
+                        return  # host closed the link
+                    self._rx += data
+                    self._commands()
+                self._check_idle()
+                self._acquire()
+        except (OSError, ConnectionError, WireError, _Drop):
+            pass  # host gone, or the device dropped it (after saying why)
         finally:
-            self.device.release()
+            self._end_readout()
+            if self._claimed:
+                self.device.release()
             self._close()
+
+    def _claim(self) -> bool:
+        if self.device.claim():
+            self._claimed = True
+            return True
+        self._reply(Msg.BUSY, json_body({"reason": f"device {self.device.describe()['serial']} is held by "
+                                                   f"another host"}))
+        return False
 
     def _close(self) -> None:
         try:
@@ -79,16 +184,71 @@ class _Connection:
         except OSError:
             pass
         self.sock.close()
+        self._wake_r.close()
+        self._wake_w.close()
 
     def _reply(self, msg: Msg, body: bytes = b"") -> None:
         self.sock.sendall(envelope(msg, body) + body)
 
-    def _command(self) -> None:
-        msg, length = parse_envelope(_recv_exact(self.sock, 12))
-        body = _recv_exact(self.sock, length) if length else b""
+    def _error(self, code: str, reason: str, in_reply_to: Msg | None = None) -> None:
+        self._reply(Msg.ERROR, error_body(code, reason, in_reply_to))
+
+    def _wait_s(self) -> float:
+        """How long select may sleep: until the held frame is due, the next heartbeat, or POLL_S."""
+        now = time.monotonic()
+        wait = POLL_S
+        if self._held is not None:
+            wait = min(wait, self._held[0] - now)
+        if self._job is not None:
+            wait = min(wait, self._last_beat + self.device.heartbeat_s - now)
+        return max(0.0, wait)
+
+    def _check_idle(self) -> None:
+        """Drop a host that sent no whole message for idle_timeout_s (a stream of frames to it counts as use)."""
+        now = time.monotonic()
+        streaming = bool(self.remaining or self._job or self._held)
+        if streaming and not self._rx:
+            self._quiet_since = now
+        if self.idle_timeout_s is not None and now - self._quiet_since > self.idle_timeout_s:
+            partial = f" ({len(self._rx)} bytes of a message pending)" if self._rx else ""
+            self._error("idle_timeout", f"no complete message for {self.idle_timeout_s:g} s{partial}: link "
+                                        f"closed; a host that waits sends PING to keep the camera")
+            raise _Drop
+
+    # -- commands --------------------------------------------------------------------
+    def _commands(self) -> None:
+        while len(self._rx) >= ENVELOPE.size:
+            try:
+                msg, length = parse_envelope(bytes(self._rx[:ENVELOPE.size]))
+            except WireError as exc:  # out of sync: nothing after this can be trusted
+                self._error("bad_message", str(exc))
+                raise _Drop from None
+            if len(self._rx) < ENVELOPE.size + length:
+                return
+            body = bytes(self._rx[ENVELOPE.size:ENVELOPE.size + length])
+            del self._rx[:ENVELOPE.size + length]
+            self._quiet_since = time.monotonic()
+            self._command(msg, body)
+
+    def _command(self, msg: Msg, body: bytes) -> None:
+        problem = check_host_body(msg, len(body))
+        if problem is not None:
+            self._error("bad_message", problem, msg)
+            if msg not in HOST_BODY_BYTES and msg != Msg.AUTH:
+                raise _Drop  # a device-only type: the host is not speaking this protocol
+            return  # the envelope framed it: the stream is still in sync
+        if msg == Msg.AUTH:
+            self._authenticate(body)
+            return
+        if not self._authed:
+            self._error("auth_required", f"this camera needs a token: send AUTH before {msg.name}", msg)
+            raise _Drop
         dev = self.device
         if msg == Msg.HELLO:
-            self._reply(Msg.HELLO, json_body(dev.describe()))
+            link = {"idle_timeout_s": self.idle_timeout_s, "token_required": self.token is not None}
+            self._reply(Msg.HELLO, json_body(dev.describe() | {"link": link}))
+        elif msg == Msg.PING:
+            self._reply(Msg.ACK, ACK.pack(Msg.PING, 0))
         elif msg == Msg.READ_REG:
             (address,) = U32.unpack(body)
             err, value = dev.read_register(address)
@@ -105,14 +265,54 @@ class _Connection:
             self._reply(Msg.ACK, ACK.pack(Msg.START, 0))
         elif msg == Msg.STOP:
             self.remaining = 0
+            self._held = None  # a frame held back is discarded: nothing follows the ACK of STOP
+            if self._job is not None:
+                self._job.cancel.set()
             dev.set_acquiring(False)
             self._reply(Msg.ACK, ACK.pack(Msg.STOP, 0))
-        else:
-            raise WireError(f"host sent {msg.name}, which only a device sends")
 
-    def _send_frame(self) -> bool:
-        """Read out, inject this frame's fault, send. False when the link is dropped."""
-        header, payload = self.device.frame_bytes()
+    def _authenticate(self, token: bytes) -> None:
+        if self._authed:
+            self._reply(Msg.ACK, ACK.pack(Msg.AUTH, 0))
+            return
+        if not hmac.compare_digest(token, self.token):  # constant time: the comparison leaks no prefix
+            self._error("auth_failed", "wrong token", Msg.AUTH)
+            raise _Drop
+        self._authed = True
+        if not self._claim():
+            raise _Drop
+        self._reply(Msg.ACK, ACK.pack(Msg.AUTH, 0))
+
+    # -- acquisition -------------------------------------------------------------------
+    def _acquire(self) -> None:
+        now = time.monotonic()
+        job = self._job
+        if job is not None and job.done.is_set():
+            self._job = None
+            if not job.cancel.is_set():
+                self._finished(job)
+        if self._held is not None and now >= self._held[0]:
+            _, header, payload, crc = self._held
+            self._held = None
+            self._send(header, payload, crc, Fault.NONE)
+        if self.remaining and self._job is None and self._held is None:
+            job = _ReadoutJob(self.device, self._wake_w)
+            if not job.start():
+                raise _Drop  # the process is exiting
+            self._job, self._last_beat = job, job.started_s
+        elif (self._job is not None and not self._job.cancel.is_set()
+              and now - self._last_beat >= self.device.heartbeat_s):
+            self._reply(Msg.PROGRESS, PROGRESS.pack(self._job.frame_id, *self._job.work()))
+            self._last_beat = now
+
+    def _finished(self, job: _ReadoutJob) -> None:
+        if job.error is not None:
+            self.remaining = 0
+            self.device.set_acquiring(False)
+            self._error("readout_failed", f"readout of frame {job.frame_id} failed: "
+                                          f"{type(job.error).__name__}: {job.error}")
+            return
+        header, payload, crc = job.result
         if self.remaining > 0:
             self.remaining -= 1
             if self.remaining == 0:
@@ -120,29 +320,40 @@ class _Connection:
         injector = self.device.injector
         fault = injector.draw(header.frame_id)
         if fault == Fault.DROP:
-            return True
-        crc = CRC.pack(zlib.crc32(payload))
+            return
+        if fault == Fault.STALL:
+            self._held = (time.monotonic() + injector.plan.stall_s, header, payload, crc)
+            return
+        self._send(header, payload, crc, fault)
+
+    def _send(self, header, payload: bytes, crc: int, fault: Fault) -> None:
+        """Send one frame with its fault applied; a DISCONNECT fault ends the session."""
+        injector = self.device.injector
         full_len = HEADER.size + len(payload) + CRC.size
         if fault == Fault.CORRUPT:
             damaged = bytearray(payload)
             damaged[injector.corrupt_offset(len(payload))] ^= 0xA5
             payload = damaged
-        elif fault == Fault.STALL:
-            deadline = time.monotonic() + self.device.injector.plan.stall_s
-            while time.monotonic() < deadline and not self.stop.is_set():
-                time.sleep(min(POLL_S, max(0.0, deadline - time.monotonic())))
         elif fault in (Fault.INCOMPLETE, Fault.DISCONNECT):
             cut = int(len(payload) * injector.cut_fraction())
             length = full_len if fault == Fault.DISCONNECT else HEADER.size + cut
             self.sock.sendall(envelope(Msg.FRAME, length=length))
             self.sock.sendall(header.pack())
             self.sock.sendall(memoryview(payload)[:cut])
-            return fault != Fault.DISCONNECT
+            if fault == Fault.DISCONNECT:
+                raise _Drop
+            return
         self.sock.sendall(envelope(Msg.FRAME, length=full_len))
         self.sock.sendall(header.pack())
         self.sock.sendall(payload)
-        self.sock.sendall(crc)
-        return True
+        self.sock.sendall(CRC.pack(crc))
+
+    def _end_readout(self) -> None:
+        """Abandon a readout in progress and wait for it (it stops at its next strip)."""
+        if self._job is not None:
+            self._job.cancel.set()
+            self._job.thread.join()
+            self._job = None
 
 
 def _check_loopback(host: str) -> None:
@@ -154,12 +365,29 @@ def _check_loopback(host: str) -> None:
         raise ValueError(f"the simulator serves on loopback only (127.0.0.1, ::1, localhost), not {host!r}")
 
 
-class FirmwareServer:
-    """TCP endpoint on loopback; one host at a time, others get BUSY. ``port=0`` picks a free port."""
+def tcp_uri(host: str, port: int) -> str:
+    """``tcp://HOST:PORT``, an IPv6 literal in brackets (``tcp://[::1]:PORT``) as URIs write it."""
+    return f"tcp://[{host}]:{port}" if ":" in host else f"tcp://{host}:{port}"
 
-    def __init__(self, device: FirmwareDevice, host: str = "127.0.0.1", port: int = 0):
+
+class FirmwareServer:
+    """TCP endpoint on loopback; one host at a time, others get BUSY. ``port=0`` picks a free port.
+
+    ``token``: when given, a host must send it (AUTH) before anything else; ``idle_timeout_s``: a host
+    that sends no whole message for this long, while no frames stream to it, is dropped.
+    """
+
+    def __init__(self, device: FirmwareDevice, host: str = "127.0.0.1", port: int = 0,
+                 token: bytes | None = None, idle_timeout_s: float = DEFAULT_IDLE_TIMEOUT_S):
         _check_loopback(host)
+        if token is not None and not token:
+            raise ValueError("an empty token protects nothing; give none or a non-empty one")
+        if not idle_timeout_s > 0:
+            raise ValueError(f"idle_timeout_s must be > 0 s (an idle host would hold the camera forever), "
+                             f"got {idle_timeout_s}")
         self.device = device
+        self.token = token
+        self.idle_timeout_s = float(idle_timeout_s)
         self._stop = threading.Event()
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         self._listener = socket.socket(family, socket.SOCK_STREAM)
@@ -173,7 +401,7 @@ class FirmwareServer:
 
     @property
     def uri(self) -> str:
-        return f"tcp://{self.host}:{self.port}"
+        return tcp_uri(self.host, self.port)
 
     def start(self) -> "FirmwareServer":
         self._accept_thread.start()
@@ -188,8 +416,8 @@ class FirmwareServer:
             except OSError:
                 return
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            t = threading.Thread(target=_Connection(self.device, sock, self._stop).run,
-                                 name="bmi-fw-conn", daemon=True)
+            conn = _Connection(self.device, sock, self._stop, self.token, self.idle_timeout_s)
+            t = threading.Thread(target=conn.run, name="bmi-fw-conn", daemon=True)
             t.start()
             self._threads = [x for x in self._threads if x.is_alive()] + [t]
 
@@ -209,7 +437,10 @@ class FirmwareServer:
 
 
 class InProcessLink:
-    """The device served on one end of a socket pair in a thread of this process; ``sock`` is the host's end."""
+    """The device served on one end of a socket pair in a thread of this process; ``sock`` is the host's end.
+
+    No token and no idle timeout: only this process can reach it.
+    """
 
     def __init__(self, device: FirmwareDevice):
         self._stop = threading.Event()

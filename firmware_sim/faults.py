@@ -9,7 +9,9 @@ compares with what the host reported.
 * CORRUPT: one payload byte is flipped after the CRC was computed.
 * INCOMPLETE: the FRAME message ends part-way through the payload (as when a
   readout is aborted); framing stays intact, the host sees fewer bytes.
-* STALL: the frame is sent intact after a pause of ``stall_s``.
+* STALL: the frame is sent intact after a pause of ``stall_s`` (at most
+  ``wire.MAX_STALL_S``); the device still answers commands meanwhile, and a
+  STOP discards the held frame.
 * DISCONNECT: part of the frame is sent, then the device drops the link.
 """
 
@@ -19,6 +21,8 @@ import enum
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from .wire import MAX_STALL_S
 
 
 class Fault(enum.Enum):
@@ -52,8 +56,8 @@ class FaultPlan:
                 raise ValueError(f"fault probability {kind.value}={p} is outside [0, 1]")
         if sum(probs) > 1.0 + 1e-12:
             raise ValueError(f"fault probabilities sum to {sum(probs)} > 1 (at most one fault per frame)")
-        if not 0.0 <= self.stall_s <= 10.0:
-            raise ValueError(f"stall_s must be in [0, 10] s, got {self.stall_s}")
+        if not 0.0 <= self.stall_s <= MAX_STALL_S:
+            raise ValueError(f"stall_s must be in [0, {MAX_STALL_S:g}] s, got {self.stall_s}")
 
     def probabilities(self) -> tuple[float, ...]:
         return (self.drop, self.corrupt, self.incomplete, self.stall, self.disconnect)

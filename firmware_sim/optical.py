@@ -98,20 +98,31 @@ class RenderedScene:
             self._blocks[key] = out
         return self._blocks[key]
 
-    def irradiance(self, row0: int, col0: int, height: int, width: int) -> np.ndarray:
-        out = np.zeros((height, width, 3), np.float32)
+    def _blocks_in(self, row0: int, col0: int, height: int, width: int):
+        """(block row, block col) of the blocks that cover the window and hold some of the scene."""
         b = self.block_px
         for br in range(row0 // b, (row0 + height - 1) // b + 1):
             for bc in range(col0 // b, (col0 + width - 1) // b + 1):
                 top, left = br * b, bc * b
-                r0, r1 = max(row0, top), min(row0 + height, top + b)
-                c0, c1 = max(col0, left), min(col0 + width, left + b)
-                if not (self.row0 < top + b and top < self.row0 + self.rgb.shape[0]
+                if (self.row0 < top + b and top < self.row0 + self.rgb.shape[0]
                         and self.col0 < left + b and left < self.col0 + self.rgb.shape[1]):
-                    continue  # block outside the scene: no light
-                out[r0 - row0:r1 - row0, c0 - col0:c1 - col0] = self._block(br, bc)[r0 - top:r1 - top,
-                                                                                        c0 - left:c1 - left]
+                    yield br, bc
+
+    def irradiance(self, row0: int, col0: int, height: int, width: int) -> np.ndarray:
+        out = np.zeros((height, width, 3), np.float32)  # blocks outside the scene: no light
+        b = self.block_px
+        for br, bc in self._blocks_in(row0, col0, height, width):
+            top, left = br * b, bc * b
+            r0, r1 = max(row0, top), min(row0 + height, top + b)
+            c0, c1 = max(col0, left), min(col0 + width, left + b)
+            out[r0 - row0:r1 - row0, c0 - col0:c1 - col0] = self._block(br, bc)[r0 - top:r1 - top,
+                                                                                    c0 - left:c1 - left]
         return out
+
+    def work(self, row0: int, col0: int, height: int, width: int) -> tuple[int, int]:
+        """(blocks rendered, blocks needed) for this window: the render's progress, for heartbeats."""
+        needed = list(self._blocks_in(row0, col0, height, width))
+        return sum(key in self._blocks for key in needed), len(needed)
 
 
 class ProceduralOpticalSource(RenderedScene):
@@ -137,6 +148,9 @@ class ProceduralOpticalSource(RenderedScene):
         if not self._ready:
             self._materialise()
         return super().irradiance(row0, col0, height, width)
+
+    def work(self, row0: int, col0: int, height: int, width: int) -> tuple[int, int] | None:
+        return super().work(row0, col0, height, width) if self._ready else None
 
     def metadata(self) -> dict:
         meta = super().metadata() if self._ready else {"source": self.name, "label": f"procedural seed {self.seed}"}

@@ -9,6 +9,9 @@ Every step calls ``bmi_sdk.sensor``; nothing is re-implemented here.
 
 from __future__ import annotations
 
+import threading
+from typing import Callable
+
 import numpy as np
 
 from bmi_sdk.geometry import SensorGeometry
@@ -18,6 +21,10 @@ from .registers import TestPattern
 from .sources import IrradianceSource
 
 STRIP_ROWS = 256
+
+
+class ReadoutCancelled(Exception):
+    """The readout was abandoned between strips (the host stopped, left, or the process is exiting)."""
 
 
 class Readout:
@@ -37,12 +44,23 @@ class Readout:
         return self._ri
 
     def sensor_frame(self, source: IrradianceSource, roi: tuple[int, int, int, int], exposure_us: float,
-                     analog_gain: float, black_level_dn: int, rng: np.random.Generator) -> np.ndarray:
-        """H×W uint16 raw DN of the window ``roi = (x, y, width, height)``."""
+                     analog_gain: float, black_level_dn: int, rng: np.random.Generator,
+                     cancel: threading.Event | None = None,
+                     progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+        """H×W uint16 raw DN of the window ``roi = (x, y, width, height)``.
+
+        Between strips it raises ``ReadoutCancelled`` once ``cancel`` is set and reports
+        ``progress(rows_done, rows_total)``: a slow source (a scene rendered through the lens) can be
+        stopped, and the host can tell "still reading out" from "dead".
+        """
         x, y, w, h = roi
         out = np.empty((h, w), np.uint16)
         ri = self._illumination(x, y, w, h)
         for r in range(0, h, STRIP_ROWS):
+            if cancel is not None and cancel.is_set():
+                raise ReadoutCancelled(f"readout cancelled after {r} of {h} rows")
+            if progress is not None:
+                progress(r, h)
             rows = min(STRIP_ROWS, h - r)
             irr = np.asarray(source.irradiance(y + r, x, rows, w))
             if irr.shape != (rows, w, 3):

@@ -13,7 +13,7 @@ from __future__ import annotations
 import enum
 from dataclasses import asdict, dataclass
 
-FIRMWARE_VERSION = (0, 3, 0)
+FIRMWARE_VERSION = (0, 4, 0)
 
 
 class RegError(enum.IntEnum):
@@ -149,6 +149,18 @@ class RegisterFile:
         self._values[BY_NAME["LAST_ERROR"].address] = int(code)
         self.set_status(Status.ERROR_LATCHED, True)
         return code
+
+    def reset_session(self) -> None:
+        """A host let go: every writable register back to its default, LAST_ERROR and STATUS cleared.
+
+        Nothing one host wrote (test pattern, exposure, black level, window) reaches the next one;
+        the serial, frame counter and temperature are the device's own and stay.
+        """
+        for reg in REGISTERS:
+            if reg.writable:
+                self._values[reg.address] = reg.default
+        self.set_internal("LAST_ERROR", 0)
+        self.set_internal("STATUS", 0)
 
     def roi(self) -> tuple[int, int, int, int]:
         """(x, y, width, height) of the readout window on the full sensor."""

@@ -12,7 +12,10 @@ source is any object with
   which the readout applies. It must be deterministic (same window → same
   values), and it is called on horizontal strips of the window, so it must not
   assume it sees the whole frame at once;
-* ``metadata() -> dict`` — JSON-able description (scene id, lens, PSF file…).
+* ``metadata() -> dict`` — JSON-able description (scene id, lens, PSF file…);
+* optionally ``work(row0, col0, height, width) -> (done, total) | None`` — how
+  much of that window's slow work (a render) is done, in units the source
+  chooses; the device's PROGRESS heartbeats report it (rows read out otherwise).
 
 Sources here are optics-free: flat field, dark frame, a polar test chart and
 ``InFocusImageStandIn``, a plain RGB image painted onto the sensor *without*

@@ -8,6 +8,9 @@ Lengths are checked *before* anything is allocated: an envelope longer than
 ``MAX_BODY_BYTES`` or a frame header whose ``payload_len`` disagrees with its
 width × height is refused with ``WireError``, so a hostile or broken length
 field cannot exhaust memory.
+
+The timing both ends rely on (reply deadline, heartbeat period, longest stall,
+idle timeout) is defined here once and read by the device and the host.
 """
 
 from __future__ import annotations
@@ -42,13 +45,29 @@ class Msg(enum.IntEnum):
     STOP = 7         # host → device: empty
     ACK = 8          # device → host: u32 type acknowledged, u32 error (0 ok)
     FRAME = 9        # device → host: frame header + payload + CRC32 (may be cut short: incomplete)
+    PING = 10        # host → device: empty; keep-alive, answered by ACK
+    AUTH = 11        # host → device: the shared token (1 … MAX_TOKEN_BYTES bytes); answered by ACK
+    PROGRESS = 12    # device → host: u64 frame id, u32 work done, u32 work total (heartbeat of a readout)
+    ERROR = 13       # device → host: JSON {"code", "reason", "in_reply_to"}: a refused message or a failure
 
 
 REG_ACCESS = struct.Struct("<Iq")
 REG_REPLY = struct.Struct("<IIq")
 U32 = struct.Struct("<I")
 ACK = struct.Struct("<II")
+PROGRESS = struct.Struct("<QII")
 MAX_CONTROL_BYTES = 1 << 20
+MAX_TOKEN_BYTES = 256
+
+# Body sizes of the host's messages (AUTH: 1 … MAX_TOKEN_BYTES); a device answers any other size with ERROR.
+HOST_BODY_BYTES = {Msg.HELLO: 0, Msg.READ_REG: U32.size, Msg.WRITE_REG: REG_ACCESS.size, Msg.START: U32.size,
+                   Msg.STOP: 0, Msg.PING: 0}
+
+# -- timing: the one place both ends read (docs/protocol.md, "Timing") ----------
+REPLY_TIMEOUT_S = 5.0          # a device answers every request within this, also while it reads out or stalls
+HEARTBEAT_S = 1.0              # a readout in progress sends PROGRESS at least this often
+MAX_STALL_S = 10.0             # the longest a device may hold a finished frame back
+DEFAULT_IDLE_TIMEOUT_S = 60.0  # a TCP device drops a host that sent no whole message for this long (not streaming)
 
 
 # -- frames -------------------------------------------------------------------
@@ -203,3 +222,22 @@ def parse_envelope(data: bytes) -> tuple[Msg, int]:
 
 def json_body(obj) -> bytes:
     return json.dumps(obj).encode()
+
+
+def error_body(code: str, reason: str, in_reply_to: Msg | None = None) -> bytes:
+    """ERROR body; ``in_reply_to`` is the refused request's type (0: unsolicited, e.g. a failed readout)."""
+    return json_body({"code": code, "reason": reason, "in_reply_to": int(in_reply_to or 0)})
+
+
+def check_host_body(msg: Msg, length: int) -> str | None:
+    """Why a host message of this type cannot have a body of ``length`` bytes (None: it can)."""
+    if msg == Msg.AUTH:
+        if not 1 <= length <= MAX_TOKEN_BYTES:
+            return f"AUTH carries a token of 1 to {MAX_TOKEN_BYTES} bytes, got {length}"
+        return None
+    expected = HOST_BODY_BYTES.get(msg)
+    if expected is None:
+        return f"host sent {msg.name}, which only a device sends"
+    if length != expected:
+        return f"{msg.name} body is {length} bytes, expected {expected}"
+    return None

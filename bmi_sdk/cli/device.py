@@ -8,7 +8,8 @@ import time
 
 def register(subparsers) -> None:
     acq = subparsers.add_parser("acquire", help="grab raw frames from a camera and write them as DNG + JSON sidecar")
-    acq.add_argument("--device", default="sim://", help="camera URI: sim://, tcp://127.0.0.1:PORT, replay://DIR")
+    acq.add_argument("--device", default="sim://",
+                     help="camera URI: sim://, tcp://127.0.0.1:PORT[?token_file=F], tcp://[::1]:PORT, replay://DIR")
     acq.add_argument("--count", type=int, default=1, help="frames to write")
     acq.add_argument("--out", required=True,
                      help="output folder; files are frame_<UTC start of the run>_<frame id>.dng, and an "
@@ -30,6 +31,11 @@ def register(subparsers) -> None:
     serve.add_argument("--serial", type=int, default=1, help="device serial number")
     serve.add_argument("--faults", default="", help="fault plan, e.g. seed=1,drop=0.05,corrupt=0.02,stall_s=0.2")
     serve.add_argument("--duration-s", type=float, default=0, help="stop after this long (0: until Ctrl-C)")
+    serve.add_argument("--token-file", help="file holding a shared token; hosts must send it "
+                                            "(tcp://HOST:PORT?token_file=F or ?token=…)")
+    serve.add_argument("--idle-timeout-s", type=float, default=None,
+                       help="drop a host that sends no whole message for this long while no frames stream to it "
+                            "(default 60; hosts that wait send PING)")
     serve.set_defaults(handler=_serve)
     fw.set_defaults(handler=lambda args: fw.print_help() or 2)
 
@@ -53,7 +59,7 @@ def _acquire(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     run_stamp = _run_stamp()
-    written = bad = 0
+    written = bad = patterns = 0
     with open_camera(uri) as cam:
         if args.exposure_us is not None:
             cam.settings.exposure_us = args.exposure_us
@@ -78,12 +84,16 @@ def _acquire(args) -> int:
                             bad += 1
                             continue
                         frame.save_dng(out / f"frame_{run_stamp}_{frame.frame_id:08d}.dng", overwrite=False)
+                        patterns += frame.test_pattern
                     written += 1
                     bar.update(1)
         finally:
             cam.stop()
         stats = dict(cam.stats)
     print(f"wrote {written} DNG files to {out} (skipped {bad} incomplete/corrupt; link stats {stats})")
+    if patterns:
+        print(f"warning: {patterns} of {written} frames are the digital test pattern, not the scene "
+              f"(TEST_PATTERN register set on the device)", file=sys.stderr)
     return 0
 
 
@@ -95,15 +105,39 @@ def _run_stamp() -> str:
         f"{now_ns // 1_000_000 % 1000:03d}Z"
 
 
+def _read_token(path: str) -> bytes:
+    """The shared token in ``path`` (surrounding whitespace dropped); refuses an empty or oversize one."""
+    import os
+    from pathlib import Path
+
+    from firmware_sim.wire import MAX_TOKEN_BYTES
+
+    token = Path(path).read_bytes().strip()
+    if not token:
+        raise ValueError(f"--token-file {path} is empty: an empty token protects nothing")
+    if len(token) > MAX_TOKEN_BYTES:
+        raise ValueError(f"--token-file {path} holds {len(token)} bytes; a token is at most {MAX_TOKEN_BYTES}")
+    if os.stat(path).st_mode & 0o077:
+        print(f"warning: --token-file {path} can be read by other users (chmod 600 it)", file=sys.stderr)
+    return token
+
+
 def _serve(args) -> int:
     from firmware_sim import FaultPlan, FirmwareDevice, FirmwareServer, make_source
+    from firmware_sim.wire import DEFAULT_IDLE_TIMEOUT_S
 
+    token = _read_token(args.token_file) if args.token_file else None
     device = FirmwareDevice(source=make_source(args.scene), seed=args.seed, serial=args.serial,
                             faults=FaultPlan.parse(args.faults) if args.faults else None)
-    with FirmwareServer(device, host=args.host, port=args.port) as server:
-        print(f"serving {device.describe()['serial']} ({args.scene}) on {server.uri}", flush=True)
+    idle_s = DEFAULT_IDLE_TIMEOUT_S if args.idle_timeout_s is None else args.idle_timeout_s
+    with FirmwareServer(device, host=args.host, port=args.port, token=token, idle_timeout_s=idle_s) as server:
+        print(f"serving {device.describe()['serial']} ({args.scene}{', token required' if token else ''}) "
+              f"on {server.uri}", flush=True)
         deadline = time.monotonic() + args.duration_s if args.duration_s > 0 else None
-        while deadline is None or time.monotonic() < deadline:
-            time.sleep(0.1)
+        try:
+            while deadline is None or time.monotonic() < deadline:
+                time.sleep(0.1)
+        except KeyboardInterrupt:  # Ctrl-C is how a server is stopped: report, do not call it a failure
+            pass
     print(f"stopped; faults injected: {device.injector.counts()}", file=sys.stderr)
     return 0

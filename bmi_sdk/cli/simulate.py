@@ -70,7 +70,15 @@ def _write_preview(path: Path, linear_rgb) -> None:
             raise OSError(f"could not write {path}")
 
 
+def _show(bar, done: int, total: int) -> None:
+    """Move the render bar to the device's heartbeat (blocks of the scene rendered so far)."""
+    bar.total = total
+    bar.update(done - bar.n)
+
+
 def _run(args) -> int:
+    from tqdm import tqdm
+
     from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
     from bmi_sdk.optics import PsfTensor, TensorSpec, get_lens
     from bmi_sdk.sensor import SensorModel
@@ -112,9 +120,13 @@ def _run(args) -> int:
                            psf_mode=args.psf_mode, perturbation=perturbation)
     model = SensorModel(additive_sigma=args.noise)
     device = FirmwareDevice(source=source, geometry=geometry, model=model, seed=args.seed, lens=lens_name)
-    with open_camera("sim://", device=device) as cam:
+    # The device renders as it reads out (minutes for a large scene or a cold PSF cache); its heartbeats
+    # keep the capture alive and move this bar, so a slow render is told apart from a dead device.
+    with tqdm(desc="render", unit="block") as bar, \
+            open_camera("sim://", device=device, on_progress=lambda _id, done, total: _show(bar, done, total)) as cam:
         cam.settings.roi = Roi(col0, row0, width, height)
         frame = cam.capture()
+        _show(bar, bar.total or 1, bar.total or 1)
         frame.save_dng(args.out)
     print(f"wrote {args.out} (+ .json sidecar): {width}×{height} at sensor offset (row {row0}, col {col0}), "
           f"noise {'photon model' if args.noise is None else f'σ = {args.noise}'}, {time.perf_counter() - t0:.1f} s")
