@@ -10,12 +10,12 @@ def _run(args) -> int:
     from bmi_sdk.runtime import run_job
     from bmi_sdk.runtime.quality import FrameQualityWarning
 
-    config = None
+    options = {}
     if args.decoder == "classical":
         from bmi_sdk.decode import ClassicalConfig
 
-        config = ClassicalConfig(window_px=args.window_px, stride_px=args.stride_px, candidates=args.candidates,
-                                 noise_sigma=args.noise_sigma)
+        options["classical_config"] = ClassicalConfig(window_px=args.window_px, stride_px=args.stride_px,
+                                                      candidates=args.candidates, noise_sigma=args.noise_sigma)
 
     def show(message, category, *rest, **kw):  # frame-quality findings as one line on stderr, not a source line
         if issubclass(category, FrameQualityWarning):
@@ -28,8 +28,7 @@ def _run(args) -> int:
                                  calibration_path=args.calibration,
                                  tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
                                  ply_step_px=args.ply_step, progress=not args.quiet, overwrite=args.overwrite,
-                                 allow_test_pattern=args.allow_test_pattern, decoder=args.decoder,
-                                 classical_config=config)
+                                 allow_test_pattern=args.allow_test_pattern, decoder=args.decoder, **options)
     finally:
         warnings.showwarning = original
     if report["decoder"] == "classical":
