@@ -4,7 +4,12 @@ from __future__ import annotations
 
 
 def _run(args) -> int:
+    from bmi_sdk.cli._infer_many import infer_many, wants_batch
     from bmi_sdk.runtime import run_job
+
+    if wants_batch(args):
+        return infer_many(args)
+    args.raw = args.raw[0]
 
     result, report = run_job(args.raw, args.out, model_path=args.model, calibration_id=args.calibration_id,
                              calibration_path=args.calibration,
@@ -24,9 +29,12 @@ def _run(args) -> int:
 
 
 def register(subparsers) -> None:
+    from bmi_sdk.scaleout import add_scheduler_argument
+
     p = subparsers.add_parser("infer", help="raw frame (DNG + sidecar) → AiF image, depth map, point cloud, report",
                               description=__doc__)
-    p.add_argument("raw", help="raw frame: a DNG written by a BMI camera (bmi acquire), with its JSON sidecar")
+    p.add_argument("raw", nargs="+", help="raw frame: a DNG written by a BMI camera (bmi acquire), with its JSON "
+                                          "sidecar; several frames, a folder or replay://FOLDER write OUT/<stem>/ each")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--model", default=None,
                    help="ONNX model with its .manifest.json (default: the packaged model for the calibration)")
@@ -40,4 +48,5 @@ def register(subparsers) -> None:
     p.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: all cores)")
     p.add_argument("--ply-step", type=int, default=1, help="one point per N×N pixels in points.ply (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_scheduler_argument(p)
     p.set_defaults(handler=_run)
