@@ -102,3 +102,110 @@ def test_fan_out_builds_state_once_per_worker_and_returns_items_in_order(cluster
     assert all(len(ids) == 1 for ids in states_per_pid.values()), states_per_pid  # one state per worker
     serial = fan_out(_square, range(12), state=_state, progress=False)
     assert [r[0] for r in serial] == [r[0] for r in results] and len({(r[1], r[2]) for r in serial}) == 1
+
+
+# -- many frames ------------------------------------------------------------------------------------------
+
+class TinyNet(nn.Module):
+    """A small net on the model_io contract (random weights: the outputs only have to be compared)."""
+
+    def __init__(self):
+        super().__init__()
+        torch.manual_seed(0)
+        self.a = nn.Conv2d(6, 8, 3, padding=1)
+        self.o = nn.Conv2d(8, 4, 3, padding=1)
+
+    def forward(self, x):
+        o = self.o(torch.relu(self.a(x)))
+        return x[:, :3] + 0.1 * o[:, :3], 0.7 + nn.functional.softplus(o[:, 3:])
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    from bmi_sdk.runtime import export_model
+
+    return export_model(TinyNet(), tmp_path_factory.mktemp("model") / "tiny.onnx", preset="test-tiny")
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    """Three small ROI captures of the simulated camera, A/B/C.dng, in one folder."""
+    from devices import Roi, open_camera
+
+    folder = tmp_path_factory.mktemp("frames")
+    for name, seed, x in (("A", 1, 2980), ("B", 2, 1200), ("C", 3, 4400)):
+        with open_camera(f"sim://scale-{name}?scene=chart&seed={seed}") as cam:
+            cam.settings.roi = Roi(x, 2240, 96, 64)
+            cam.capture().save_dng(folder / f"{name}.dng")
+    return folder
+
+
+def _serial_decodes(model, frames, out: Path) -> None:
+    from bmi_sdk.runtime import run_job
+
+    for name in "ABC":
+        run_job(frames / f"{name}.dng", out / name, model_path=model, tile_px=64, threads=1)
+
+
+def _assert_same_outputs(got: Path, expected: Path) -> None:
+    for name in "ABC":
+        for f in OUTPUT_FILES:
+            assert (got / name / f).read_bytes() == (expected / name / f).read_bytes(), f"{name}/{f}"
+        report = json.loads((got / name / "report.json").read_text())
+        assert report["model"]["sha256"] == json.loads((expected / name / "report.json").read_text())["model"]["sha256"]
+
+
+def test_cli_decodes_three_frames_on_local_2_as_the_serial_decode_does(model, frames, tmp_path):
+    _serial_decodes(model, frames, tmp_path / "serial")
+    run = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", "infer", *(str(frames / f"{n}.dng") for n in "ABC"),
+                          "--out", str(tmp_path / "dask"), "--model", str(model), "--tile-px", "64",
+                          "--scheduler", "local:2", "--quiet"], capture_output=True, text=True, timeout=PATIENCE_S)
+    assert run.returncode == 0, run.stderr
+    assert "3 of 3 frames decoded" in run.stdout and "dask: local:2 — 2 workers" in run.stderr
+    _assert_same_outputs(tmp_path / "dask", tmp_path / "serial")
+
+
+def test_serial_batch_of_a_replay_loads_the_model_once_and_reports_a_bad_frame(model, frames, tmp_path,
+                                                                               monkeypatch):
+    from bmi_sdk.runtime.batch import DecodeOptions, FrameDecoder, plan_outputs, run_batch
+
+    _serial_decodes(model, frames, tmp_path / "serial")
+    jobs = plan_outputs([f"replay://{frames}"], tmp_path / "batch")
+    assert [(f.name, o.name) for f, o in jobs] == [("A.dng", "A"), ("B.dng", "B"), ("C.dng", "C")]
+    loads = []
+    original = FrameDecoder.model_for
+
+    def counting(self, frame):
+        loads.append(len(self.models))
+        return original(self, frame)
+
+    monkeypatch.setattr(FrameDecoder, "model_for", counting)
+    summaries = run_batch(jobs, DecodeOptions(model_path=str(model), tile_px=64, threads=1), progress=False)
+    assert loads == [0, 1, 1]  # the model was loaded for the first frame and reused for the others
+    assert all(s["ok"] for s in summaries)
+    _assert_same_outputs(tmp_path / "batch", tmp_path / "serial")
+
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    shutil.copy(frames / "A.dng", bad / "A.dng")
+    shutil.copy(frames / "A.json", bad / "A.json")  # the sidecar
+    (bad / "B.dng").write_bytes(b"not a DNG")
+    summaries = run_batch(plan_outputs([str(bad)], tmp_path / "out2"), DecodeOptions(model_path=str(model),
+                          tile_px=64, threads=1), progress=False)
+    assert [s["ok"] for s in summaries] == [True, False] and "B.dng" in summaries[1]["frame"]
+    assert (tmp_path / "out2" / "A" / "report.json").is_file() and not (tmp_path / "out2" / "B").exists()
+
+
+def test_batch_inputs_refused_clearly(frames, tmp_path):
+    from bmi_sdk.runtime.batch import plan_outputs
+
+    with pytest.raises(FileNotFoundError, match="no raw frame"):
+        plan_outputs([str(tmp_path / "missing.dng")], tmp_path)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="holds no .dng"):
+        plan_outputs([str(tmp_path / "empty")], tmp_path)
+    with pytest.raises(ValueError, match="once"):
+        plan_outputs([f"replay://{frames}?loop=1"], tmp_path)
+    with pytest.raises(ValueError, match="would both write"):
+        plan_outputs([str(frames / "A.dng"), f"replay://{frames}"], tmp_path)
+    assert plan_outputs([str(frames / "A.dng")], tmp_path / "o") == [(frames / "A.dng", tmp_path / "o")]
