@@ -70,7 +70,35 @@ def test_publish_once_never_replaces_a_published_file(tmp_path):
 # -- a cluster --------------------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def cluster():
+def psf_cache(tmp_path_factory):
+    """A PSF disk cache of this module's own holding a complete *synthetic* tensor for the BMI lens
+    (Gaussian blur growing with defocus from 2 m, a little with θ): these tests are about who renders
+    which sample, not about optics, and the real tensor takes minutes to build. Set before the cluster
+    starts, so its workers (and the CLI's) inherit it; the session's own cache is restored after."""
+    from bmi_sdk.nn.data import lens_tensor
+
+    saved = os.environ.get("BMI_CACHE_DIR")
+    root = tmp_path_factory.mktemp("synthetic_psf")
+    os.environ["BMI_CACHE_DIR"] = str(root)
+    tensor = lens_tensor("bmi_monocentric")
+    k = tensor.spec.kernel_px
+    yy, xx = np.mgrid[:k, :k] - (k - 1) / 2
+    width_px = 0.6 + 2.0 * np.abs(np.log(tensor.depth_m / 2.0))[None, :] + 0.01 * tensor.field_deg[:, None]
+    kernels = np.exp(-(yy ** 2 + xx ** 2) / (2 * width_px[..., None, None] ** 2))
+    tensor.data[...] = (kernels / kernels.sum(axis=(-2, -1), keepdims=True))[None]
+    tensor.filled[...] = True
+    for i in range(len(tensor.spec.field_deg)):
+        tensor._store_shard(i)
+    yield root
+    if saved is None:
+        os.environ.pop("BMI_CACHE_DIR", None)
+    else:
+        os.environ["BMI_CACHE_DIR"] = saved
+    shutil.rmtree(root, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def cluster(psf_cache):
     """A local cluster of two single-threaded worker processes, closed at the end of the module."""
     from distributed import LocalCluster
 
@@ -209,3 +237,108 @@ def test_batch_inputs_refused_clearly(frames, tmp_path):
     with pytest.raises(ValueError, match="would both write"):
         plan_outputs([str(frames / "A.dng"), f"replay://{frames}"], tmp_path)
     assert plan_outputs([str(frames / "A.dng")], tmp_path / "o") == [(frames / "A.dng", tmp_path / "o")]
+
+
+# -- the training cache -----------------------------------------------------------------------------------
+
+CACHE_SPEC_KW = dict(samples=16, crop_px=16, jitter_px=2, seed=5)
+SHARD = 2  # samples a shard: 8 shards, so a worker can be killed while shards are still to render
+
+
+def _assert_same_cache(got: Path, expected: Path) -> None:
+    names = sorted(p.name for p in expected.iterdir())
+    assert sorted(p.name for p in got.iterdir()) == names  # no temporaries, nothing extra
+    assert json.loads((got / "cache.json").read_text()) == json.loads((expected / "cache.json").read_text())
+    for name in names:
+        if name.endswith(".npz"):
+            with np.load(got / name) as a, np.load(expected / name) as b:
+                assert a.files == b.files
+                for key in a.files:
+                    np.testing.assert_array_equal(a[key], b[key], err_msg=f"{name}:{key}")
+
+
+@pytest.fixture(scope="module")
+def serial_cache(psf_cache, tmp_path_factory):
+    from bmi_sdk.nn.data import CacheSpec, build_cache
+
+    return build_cache(tmp_path_factory.mktemp("serial") / "cache", CacheSpec(**CACHE_SPEC_KW), progress=False,
+                       shard_samples=SHARD)
+
+
+def test_cache_rendered_on_a_cluster_survives_a_killed_worker_and_equals_the_serial_cache(cluster, serial_cache,
+                                                                                          tmp_path):
+    from distributed import Client
+
+    from bmi_sdk.nn.data import CacheSpec, build_cache
+
+    target = tmp_path / "cache"
+    errors: list[BaseException] = []
+
+    def build():
+        try:
+            build_cache(target, CacheSpec(**CACHE_SPEC_KW), progress=False, scheduler=cluster.scheduler_address,
+                        shard_samples=SHARD)
+        except BaseException as exc:  # noqa: BLE001 - handed to the test thread
+            errors.append(exc)
+
+    inodes: dict[str, int] = {}
+
+    def watch_shards() -> int:
+        for p in target.glob("shard_*.npz"):
+            ino = p.stat().st_ino
+            assert inodes.setdefault(p.name, ino) == ino, f"{p.name} was written twice"
+        return len(inodes)
+
+    with Client(cluster.scheduler_address) as client:
+        runner = threading.Thread(target=build)
+        runner.start()
+        try:
+            busy: list[str] = []
+
+            def rendering_started() -> bool:
+                busy[:] = [w for w, keys in client.processing().items() if keys]
+                return watch_shards() >= 1 and bool(busy) or not runner.is_alive()
+
+            _wait_for(rendering_started, "the first shard")
+            pids = client.run(os.getpid)
+            assert runner.is_alive() and watch_shards() < 8, "the run ended before a worker could be killed"
+            os.kill(pids[busy[0]], signal.SIGKILL)
+            while runner.is_alive():
+                watch_shards()
+                runner.join(0.05)
+        finally:
+            runner.join()
+        assert set(client.run(os.getpid).values()) != set(pids.values())  # the killed worker was replaced
+    assert not errors, errors
+    assert watch_shards() == 8
+    _assert_same_cache(target, serial_cache)
+
+
+def test_a_cache_run_that_died_resumes_and_a_different_sharding_is_refused(serial_cache, tmp_path):
+    from bmi_sdk.nn.data import CacheSpec, build_cache
+
+    target = tmp_path / "cache"
+    shutil.copytree(serial_cache, target)
+    (target / "shard_00003.npz").unlink()  # a run killed before it published shard 3 ...
+    (target / ".shard_00003.npz.dead.npz").write_bytes(b"half")  # ... while writing it
+    (target / ".shard_00004.npz.lost.npz").write_bytes(b"a lost race")
+    before = {p.name: p.stat().st_ino for p in target.glob("shard_*.npz")}
+    build_cache(target, CacheSpec(**CACHE_SPEC_KW), progress=False, shard_samples=SHARD)
+    assert {p.name: p.stat().st_ino for p in target.glob("shard_*.npz") if p.name in before} == before
+    _assert_same_cache(target, serial_cache)
+    with pytest.raises(ValueError, match="3 samples a shard|samples a shard"):
+        build_cache(target, CacheSpec(**CACHE_SPEC_KW), progress=False, shard_samples=3)
+
+
+def test_cli_train_renders_its_cache_on_local_2_as_the_serial_cache(psf_cache, tmp_path):
+    from bmi_sdk.nn.data import CacheSpec, build_cache
+
+    spec = CacheSpec(samples=4, crop_px=16, seed=3)
+    serial = build_cache(tmp_path / "serial", spec, progress=False)
+    run = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", "train", "--preset", "tiny", "--steps", "1",
+                          "--batch", "2", "--samples", "4", "--crop", "16", "--seed", "3", "--threads", "1",
+                          "--out", str(tmp_path / "run"), "--cache", str(tmp_path / "dask"), "--no-export",
+                          "--scheduler", "local:2"], capture_output=True, text=True, timeout=PATIENCE_S)
+    assert run.returncode == 0, run.stderr
+    assert "dask: local:2 — 2 workers" in run.stderr and (tmp_path / "run" / "checkpoint.pt").is_file()
+    _assert_same_cache(tmp_path / "dask", serial)
