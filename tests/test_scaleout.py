@@ -342,3 +342,19 @@ def test_cli_train_renders_its_cache_on_local_2_as_the_serial_cache(psf_cache, t
     assert run.returncode == 0, run.stderr
     assert "dask: local:2 — 2 workers" in run.stderr and (tmp_path / "run" / "checkpoint.pt").is_file()
     _assert_same_cache(tmp_path / "dask", serial)
+
+
+def test_eval_benchmark_tiles_rendered_on_a_cluster_equal_the_in_process_renders(cluster):
+    from dataclasses import replace
+
+    from bmi_sdk.nn.data import lens_tensor
+    from bmi_sdk.nn.evaluate import Benchmark
+
+    bench = Benchmark(tiles=2, tile_px=32, seed=4)
+    here = bench.renders(lens_tensor(bench.lens))
+    there = replace(bench, scheduler=cluster.scheduler_address).renders(lens_tensor(bench.lens))
+    assert [(r["region"], r["tile"], r["row0"], r["col0"]) for r in there] == \
+        [(r["region"], r["tile"], r["row0"], r["col0"]) for r in here] and len(here) == 4
+    for a, b in zip(here, there):
+        for key in ("optical_full", "rgb", "range_m"):
+            np.testing.assert_array_equal(a[key], b[key])

@@ -10,6 +10,8 @@ KEYS = ("absrel", "rmse_m", "delta1", "delta2", "delta3", "psnr_db", "ssim")
 
 
 def register(subparsers) -> None:
+    from bmi_sdk.scaleout import add_scheduler_argument
+
     p = subparsers.add_parser(
         "eval", help="depth and image metrics per condition and field region on the synthetic benchmark",
         description="Noise sweep, hardware errors without retraining and the fisheye baseline on seeded "
@@ -22,12 +24,16 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=20260)
     p.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
     p.add_argument("--json", action="store_true", help="one JSON object per line per condition and region")
+    add_scheduler_argument(p)
     p.set_defaults(handler=_run)
 
 
 def _run(args) -> int:
+    from dataclasses import replace
+
     from bmi_sdk.model_manifest import verify_model
     from bmi_sdk.nn.evaluate import Benchmark, run_benchmark
+    from bmi_sdk.scaleout import scheduler_address
 
     verify_model(args.model)
     if args.fisheye_model:
@@ -36,7 +42,9 @@ def _run(args) -> int:
         raise ValueError(f"--tile-px must be a multiple of 4, got {args.tile_px}")
     bench = Benchmark(tiles=args.tiles, tile_px=args.tile_px, seed=args.seed, threads=args.threads)
     conditions = [c.strip() for c in args.conditions.split(",")] if args.conditions else None
-    rows = run_benchmark(args.model, bench, conditions, args.fisheye_model, progress=not args.json)
+    with scheduler_address(args.scheduler, announce=not args.json) as scheduler:  # benchmark tiles render there
+        rows = run_benchmark(args.model, replace(bench, scheduler=scheduler), conditions, args.fisheye_model,
+                             progress=not args.json)
     if args.json:
         for row in rows:
             print(json.dumps({k: row[k] for k in ("condition", "region", *KEYS)}))

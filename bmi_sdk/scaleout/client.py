@@ -54,3 +54,18 @@ def open_client(scheduler: str | SchedulerSpec | None, announce: bool = True) ->
             print(f"dask: {spec} — {len(workers)} workers, {threads} threads"
                   + (f"; dashboard {link}" if link else "; no dashboard (install bokeh for one)"), file=sys.stderr)
         yield client
+
+
+@contextlib.contextmanager
+def scheduler_address(scheduler: str | SchedulerSpec | None, announce: bool = True) -> Iterator[str | None]:
+    """For a job that opens several clients in turn: yield an address every one of them can use.
+
+    ``local:N`` starts the cluster once (closed on exit) and yields its ``tcp://`` address; a ``tcp://``
+    scheduler is yielded as it is; None stays None (in-process).
+    """
+    spec = parse_scheduler(scheduler) if not isinstance(scheduler, SchedulerSpec) else scheduler
+    if spec is None or not spec.is_local:
+        yield None if spec is None else spec.address
+        return
+    with open_client(spec, announce=announce) as client:
+        yield client.scheduler_info()["address"]
