@@ -4,7 +4,9 @@ A task re-run after its worker died (or run twice by a scheduler that lost
 track of it) must not write its result a second time. ``os.link`` fails when
 the final name exists, so the first finished copy wins, whole, and a later
 one is discarded; readers never see a half-written file (the temporary name
-is hidden: ``.NAME.…``).
+is hidden: ``.NAME.…``). On a filesystem without hard links (some FUSE mounts of object stores) the
+file is renamed into place instead: still whole, but two racing writers may both publish (the same
+content, for the deterministic tasks here).
 """
 
 from __future__ import annotations
@@ -40,6 +42,10 @@ def publish_once(final: str | os.PathLike, write: Callable[[Path], None], suffix
             os.link(tmp, final)
         except FileExistsError:
             return False
+        except OSError:  # no hard links here (EPERM, ENOTSUP…): an atomic rename, unless already published
+            if final.exists():
+                return False
+            os.replace(tmp, final)
         return True
     finally:
         with contextlib.suppress(FileNotFoundError):
