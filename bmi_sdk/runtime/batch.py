@@ -96,7 +96,7 @@ class FrameDecoder:
 
     options: DecodeOptions
     models: dict = field(default_factory=dict)
-    _calibration_file_id: str | None = None
+    _calibration_file_id: str | None = field(default=None, init=False)
 
     def _calibration_in_use(self, frame) -> str | None:
         o = self.options
