@@ -10,7 +10,8 @@
   (``scheduler_address``: one local cluster for a job that connects several times);
 * ``fanout`` — run ``task(state, item)`` over items, serially or on the workers, with one progress bar; the
   per-process ``state`` (a loaded model, PSF kernels) is built once per worker by a worker plugin;
-* ``once`` — publish a file under its final name at most once (re-run tasks never write a result twice).
+* ``once`` — publish a file under its final name at most once (re-run tasks never write a result twice);
+* ``malloc`` — undo the nanny's glibc memory trimming, which doubles the CPU time of these jobs.
 
 ``distributed`` is imported only when a scheduler is asked for. How to run on a real cluster: docs/scale-out.md.
 """

@@ -9,13 +9,17 @@ from distributed.diagnostics.plugin import WorkerPlugin
 
 
 class StatePlugin(WorkerPlugin):
-    """Builds ``factory()`` once when a worker starts (or joins) and keeps it for that worker's tasks."""
+    """Builds ``factory()`` once when a worker starts (or joins) and keeps it for that worker's tasks; first
+    it undoes the nanny's malloc trimming (``malloc.relax_malloc_trimming``)."""
 
     def __init__(self, factory: Callable[[], object]):
         self.factory = factory
         self.state = None
 
     def setup(self, worker) -> None:
+        from .malloc import relax_malloc_trimming
+
+        relax_malloc_trimming()
         self.state = self.factory()
 
     def teardown(self, worker) -> None:
