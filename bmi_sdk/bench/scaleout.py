@@ -6,16 +6,30 @@
 
 Each job runs once in this process (the baseline, as without ``--scheduler``) and once per scheduler given.
 The cluster's start-up (worker processes, imports) is timed apart from the job: "job s" is the fan-out
-alone, the throughput is work / job s, and "start s" is what a one-off run pays on top. The PSF tensor is
-built before the first measurement (it is a per-machine cost, shared through the disk cache).
+alone, the throughput is work / job s, and "start s" is what a one-off run pays on top. "CPU s" is the
+CPU time the job used in this process and in the workers; "cores got" = CPU s / job s says how much of
+the machine the job actually had (on a shared machine, less than its workers could use). The PSF tensor
+is built before the first measurement (a per-machine cost, shared through the disk cache).
 """
 
 from __future__ import annotations
 
 import os
+import resource
 import shutil
 import time
 from pathlib import Path
+
+
+def _process_cpu_s() -> float:
+    """CPU seconds of the calling process (run here and, through ``client.run``, on each worker)."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _cpu_s(client) -> float:
+    """CPU seconds of this process plus every worker of ``client`` so far."""
+    return _process_cpu_s() + (0.0 if client is None else sum(client.run(_process_cpu_s).values()))
 
 
 def register(subparsers) -> None:
@@ -49,18 +63,18 @@ def _frames(work: Path, count: int, height_px: int, width_px: int) -> list[Path]
     return paths
 
 
-def _timed_on(scheduler: str | None, job) -> tuple[float, float]:
-    """(start s, job s): the cluster's start-up and the job run on it (``job(client)``)."""
+def _timed_on(scheduler: str | None, job) -> tuple[float, float, float]:
+    """(start s, job s, CPU s): the cluster's start-up, and the job run on it (``job(client)``)."""
     from bmi_sdk.scaleout import open_client
 
     t0 = time.perf_counter()
     with open_client(scheduler, announce=False) as client:
-        if client is not None:
-            client.run(lambda: None)  # every worker is up and answering
+        cpu0 = _cpu_s(client)  # also: every worker is up and answering
         t1 = time.perf_counter()
         job(client)
         t2 = time.perf_counter()
-    return t1 - t0, t2 - t1
+        cpu_s = _cpu_s(client) - cpu0
+    return t1 - t0, t2 - t1, cpu_s
 
 
 def _cache_row(args, work: Path, scheduler: str | None) -> list:
@@ -74,10 +88,10 @@ def _cache_row(args, work: Path, scheduler: str | None) -> list:
         address = None if client is None else client.scheduler_info()["address"]
         build_cache(target, spec, progress=False, scheduler=address, shard_samples=args.shard_samples)
 
-    start_s, job_s = _timed_on(scheduler, job)
+    start_s, job_s, cpu_s = _timed_on(scheduler, job)
     shutil.rmtree(target, ignore_errors=True)
-    return ["cache rendering", scheduler or "in-process", f"{args.samples} pairs", start_s, job_s,
-            f"{args.samples / job_s:.2f} pairs/s"]
+    return ["cache rendering", scheduler or "in-process", f"{args.samples} pairs", start_s, job_s, cpu_s,
+            cpu_s / job_s, f"{args.samples / job_s:.2f} pairs/s"]
 
 
 def _infer_row(args, work: Path, frames: list[Path], scheduler: str | None) -> list:
@@ -91,12 +105,12 @@ def _infer_row(args, work: Path, frames: list[Path], scheduler: str | None) -> l
     def job(client):
         failures.extend(s for s in run_batch(jobs, DecodeOptions(), client=client, progress=False) if not s["ok"])
 
-    start_s, job_s = _timed_on(scheduler, job)
+    start_s, job_s, cpu_s = _timed_on(scheduler, job)
     shutil.rmtree(out, ignore_errors=True)
     if failures:
         raise ValueError(f"decoding failed: {failures[0]['error']}")
     return ["frame decoding", scheduler or "in-process", f"{len(frames)} frames of {args.frame_px} px", start_s, job_s,
-            f"{len(frames) / job_s:.3f} frames/s"]
+            cpu_s, cpu_s / job_s, f"{len(frames) / job_s:.3f} frames/s"]
 
 
 def _run(args) -> int:
@@ -119,7 +133,7 @@ def _run(args) -> int:
         rows.append(_infer_row(args, work, frames, scheduler))
         print(rows[-1], flush=True)
     rows.sort(key=lambda r: r[0])
-    text = markdown_table(["job", "where", "work", "start s", "job s", "throughput"], rows)
+    text = markdown_table(["job", "where", "work", "start s", "job s", "CPU s", "cores got", "throughput"], rows)
     text += (f"\n\nIn-process: cache shards in this one process, frames decoded with onnxruntime on all "
              f"{os.cpu_count()} cores (the `bmi infer` default); local:N: N worker processes of one thread each. "
              f"Cache: crop {args.crop} px, {args.shard_samples} pairs a shard; frames: ROI captures of the "
