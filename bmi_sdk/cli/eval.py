@@ -10,6 +10,8 @@ KEYS = ("absrel", "rmse_m", "delta1", "delta2", "delta3", "psnr_db", "ssim")
 
 
 def register(subparsers) -> None:
+    from bmi_sdk.scaleout import add_scheduler_argument
+
     p = subparsers.add_parser(
         "eval", help="depth and image metrics per condition and field region on the synthetic benchmark",
         description="Noise sweep, hardware errors without retraining and the fisheye baseline on seeded "
@@ -28,12 +30,16 @@ def register(subparsers) -> None:
     p.add_argument("--stride-px", type=int, default=16, help="classical: window stride (default 16)")
     p.add_argument("--candidates", type=int, default=48, help="classical: depth candidates (default 48)")
     p.add_argument("--json", action="store_true", help="one JSON object per line per condition and region")
+    add_scheduler_argument(p)
     p.set_defaults(handler=_run)
 
 
 def _run(args) -> int:
+    from dataclasses import replace
+
     from bmi_sdk.model_manifest import verify_model
     from bmi_sdk.nn.evaluate import Benchmark, run_benchmark
+    from bmi_sdk.scaleout import scheduler_address
 
     decoders = tuple(d.strip() for d in args.decoder.split(",") if d.strip())
     if "cnn" in decoders:
@@ -47,8 +53,9 @@ def _run(args) -> int:
     from bmi_sdk.decode import ClassicalConfig
 
     config = ClassicalConfig(window_px=args.window_px, stride_px=args.stride_px, candidates=args.candidates)
-    rows = run_benchmark(args.model, bench, conditions, args.fisheye_model, progress=not args.json,
-                         decoders=decoders, classical_config=config)
+    with scheduler_address(args.scheduler, announce=not args.json) as scheduler:  # benchmark tiles render there
+        rows = run_benchmark(args.model, replace(bench, scheduler=scheduler), conditions, args.fisheye_model,
+                             progress=not args.json, decoders=decoders, classical_config=config)
     if args.json:
         for row in rows:
             print(json.dumps({k: row[k] for k in ("condition", "decoder", "region", *KEYS, "sigma_z_rms", "sigma_z_std")

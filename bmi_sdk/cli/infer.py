@@ -7,8 +7,13 @@ def _run(args) -> int:
     import sys
     import warnings
 
+    from bmi_sdk.cli._infer_many import infer_many, wants_batch
     from bmi_sdk.runtime import run_job
     from bmi_sdk.runtime.quality import FrameQualityWarning
+
+    if wants_batch(args):
+        return infer_many(args)
+    args.raw = args.raw[0]
 
     options = {}
     if args.decoder == "classical":
@@ -56,9 +61,12 @@ def _run(args) -> int:
 
 
 def register(subparsers) -> None:
+    from bmi_sdk.scaleout import add_scheduler_argument
+
     p = subparsers.add_parser("infer", help="raw frame (DNG + sidecar) → AiF image, depth map, point cloud, report",
                               description=__doc__)
-    p.add_argument("raw", help="raw frame: a DNG written by a BMI camera (bmi acquire), with its JSON sidecar")
+    p.add_argument("raw", nargs="+", help="raw frame: a DNG written by a BMI camera (bmi acquire), with its JSON "
+                                          "sidecar; several frames, a folder or replay://FOLDER write OUT/<stem>/ each")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--model", default=None,
                    help="ONNX model with its .manifest.json (default: the packaged model for the calibration)")
@@ -86,4 +94,5 @@ def register(subparsers) -> None:
                         "are written)")
     p.add_argument("--allow-test-pattern", action="store_true",
                    help="decode a frame flagged as the camera's test pattern (refused by default)")
+    add_scheduler_argument(p)
     p.set_defaults(handler=_run)

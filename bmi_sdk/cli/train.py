@@ -7,6 +7,8 @@ from pathlib import Path
 
 
 def register(subparsers) -> None:
+    from bmi_sdk.scaleout import add_scheduler_argument
+
     p = subparsers.add_parser(
         "train", help="train the dual-head network (resumable) and export it to ONNX with a manifest",
         description="Render (and cache) training pairs through the forward simulator, train a preset with the "
@@ -26,7 +28,9 @@ def register(subparsers) -> None:
     p.add_argument("--sigma-max", type=float, default=None,
                    help="draw each pair's σ log-uniform over [--sigma, --sigma-max] (default: every pair at --sigma)")
     p.add_argument("--cache", default=None, help="render cache folder (default .bmi_cache/train/<lens>-<samples>-<crop>-s<seed>)")
-    p.add_argument("--render-workers", type=int, default=2, help="processes that render the cache")
+    p.add_argument("--render-workers", type=int, default=2,
+                   help="processes that build the PSF tensor, and render the cache without --scheduler")
+    add_scheduler_argument(p)
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--save-every", type=int, default=250)
     p.add_argument("--no-export", action="store_true", help="skip the ONNX export at the end")
@@ -51,7 +55,7 @@ def _run(args) -> int:
                          sigma_max=args.sigma_max, seed=args.seed, cache=spec)
     cache = Path(args.cache or f".bmi_cache/train/{args.lens}-{args.samples}-{args.crop}-s{args.seed}")
     t0 = time.perf_counter()
-    build_cache(cache, spec, workers=args.render_workers)
+    build_cache(cache, spec, workers=args.render_workers, scheduler=args.scheduler)
     t_render = time.perf_counter() - t0
     ckpt = train(config, args.out, cache, save_every=args.save_every)
     if args.no_export:

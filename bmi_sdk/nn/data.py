@@ -228,62 +228,128 @@ def render_identity(lens_name: str) -> dict:
             "psf_tensor_key": tensor.spec.cache_key(tensor.lens)}
 
 
-def _render_shard(cache_dir: Path, spec: CacheSpec, shard: int, scenes: Sequence | None) -> int:
-    """Render and write one shard (atomically); returns its sample count."""
-    tensor, geometry = lens_tensor(spec.lens), lens_geometry(spec.lens)
-    items = [render_sample(spec, i, tensor, geometry, scenes)
-             for i in range(shard * SHARD_SAMPLES, min(spec.samples, (shard + 1) * SHARD_SAMPLES))]
-    with atomic_path(cache_dir / f"shard_{shard:05d}.npz", suffix=".npz") as tmp:
-        np.savez(tmp, **{k: np.stack([it[k] for it in items]) for k in items[0]})
-    return len(items)
+def shard_sample_range(spec: CacheSpec, shard: int, shard_samples: int = SHARD_SAMPLES) -> range:
+    """The sample indices stored in shard ``shard``."""
+    return range(shard * shard_samples, min(spec.samples, (shard + 1) * shard_samples))
+
+
+def shard_path(cache_dir: Path, shard: int) -> Path:
+    return Path(cache_dir) / f"shard_{shard:05d}.npz"
+
+
+@dataclass(frozen=True)
+class ShardRenderer:
+    """What rendering a shard needs besides the spec: the lens's PSF tensor and sensor, and dataset scenes.
+
+    Calling it opens the tensor, whose kernels load from the disk cache (``build_cache`` filled it first)
+    as renders touch them and then stay in memory: a Dask worker keeps one for all its shards
+    (``scaleout.fan_out`` state).
+    """
+
+    lens: str
+    scenes: Sequence | None = None
+
+    def __call__(self) -> dict:
+        tensor = lens_tensor(self.lens)
+        return {"tensor": tensor, "geometry": lens_geometry(self.lens), "scenes": self.scenes}
+
+
+def render_shard(renderer: dict, job: tuple) -> int:
+    """Render shard ``job = (cache_dir, spec, shard, shard_samples)`` and publish it once; returns how many
+    samples this call wrote (0 when the shard was already there: a resumed run, or a task re-run after its
+    worker died after publishing). A lost race keeps the first copy; both are the same samples anyway."""
+    from bmi_sdk.scaleout import publish_once
+
+    cache_dir, spec, shard, shard_samples = job
+    path = shard_path(cache_dir, shard)
+    if path.exists():
+        return 0
+    items = [render_sample(spec, i, renderer["tensor"], renderer["geometry"], renderer["scenes"])
+             for i in shard_sample_range(spec, shard, shard_samples)]
+    arrays = {k: np.stack([it[k] for it in items]) for k in items[0]}
+    return len(items) if publish_once(path, lambda tmp: np.savez(tmp, **arrays), suffix=".npz") else 0
+
+
+def _render_shard_in_pool(cache_dir: Path, spec: CacheSpec, shard: int, scenes: Sequence | None,
+                          shard_samples: int) -> int:
+    return render_shard(ShardRenderer(spec.lens, scenes)(), (cache_dir, spec, shard, shard_samples))
+
+
+def _remove_stale_temporaries(cache_dir: Path) -> None:
+    """Delete the hidden temporaries (``.shard_NNNNN.npz.*``) of shards that are published: left by a
+    process killed while writing, they are never read."""
+    for tmp in cache_dir.glob(".shard_*.npz.*"):
+        if (cache_dir / (tmp.name[1:].split(".npz.")[0] + ".npz")).exists():
+            tmp.unlink(missing_ok=True)
 
 
 def build_cache(cache_dir: str | Path, spec: CacheSpec, scenes: Sequence | None = None,
-                progress: bool = True, workers: int = 1) -> Path:
+                progress: bool = True, workers: int = 1, scheduler: str | None = None,
+                shard_samples: int = SHARD_SAMPLES) -> Path:
     """Render every missing shard of ``spec`` into ``cache_dir`` (resumable; a spec mismatch is refused).
 
-    ``workers`` > 1 renders shards in that many processes (one numpy thread
-    each); samples are seeded by index, so the cache is the same either way.
+    Shards of ``shard_samples`` renders are rendered by ``workers`` local processes (one numpy thread
+    each), or with ``scheduler`` (``local:N`` / ``tcp://HOST:PORT``) by Dask workers; each shard is
+    published under its final name once, whole. Samples are seeded by index, so the cache is the same
+    whoever renders which shard, and a run that dies resumes with the shards still missing.
     """
     cache_dir = Path(cache_dir)
     meta_path = cache_dir / "cache.json"
-    meta = {"schema": CACHE_SCHEMA, "spec": spec.to_dict(), "renderer": render_identity(spec.lens)}
+    meta = {"schema": CACHE_SCHEMA, "spec": spec.to_dict(), "renderer": render_identity(spec.lens),
+            "shard_samples": shard_samples}
     if meta_path.exists():
-        old = json.loads(meta_path.read_text())
+        old = {"shard_samples": SHARD_SAMPLES, **json.loads(meta_path.read_text())}  # caches before the field
         if old != meta:
-            raise ValueError(f"{cache_dir} holds another cache (spec {old.get('spec')}, renderer {old.get('renderer')}; "
-                             f"this run needs {meta['spec']}, {meta['renderer']}); choose another --cache")
+            raise ValueError(f"{cache_dir} holds another cache (spec {old.get('spec')}, renderer {old.get('renderer')}, "
+                             f"{old['shard_samples']} samples a shard; this run needs {meta['spec']}, "
+                             f"{meta['renderer']}, {shard_samples}); choose another --cache")
     else:
         write_json(meta_path, meta)
-    n_shards = math.ceil(spec.samples / SHARD_SAMPLES)
-    todo = [s for s in range(n_shards) if not (cache_dir / f"shard_{s:05d}.npz").exists()]
-    if not todo:
-        return cache_dir
-    lens_tensor(spec.lens).ensure_all(progress=progress, workers=workers)  # every θ is touched: build once
+    n_shards = math.ceil(spec.samples / shard_samples)
+    todo = [s for s in range(n_shards) if not shard_path(cache_dir, s).exists()]
+    if todo:
+        lens_tensor(spec.lens).ensure_all(progress=progress, workers=workers)  # every θ is touched: build once
+        sizes = [len(shard_sample_range(spec, s, shard_samples)) for s in todo]
+        if scheduler is not None:
+            from bmi_sdk.scaleout import fan_out, open_client
+
+            with open_client(scheduler, announce=progress) as client:
+                fan_out(render_shard, [(cache_dir, spec, s, shard_samples) for s in todo], client=client,
+                        state=ShardRenderer(spec.lens, scenes), desc=f"rendering {spec.lens} pairs", unit="pair",
+                        sizes=sizes, progress=progress)
+        else:
+            _render_with_pool(cache_dir, spec, scenes, todo, sizes, shard_samples, workers, progress)
+    _remove_stale_temporaries(cache_dir)
+    return cache_dir
+
+
+def _render_with_pool(cache_dir: Path, spec: CacheSpec, scenes: Sequence | None, todo: list[int], sizes: list[int],
+                      shard_samples: int, workers: int, progress: bool) -> None:
+    """The in-process path: shards rendered here or in ``workers`` spawned single-threaded processes."""
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=sum(min(SHARD_SAMPLES, spec.samples - s * SHARD_SAMPLES) for s in todo),
-                   desc=f"rendering {spec.lens} pairs ({workers} processes)", unit="pair")
+        bar = tqdm(total=sum(sizes), desc=f"rendering {spec.lens} pairs ({workers} processes)", unit="pair")
     pool = None
     try:
         if workers > 1:
             from bmi_sdk.optics.tensor import _spawn_single_threaded_pool
 
             pool = _spawn_single_threaded_pool(workers)
-            done = pool.map(_render_shard, [cache_dir] * len(todo), [spec] * len(todo), todo, [scenes] * len(todo))
+            done = pool.map(_render_shard_in_pool, [cache_dir] * len(todo), [spec] * len(todo), todo,
+                            [scenes] * len(todo), [shard_samples] * len(todo))
         else:
-            done = (_render_shard(cache_dir, spec, s, scenes) for s in todo)
-        for n in done:
+            renderer = ShardRenderer(spec.lens, scenes)()
+            done = (render_shard(renderer, (cache_dir, spec, s, shard_samples)) for s in todo)
+        for n, size in zip(done, sizes):
             if bar is not None:
-                bar.update(n)
+                bar.update(size)
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
         if bar is not None:
             bar.close()
-    return cache_dir
 
 
 def check_noise_range(sigma: float, sigma_max: float | None) -> None:
@@ -315,7 +381,7 @@ class PairCache:
         self.spec = CacheSpec(**meta["spec"])
         self.geometry = lens_geometry(self.spec.lens)
         shards = sorted(cache_dir.glob("shard_*.npz"))
-        expected = math.ceil(self.spec.samples / SHARD_SAMPLES)
+        expected = math.ceil(self.spec.samples / meta.get("shard_samples", SHARD_SAMPLES))
         if len(shards) != expected:
             raise ValueError(f"{cache_dir}: {len(shards)} of {expected} shards; run build_cache to finish it")
         parts = {}

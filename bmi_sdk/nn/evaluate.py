@@ -150,6 +150,7 @@ class Benchmark:
     tile_px: int = 192
     seed: int = 20260
     threads: int = 2
+    scheduler: str | None = None  # renders on Dask (``scaleout``: local:N or tcp://HOST:PORT); None: here
 
     @property
     def margin_px(self) -> int:
@@ -181,25 +182,45 @@ class Benchmark:
         ``exact``); ``centre_calibrated`` (default) takes the whole-image shift of a perturbation out, as
         a camera whose optical centre is calibrated sees it.
         """
-        from bmi_sdk.render import PsfMap, render_coded
+        from bmi_sdk.scaleout import fan_out, open_client
 
-        geometry = lens_geometry(self.lens)
-        size, m = self.tile_px + 2 * self.margin_px, self.margin_px
-        psf_map = PsfMap(tensor, geometry, mode=psf_mode, perturbation=perturbation,
-                         centre_calibrated=centre_calibrated)
-        windows = self.windows()
-        if progress:
-            from tqdm import tqdm
+        state = _WindowRenderer(self, tensor, psf_mode, perturbation, centre_calibrated)
+        with open_client(self.scheduler, announce=False) as client:
+            return fan_out(_render_window, self.windows(), client=client, state=state,
+                           desc="rendering benchmark tiles", unit="tile", progress=progress)
 
-            windows = tqdm(windows, desc="rendering benchmark tiles", unit="tile", leave=False)
-        out = []
-        for region, i, row0, col0 in windows:
-            rgb, range_m = self.scene(region, i)
-            optical = render_coded(rgb, range_m, tensor, geometry, row0=row0, col0=col0, psf_map=psf_map)
-            optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
-            out.append({"region": region, "tile": i, "row0": row0 + m, "col0": col0 + m, "optical_full": optical,
-                        "rgb": rgb[m:-m, m:-m], "range_m": range_m[m:-m, m:-m]})
-        return out
+
+@dataclass(frozen=True)
+class _WindowRenderer:
+    """Builds, once per process, what ``_render_window`` needs: the lens's sensor and the zone kernels."""
+
+    bench: Benchmark
+    tensor: object
+    psf_mode: str
+    perturbation: Perturbation | None
+    centre_calibrated: bool
+
+    def __call__(self) -> dict:
+        from bmi_sdk.render import PsfMap
+
+        geometry = lens_geometry(self.bench.lens)
+        psf_map = PsfMap(self.tensor, geometry, mode=self.psf_mode, perturbation=self.perturbation,
+                         centre_calibrated=self.centre_calibrated)
+        return {"bench": self.bench, "tensor": self.tensor, "geometry": geometry, "psf_map": psf_map}
+
+
+def _render_window(state: dict, window: tuple) -> dict:
+    """Scene, optical image and position of one benchmark window (region, tile index, row0, col0)."""
+    from bmi_sdk.render import render_coded
+
+    bench, geometry = state["bench"], state["geometry"]
+    size, m = bench.tile_px + 2 * bench.margin_px, bench.margin_px
+    region, i, row0, col0 = window
+    rgb, range_m = bench.scene(region, i)
+    optical = render_coded(rgb, range_m, state["tensor"], geometry, row0=row0, col0=col0, psf_map=state["psf_map"])
+    optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
+    return {"region": region, "tile": i, "row0": row0 + m, "col0": col0 + m, "optical_full": optical,
+            "rgb": rgb[m:-m, m:-m], "range_m": range_m[m:-m, m:-m]}
 
 
 class OnnxModel:
@@ -355,7 +376,8 @@ def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(),
         for model in models + calibrated(built_map):
             rows += score(model, renders_p, bench, STANDARD_SIGMA, name)
     if "fisheye_standard" in conditions:
-        fb = Benchmark(lens="fisheye", tiles=bench.tiles, tile_px=bench.tile_px, seed=bench.seed, threads=bench.threads)
+        fb = Benchmark(lens="fisheye", tiles=bench.tiles, tile_px=bench.tile_px, seed=bench.seed, threads=bench.threads,
+                       scheduler=bench.scheduler)
         fisheye_tensor = lens_tensor("fisheye")
         fisheye_models = []
         if "cnn" in decoders:

@@ -132,11 +132,12 @@ def load_weights(checkpoint: str | Path) -> tuple[DualHeadMimoUNet, TrainConfig]
 
 
 def train(config: TrainConfig, out_dir: str | Path, cache_dir: str | Path, save_every: int = 250,
-          progress: bool = True, device: torch.device | None = None) -> Path:
-    """Build the render cache if needed, then train (resuming from ``out_dir``'s checkpoint); returns it."""
+          progress: bool = True, device: torch.device | None = None, scheduler: str | None = None) -> Path:
+    """Build the render cache if needed (on Dask with ``scheduler``: ``local:N`` / ``tcp://HOST:PORT``), then
+    train (resuming from ``out_dir``'s checkpoint); returns the checkpoint."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    build_cache(cache_dir, config.cache, progress=progress)
+    build_cache(cache_dir, config.cache, progress=progress, scheduler=scheduler)
     trainer = Trainer(config, cache_dir, device)
     ckpt = out_dir / CHECKPOINT
     if ckpt.exists():

@@ -143,6 +143,19 @@ def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None 
     return result, report
 
 
+def camera_for(frame, calibration_path=None, calibration_id: str | None = None):
+    """(BuiltCamera, calibration identity or None) that took ``frame``: the nominal camera of the frame's lens,
+    or with ``calibration_path`` the calibrated one (after ``calibration_for``'s checks)."""
+    from ..built_camera import BuiltCamera
+
+    if calibration_path is None:
+        return BuiltCamera(lens_name=frame_lens_name(frame) or "bmi_monocentric", geometry=frame.geometry), None
+    from calibration.io import load_calibration
+
+    identity = calibration_for(frame, calibration_path, calibration_id)
+    return BuiltCamera.from_calibration(load_calibration(calibration_path), geometry=frame.geometry), identity
+
+
 def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibration_id: str | None = None,
                     ply_step_px: int = 1, progress: bool = False, allow_test_pattern: bool = False,
                     classical_config=None, classical_decoder=None, model=None, model_path=None,
@@ -157,7 +170,6 @@ def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibratio
     """
     from devices import load_raw
 
-    from ..built_camera import BuiltCamera
     from ..decode import ClassicalConfig
     from .classical import classical_decoder as build_decoder
     from .classical import decode_frame
@@ -172,14 +184,7 @@ def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibratio
     quality = quality_gate(frame, allow_test_pattern)
     for message in quality.warnings:
         warnings.warn(message, FrameQualityWarning, stacklevel=3)
-    calibration = None
-    lens = frame_lens_name(frame) or "bmi_monocentric"
-    camera = BuiltCamera(lens_name=lens, geometry=frame.geometry)
-    if calibration_path is not None:
-        from calibration.io import load_calibration
-
-        calibration = calibration_for(frame, calibration_path, calibration_id)
-        camera = BuiltCamera.from_calibration(load_calibration(calibration_path), geometry=frame.geometry)
+    camera, calibration = camera_for(frame, calibration_path, calibration_id)
     t0 = time.perf_counter()
     decoder = classical_decoder or build_decoder(camera, classical_config or ClassicalConfig())
     result = decode_frame(decoder, frame, camera, progress=progress)
