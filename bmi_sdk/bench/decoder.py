@@ -28,7 +28,7 @@ PLANE_PX = 192
 PLANE_DEPTHS_M = (1.0, 2.0, 4.0, 6.0, 8.0)
 PLANE_FIELDS_DEG = (0.0, 50.0)
 FIT_SEED = 777
-FIT_TILES = 8
+FIT_TILES = 12
 
 
 def _knob_rows(bench, renders, nominal_map) -> list[list]:
@@ -81,9 +81,10 @@ def plane_absrel(nominal, geometry, decoder, field_deg: float, depth_m: float, s
 def fit_sigma_model(nominal_map, seed: int = FIT_SEED, tiles: int = FIT_TILES) -> tuple[tuple, float, int]:
     """((a, b, c), z RMS at the fit, pixels used): maximum-likelihood σ model on seeded tiles.
 
-    Per pixel (every 4th row and column of each tile's valid pixels): e = 1/d decoded − 1/d true,
-    σ_L and the spread s interpolated from the window grid; minimise Σ e²/σ² + log σ² with
-    σ² = (a σ_L)² + (b s)² + c² with a ≥ 1 (the likelihood's own curvature is a lower bound of the
+    Per pixel (every 4th row and column of each tile's valid pixels): the range error e = d − d_true
+    and, from the window grid, σ_L and the spread s of 1/d; minimise Σ e²/σ_d² + log σ_d² with
+    σ_d = d² σ(1/d), σ(1/d)² = (a σ_L)² + (b s)² + c² (the decoder's own propagation to range, so the
+    fitted σ is honest for the range it reports), a ≥ 1 (the likelihood's own curvature is a lower bound of the
     uncertainty: a model error can add to it, never take from it), b ≥ 0, c ≥ 0.
     """
     from scipy.optimize import minimize
@@ -106,7 +107,8 @@ def fit_sigma_model(nominal_map, seed: int = FIT_SEED, tiles: int = FIT_TILES) -
         ok = out.valid & np.isfinite(item["range_m"])
         ok[np.arange(t) % 4 != 0] = False
         ok[:, np.arange(t) % 4 != 0] = False
-        err.append((1.0 / out.depth_m - 1.0 / item["range_m"])[ok])
+        d2 = out.depth_m.astype(np.float64) ** 2
+        err.append(((out.depth_m - item["range_m"]) / d2)[ok])  # range error in units of d², as σ_d = d² σ(1/d)
         sig_l.append(upsample_grid(out.grid_sigma_laplace, stride, t, t)[ok])
         spread.append(upsample_grid(out.grid_spread, stride, t, t)[ok])
     e2, l2, s2 = (np.concatenate(x).astype(np.float64) ** 2 for x in (err, sig_l, spread))
