@@ -317,6 +317,19 @@ def classical_window_px(lens_name: str, base_px: int) -> int:
     return max(base_px, -(-LENS_KERNEL_PX[lens_name] // 4) * 4)
 
 
+def _decoders(decoders, model_path, psf_map, config, threads: int) -> list:
+    """The benchmark decoders of one optical system: its ONNX model (``cnn``) and/or the classical decoder
+    over its nominal kernels."""
+    out = []
+    if "cnn" in decoders:
+        if model_path is None:
+            raise ValueError("the cnn decoder needs a model (for fisheye_standard: --fisheye-model)")
+        out.append(OnnxModel(model_path, threads))
+    if "classical" in decoders:
+        out.append(ClassicalTiles(psf_map, config))
+    return out
+
+
 def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(), conditions: list[str] | None = None,
                   fisheye_model: str | Path | None = None, progress: bool = True,
                   decoders: tuple[str, ...] = ("cnn",), classical_config=None) -> list[dict]:
@@ -344,14 +357,7 @@ def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(),
     geometry = lens_geometry(bench.lens)
     nominal = lens_tensor(bench.lens)
     config = classical_config or ClassicalConfig()
-    nominal_map = PsfMap(nominal, geometry, mode="tensor")
-    models = []
-    if "cnn" in decoders:
-        if model_path is None:
-            raise ValueError("the cnn decoder needs a model")
-        models.append(OnnxModel(model_path, bench.threads))
-    if "classical" in decoders:
-        models.append(ClassicalTiles(nominal_map, config))
+    models = _decoders(decoders, model_path, PsfMap(nominal, geometry, mode="tensor"), config, bench.threads)
 
     def calibrated(psf_map):
         return [ClassicalTiles(psf_map, config, "classical_calibrated")] if "classical" in decoders else []
@@ -378,18 +384,13 @@ def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(),
     if "fisheye_standard" in conditions:
         fb = Benchmark(lens="fisheye", tiles=bench.tiles, tile_px=bench.tile_px, seed=bench.seed, threads=bench.threads,
                        scheduler=bench.scheduler)
-        fisheye_tensor = lens_tensor("fisheye")
-        fisheye_models = []
-        if "cnn" in decoders:
-            if fisheye_model is None:
-                raise ValueError("fisheye_standard with the cnn decoder needs --fisheye-model")
-            fisheye_models.append(OnnxModel(fisheye_model, bench.threads))
-        if "classical" in decoders:
-            from dataclasses import replace
+        from dataclasses import replace
 
-            fisheye_config = replace(config, window_px=classical_window_px("fisheye", config.window_px))
-            fisheye_models.append(ClassicalTiles(PsfMap(fisheye_tensor, lens_geometry("fisheye"), mode="tensor"),
-                                                 fisheye_config))
+        fisheye_tensor = lens_tensor("fisheye")
+        fisheye_models = _decoders(decoders, fisheye_model,
+                                   PsfMap(fisheye_tensor, lens_geometry("fisheye"), mode="tensor"),
+                                   replace(config, window_px=classical_window_px("fisheye", config.window_px)),
+                                   bench.threads)
         fisheye_renders = fb.renders(fisheye_tensor, progress)
         for model in fisheye_models:
             rows += score(model, fisheye_renders, fb, STANDARD_SIGMA, "fisheye_standard")

@@ -14,6 +14,28 @@ from .pipeline import InferenceResult, frame_lens_name, infer_frame
 from .quality import FrameQualityWarning, quality_gate
 
 
+def _read_checked(frame_or_path, allow_test_pattern: bool):
+    """(frame, quality, timings): the frame read (if a path) and passed through ``quality_gate``, whose
+    findings go to ``warnings.warn`` (``FrameQualityWarning``); a test pattern is refused unless allowed."""
+    from devices import load_raw
+
+    t0 = time.perf_counter()
+    frame = load_raw(frame_or_path) if isinstance(frame_or_path, (str, os.PathLike)) else frame_or_path
+    timings = {"read_raw_s": time.perf_counter() - t0}
+    quality = quality_gate(frame, allow_test_pattern)
+    for message in quality.warnings:
+        warnings.warn(message, FrameQualityWarning, stacklevel=4)
+    return frame, quality, timings
+
+
+def _frame_report(frame, quality) -> dict:
+    """The report's description of the frame, whichever decoder ran."""
+    return {"frame_calibration_id": getattr(frame, "calibration_id", None),
+            "frame": {"frame_id": frame.frame_id, "shape": list(frame.data.shape), "roi": vars(frame.roi),
+                      "lens": frame.lens, "device": frame.device, "source": frame.source},
+            "frame_quality": quality.to_dict()}
+
+
 def load_model_for(frame, model_path: str | os.PathLike | None = None, calibration_id: str | None = None,
                    tile_px: int = 512, threads: int | None = None) -> tuple[Model, str | None]:
     """The model for ``frame``: ``model_path`` if given, else the packaged model for the calibration in use.
@@ -97,15 +119,7 @@ def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None 
     ``warnings.warn`` (``FrameQualityWarning``) and the report's
     ``frame_quality``; a test pattern is refused unless ``allow_test_pattern``.
     """
-    from devices import load_raw
-
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-    frame = load_raw(frame_or_path) if isinstance(frame_or_path, (str, os.PathLike)) else frame_or_path
-    timings["read_raw_s"] = time.perf_counter() - t0
-    quality = quality_gate(frame, allow_test_pattern)
-    for message in quality.warnings:
-        warnings.warn(message, FrameQualityWarning, stacklevel=3)
+    frame, quality, timings = _read_checked(frame_or_path, allow_test_pattern)
     calibration = None
     if calibration_path is not None:
         calibration = calibration_for(frame, calibration_path, calibration_id)
@@ -128,12 +142,9 @@ def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None 
         "decoder": "cnn",
         "model": model.describe(),
         "calibration_id": model.manifest["calibration_id"],
-        "frame_calibration_id": getattr(frame, "calibration_id", None),
         "calibration_note": note,
         "calibration_file": calibration,
-        "frame": {"frame_id": frame.frame_id, "shape": list(frame.data.shape), "roi": vars(frame.roi),
-                  "lens": frame.lens, "device": frame.device, "source": frame.source},
-        "frame_quality": quality.to_dict(),
+        **_frame_report(frame, quality),
         **result.summary(),
         "stage_timings_s": timings,
         "peak_rss_mb": peak_rss_mb(),
@@ -168,8 +179,6 @@ def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibratio
     The network's options (``model``, ``model_path``) are refused; its tiling options
     (``tile_px``, ``threads``, ``overlap_px``) do not apply and are ignored.
     """
-    from devices import load_raw
-
     from ..decode import ClassicalConfig
     from .classical import classical_decoder as build_decoder
     from .classical import decode_frame
@@ -177,13 +186,7 @@ def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibratio
     if model is not None or model_path is not None:
         raise ValueError("--model names a network; the classical decoder uses none (drop --model or use "
                          "--decoder cnn)")
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-    frame = load_raw(frame_or_path) if isinstance(frame_or_path, (str, os.PathLike)) else frame_or_path
-    timings["read_raw_s"] = time.perf_counter() - t0
-    quality = quality_gate(frame, allow_test_pattern)
-    for message in quality.warnings:
-        warnings.warn(message, FrameQualityWarning, stacklevel=3)
+    frame, quality, timings = _read_checked(frame_or_path, allow_test_pattern)
     camera, calibration = camera_for(frame, calibration_path, calibration_id)
     t0 = time.perf_counter()
     decoder = classical_decoder or build_decoder(camera, classical_config or ClassicalConfig())
@@ -198,12 +201,9 @@ def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibratio
         "decoder": "classical",
         "camera": camera.to_dict() | {"sha256": camera.sha256()},
         "calibration_id": camera.calibration_id,
-        "frame_calibration_id": getattr(frame, "calibration_id", None),
         "calibration_note": None,
         "calibration_file": calibration,
-        "frame": {"frame_id": frame.frame_id, "shape": list(frame.data.shape), "roi": vars(frame.roi),
-                  "lens": frame.lens, "device": frame.device, "source": frame.source},
-        "frame_quality": quality.to_dict(),
+        **_frame_report(frame, quality),
         **result.summary(),
         "stage_timings_s": timings,
         "peak_rss_mb": peak_rss_mb(),
