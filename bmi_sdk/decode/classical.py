@@ -29,6 +29,7 @@ Steps (each in its own module):
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -63,6 +64,7 @@ class ClassicalConfig:
     fill_windows: float = 0.0
     aif_step: int = 2
     noise_sigma: float | None = None
+    threads: int | None = None  # FFT threads (default: all cores; 1 on a one-thread Dask worker)
 
     def __post_init__(self):
         if self.window_px % 4 or self.window_px < 16:
@@ -102,6 +104,7 @@ class ClassicalDecoder:
         self.config = config
         self.candidates = candidates
         self.zones = ZoneKernels(psf_map, candidates, config.slopes, config.window_px)
+        self.threads = config.threads or os.cpu_count() or 1
 
     # -- evidence ---------------------------------------------------------------------------------
     def _block_nll(self, spectra: list, zone, which: np.ndarray, noise_var: float, taper_energy: float) -> np.ndarray:
@@ -161,7 +164,7 @@ class ClassicalDecoder:
             theta, phi = geometry.field_angles(np.array([centre_r]), np.array([centre_c]))
             zone = ZoneKernels.zone(float(np.nan_to_num(theta[0], nan=geometry.max_field_deg)), float(phi[0]))
             ps = slice(br * sp, br * sp + (nr - 1) * sp + n), slice(bc * sp, bc * sp + (nc - 1) * sp + n)
-            spectra = [window_spectra(padded[p][ps], n, sp, taper)[0] for p in range(4)]
+            spectra = [window_spectra(padded[p][ps], n, sp, taper, self.threads)[0] for p in range(4)]
             t1 = time.perf_counter()
             self.zones.models(zone, coarse)
             t2 = time.perf_counter()
@@ -235,7 +238,7 @@ class ClassicalDecoder:
                 inv_core = np.where(core_valid, inv_px[r:r1, c:c1], np.nanmedian(inv_px[r:r1, c:c1][core_valid]))
                 core = (slice(halo, halo + r1 - r), slice(halo, halo + c1 - c))
                 aif = wiener_blend(rgb, inv_core, cand_inv, lambda idx, z=zone: self.zones.kernels(z, aif_cands[idx]),
-                                   noise, core)
+                                   noise, core, self.threads)
                 falloff = relative_illumination(geometry, row0 + r, col0 + c, r1 - r, c1 - c)
                 out[r:r1, c:c1] = np.where(core_valid[..., None] & (falloff[..., None] > 0),
                                            aif / np.maximum(falloff, 1e-6)[..., None], 0.0)

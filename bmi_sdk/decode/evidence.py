@@ -95,7 +95,8 @@ def rfft_multiplicity(n_plane: int) -> np.ndarray:
     return m
 
 
-def window_spectra(plane: np.ndarray, n_plane: int, stride_plane: int, taper: np.ndarray) -> tuple[np.ndarray, tuple]:
+def window_spectra(plane: np.ndarray, n_plane: int, stride_plane: int, taper: np.ndarray,
+                   threads: int = 1) -> tuple[np.ndarray, tuple]:
     """Power spectra (rows × cols, n, n//2+1) float32 of the tapered, mean-removed n × n windows of a plane.
 
     Windows start every ``stride_plane`` samples; returns the spectra and the (rows, cols) grid shape.
@@ -106,7 +107,7 @@ def window_spectra(plane: np.ndarray, n_plane: int, stride_plane: int, taper: np
     tsum = float(taper.sum())
     mean = np.einsum("nij,ij->n", w, taper) / tsum
     w = (w - mean[:, None, None]) * taper
-    spec = sfft.rfft2(w, workers=1)
+    spec = sfft.rfft2(w, workers=threads)
     return (spec.real ** 2 + spec.imag ** 2).astype(np.float32), (rows, cols)
 
 

@@ -167,7 +167,10 @@ class FrameDecoder:
         camera, _ = camera_for(frame, o.calibration_path, o.calibration_id)
         key = camera.sha256()
         if key not in self.classical:
-            self.classical[key] = classical_decoder(camera, o.classical_config or ClassicalConfig())
+            config = o.classical_config or ClassicalConfig()
+            if o.threads is not None and config.threads is None:  # a Dask worker's own thread count
+                config = replace(config, threads=o.threads)
+            self.classical[key] = classical_decoder(camera, config)
         return self.classical[key]
 
 
