@@ -62,7 +62,7 @@ class ClassicalConfig:
     sigma_spread_scale: float = 2.64
     sigma_floor_inv_per_m: float = 0.083
     fill_windows: float = 0.0
-    aif_step: int = 2
+    aif_step: int = 4
     noise_sigma: float | None = None
     threads: int | None = None  # FFT threads (default: all cores; 1 on a one-thread Dask worker)
 
