@@ -15,10 +15,13 @@ import sys
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from bmi_sdk import __version__
+
     parser = argparse.ArgumentParser(
         prog="bmi",
         description="bmi-sdk: monocentric RGBD camera — optics, simulation, device, calibration, inference.",
     )
+    parser.add_argument("--version", action="version", version=f"bmi-sdk {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
         if info.name.startswith("_"):  # __main__ and private helpers are not command groups

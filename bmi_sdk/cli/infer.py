@@ -11,6 +11,13 @@ def _run(args) -> int:
     from bmi_sdk.runtime import run_job
     from bmi_sdk.runtime.quality import FrameQualityWarning
 
+    if args.provider is not None:  # an unavailable provider fails here, naming the available ones, before any work
+        from bmi_sdk.runtime.model import choose_providers
+
+        if args.decoder == "classical":
+            raise ValueError("--provider picks the network's onnxruntime provider; the classical decoder runs none "
+                             "(drop --provider or use --decoder cnn)")
+        choose_providers(args.provider)
     if wants_batch(args):
         return infer_many(args)
     args.raw = args.raw[0]
@@ -33,7 +40,8 @@ def _run(args) -> int:
                                  calibration_path=args.calibration,
                                  tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
                                  ply_step_px=args.ply_step, progress=not args.quiet, overwrite=args.overwrite,
-                                 allow_test_pattern=args.allow_test_pattern, decoder=args.decoder, **options)
+                                 allow_test_pattern=args.allow_test_pattern, decoder=args.decoder,
+                                 **({"providers": args.provider} if args.provider else {}), **options)
     finally:
         warnings.showwarning = original
     if report["decoder"] == "classical":
@@ -50,7 +58,8 @@ def _run(args) -> int:
     if report["calibration_note"]:
         print(f"note: {report['calibration_note']}")
     t = report["stage_timings_s"]
-    print(f"model {report['model']['preset']} sha256 {report['model']['sha256'][:12]}…, "
+    print(f"model {report['model']['preset']} sha256 {report['model']['sha256'][:12]}… on "
+          f"{report['execution_provider']}, "
           f"calibration {report['calibration_id'] or 'nominal PSFs'}")
     print(f"tiles run {result.tiles_run}, skipped {result.tiles_skipped} (outside the image circle); "
           f"peak memory {report['peak_rss_mb']:.0f} MB")
@@ -77,6 +86,9 @@ def register(subparsers) -> None:
     p.add_argument("--tile-px", type=int, default=512, help="tile size, a multiple of 4 (default 512)")
     p.add_argument("--overlap-px", type=int, default=None,
                    help="tile overlap (default: receptive field + half the largest PSF, from the manifest)")
+    p.add_argument("--provider", default=None, metavar="NAME",
+                   help="onnxruntime execution provider for the network, e.g. cpu, cuda, tensorrt or "
+                        "CUDAExecutionProvider (default: the best available: TensorRT, CUDA, then CPU)")
     p.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: all cores)")
     p.add_argument("--ply-step", type=int, default=1, help="one point per N×N pixels in points.ply (default 1)")
     p.add_argument("--decoder", choices=("cnn", "classical"), default="cnn",
