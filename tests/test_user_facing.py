@@ -125,3 +125,74 @@ def test_cli_infer_runs_on_the_provider_asked_for(model_path, dng, tmp_path):
                "--provider", "cpu", "--quiet")
     assert run.returncode == 0, run.stderr
     assert json.loads((tmp_path / "report.json").read_text())["execution_provider"] == "CPUExecutionProvider"
+
+
+# -- outputs a person can use ----------------------------------------------------------------------------------
+
+def _read_ply_xyz(path):
+    data = path.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    dtype = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    return np.frombuffer(data[end:], dtype)
+
+
+def test_depth_z_is_planar_depth_beside_range_and_matches_the_point_cloud(tmp_path):
+    from bmi_sdk.geometry import BMI_SENSOR
+    from bmi_sdk.runtime import write_outputs
+
+    rng = np.random.default_rng(0)
+    h, w, row0, col0 = 24, 32, 400, 600   # far off-axis: cos θ well below 1
+    depth = rng.uniform(0.8, 9.0, (h, w)).astype(np.float32)
+    depth[3, 5] = np.nan
+    aif = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
+    written = write_outputs(tmp_path, aif, depth, BMI_SENSOR, row0, col0)
+    assert "depth_z.npy" in written["files"]
+    z = np.load(tmp_path / "depth_z.npy")
+    rows, cols = np.mgrid[row0:row0 + h, col0:col0 + w]
+    theta, _ = BMI_SENSOR.field_angles(rows, cols)
+    assert z.dtype == np.float32 and np.isnan(z[3, 5]) and np.isfinite(np.delete(z.ravel(), 3 * w + 5)).all()
+    np.testing.assert_allclose(z, depth * np.cos(np.radians(theta)), rtol=1e-6)
+    assert np.nanmax(z / depth) < 0.9   # not the range again
+    points = _read_ply_xyz(tmp_path / "points.ply")
+    np.testing.assert_allclose(np.sort(points["z"]), np.sort(z[np.isfinite(z)]), rtol=1e-5)
+
+
+def test_classical_job_writes_depth_z_too(dng, tmp_path):
+    from bmi_sdk.decode import ClassicalConfig
+
+    _, report = run_job(dng, tmp_path, decoder="classical", classical_config=ClassicalConfig(candidates=8))
+    z, d = np.load(tmp_path / "depth_z.npy"), np.load(tmp_path / "depth.npy")
+    assert "depth_z.npy" in report["files"] and np.array_equal(np.isnan(z), np.isnan(d))
+    assert np.all(z[np.isfinite(z)] <= d[np.isfinite(d)])
+
+
+def test_fixed_depth_range_colours_the_preview_the_same_in_every_frame(tmp_path):
+    import cv2
+
+    from bmi_sdk.geometry import BMI_SENSOR
+    from bmi_sdk.runtime import write_outputs
+
+    aif = np.full((16, 16, 3), 0.5, np.float32)
+    near, far = 0.7, 10.0
+    colours = []
+    for i, depth_m in enumerate((2.0, 5.0)):
+        depth = np.full((16, 16), depth_m, np.float32)
+        depth[0, 0] = 2.0        # the same 2 m pixel in two frames of different content
+        write_outputs(tmp_path / str(i), aif, depth, BMI_SENSOR, 2000, 2800, depth_range_m=(near, far))
+        colours.append(cv2.imread(str(tmp_path / str(i) / "depth_preview.png"))[0, 0])
+    t = (1 / 2.0 - 1 / far) / (1 / near - 1 / far)
+    expected = cv2.applyColorMap(np.array([[int(t * 255)]], np.uint8), cv2.COLORMAP_TURBO)[0, 0]
+    assert np.array_equal(colours[0], expected) and np.array_equal(colours[1], expected)
+    with pytest.raises(ValueError, match="0 < NEAR < FAR"):
+        write_outputs(tmp_path / "bad", aif, depth, BMI_SENSOR, depth_range_m=(10, 0.7))
+
+
+def test_cli_depth_range(model_path, dng, tmp_path):
+    run = _bmi("infer", dng, "--out", tmp_path / "o", "--model", model_path, "--tile-px", 64, "--threads", 1,
+               "--depth-range", "0.7,10", "--quiet")
+    assert run.returncode == 0, run.stderr
+    assert (tmp_path / "o" / "depth_preview.png").is_file() and (tmp_path / "o" / "depth_z.npy").is_file()
+    for bad in ("10,0.7", "0.7", "near,far"):
+        run = _bmi("infer", dng, "--out", tmp_path / "x", "--model", model_path, "--depth-range", bad)
+        assert run.returncode == 1 and "--depth-range" in run.stderr, (bad, run.stderr)
+        assert not (tmp_path / "x").exists()

@@ -3,6 +3,19 @@
 from __future__ import annotations
 
 
+def depth_range(text: str) -> tuple[float, float]:
+    """``--depth-range NEAR,FAR`` (metres) → (near, far), refused unless 0 < NEAR < FAR."""
+    from bmi_sdk.runtime.outputs import check_depth_range
+
+    parts = text.split(",")
+    if len(parts) != 2:
+        raise ValueError(f"--depth-range wants NEAR,FAR in metres (e.g. 0.7,10), got {text!r}")
+    try:
+        return check_depth_range(parts)
+    except ValueError as exc:
+        raise ValueError(f"--depth-range {text}: {exc}") from None
+
+
 def _run(args) -> int:
     import sys
     import warnings
@@ -11,6 +24,8 @@ def _run(args) -> int:
     from bmi_sdk.runtime import run_job
     from bmi_sdk.runtime.quality import FrameQualityWarning
 
+    if args.depth_range is not None:
+        args.depth_range = depth_range(args.depth_range)
     if args.provider is not None:  # an unavailable provider fails here, naming the available ones, before any work
         from bmi_sdk.runtime.model import choose_providers
 
@@ -41,6 +56,7 @@ def _run(args) -> int:
                                  tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
                                  ply_step_px=args.ply_step, progress=not args.quiet, overwrite=args.overwrite,
                                  allow_test_pattern=args.allow_test_pattern, decoder=args.decoder,
+                                 depth_range_m=args.depth_range,
                                  **({"providers": args.provider} if args.provider else {}), **options)
     finally:
         warnings.showwarning = original
@@ -52,7 +68,7 @@ def _run(args) -> int:
               f"candidate evaluations {stats['candidate_evaluations']} (coarse + fine) against "
               f"{stats['candidate_evaluations_exhaustive']} exhaustive; peak memory {report['peak_rss_mb']:.0f} MB")
         print("stages: " + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in stats["timings_s"].items()))
-        print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_sigma.npy, confidence.png, depth_mm.png, "
+        print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_z.npy, depth_sigma.npy, confidence.png, depth_mm.png, "
               f"points.ply ({report['ply_points']} points, with σ), report.json")
         return 0
     if report["calibration_note"]:
@@ -64,7 +80,7 @@ def _run(args) -> int:
     print(f"tiles run {result.tiles_run}, skipped {result.tiles_skipped} (outside the image circle); "
           f"peak memory {report['peak_rss_mb']:.0f} MB")
     print("stages: " + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in t.items()))
-    print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_mm.png, points.ply ({report['ply_points']} points), "
+    print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_z.npy, depth_mm.png, points.ply ({report['ply_points']} points), "
           "report.json")
     return 0
 
@@ -90,6 +106,9 @@ def register(subparsers) -> None:
                    help="onnxruntime execution provider for the network, e.g. cpu, cuda, tensorrt or "
                         "CUDAExecutionProvider (default: the best available: TensorRT, CUDA, then CPU)")
     p.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: all cores)")
+    p.add_argument("--depth-range", default=None, metavar="NEAR,FAR",
+                   help="fixed range (metres) of depth_preview.png's colours, e.g. 0.7,10, so that frames compare "
+                        "(default: each frame's 1st-99th percentile)")
     p.add_argument("--ply-step", type=int, default=1, help="one point per N×N pixels in points.ply (default 1)")
     p.add_argument("--decoder", choices=("cnn", "classical"), default="cnn",
                    help="cnn: the shipped end-to-end network (default); classical: depth evidence from the "

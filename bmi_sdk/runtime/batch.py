@@ -88,6 +88,7 @@ class DecodeOptions:
     overwrite: bool = False
     allow_test_pattern: bool = False
     providers: str | tuple[str, ...] | None = None   # onnxruntime execution provider(s); None: the best available
+    depth_range_m: tuple[float, float] | None = None  # fixed depth_preview.png colours (near, far), metres
 
 
 @dataclass
@@ -144,7 +145,8 @@ class FrameDecoder:
                                          calibration_path=o.calibration_path, ply_step_px=o.ply_step_px,
                                          overwrite=o.overwrite, allow_test_pattern=o.allow_test_pattern,
                                          classical_decoder=self.classical_decoder_for(frame),
-                                         input_path=frame_path, providers=o.providers)
+                                         input_path=frame_path, providers=o.providers,
+                                         depth_range_m=o.depth_range_m)
                 return {**summary, "ok": True, "calibration_note": None, "decoder": "classical",
                         "camera_sha256": report["camera"]["sha256"], "blocks_run": report["blocks_run"],
                         "seconds": time.perf_counter() - t0}
@@ -152,7 +154,8 @@ class FrameDecoder:
             result, report = run_job(frame, out_dir, model=model, calibration_id=o.calibration_id,
                                      calibration_path=o.calibration_path, overlap_px=o.overlap_px,
                                      ply_step_px=o.ply_step_px, overwrite=o.overwrite,
-                                     allow_test_pattern=o.allow_test_pattern, input_path=frame_path)
+                                     allow_test_pattern=o.allow_test_pattern, input_path=frame_path,
+                                     depth_range_m=o.depth_range_m)
         except (ValueError, FileNotFoundError, OSError) as exc:
             return {**summary, "ok": False, "error": f"{type(exc).__name__}: {exc}",
                     "seconds": time.perf_counter() - t0}

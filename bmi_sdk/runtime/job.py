@@ -9,7 +9,7 @@ import warnings
 from ..resources import peak_rss_mb
 from .model import Model, select_model
 from .output_set import OutputSet
-from .outputs import write_outputs, write_report
+from .outputs import check_depth_range, write_outputs, write_report
 from .pipeline import InferenceResult, frame_lens_name, infer_frame
 from .provenance import input_path_of, provenance
 from .quality import FrameQualityWarning, quality_gate
@@ -119,7 +119,8 @@ def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None 
               calibration_path: str | os.PathLike | None = None, tile_px: int = 512,
               threads: int | None = None, overlap_px: int | None = None, ply_step_px: int = 1,
               progress: bool = False, allow_test_pattern: bool = False,
-              providers: str | list[str] | None = None) -> tuple[InferenceResult, dict]:
+              providers: str | list[str] | None = None,
+              depth_range_m: tuple[float, float] | None = None) -> tuple[InferenceResult, dict]:
     """The job, written into ``out_dir`` (``run_job``'s staging folder).
 
     ``calibration_path`` (a ``bmi calibrate`` file) selects the model trained
@@ -128,7 +129,10 @@ def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None 
     The frame passes ``quality_gate`` first: its findings go to
     ``warnings.warn`` (``FrameQualityWarning``) and the report's
     ``frame_quality``; a test pattern is refused unless ``allow_test_pattern``.
+    ``depth_range_m`` (near, far): fixed colours for ``depth_preview.png`` (``write_outputs``).
     """
+    if depth_range_m is not None:
+        check_depth_range(depth_range_m)  # before any work
     frame, quality, timings = _read_checked(frame_or_path, allow_test_pattern)
     calibration = None
     if calibration_path is not None:
@@ -145,7 +149,7 @@ def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None 
     timings["infer_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     written = write_outputs(out_dir, result.aif, result.depth_m, frame.geometry, frame.roi.y_px, frame.roi.x_px,
-                            ply_step_px=ply_step_px)
+                            ply_step_px=ply_step_px, depth_range_m=depth_range_m)
     timings["write_outputs_s"] = time.perf_counter() - t0
     report = {
         "schema": "bmi-infer-report/1",
@@ -181,7 +185,7 @@ def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibratio
                     ply_step_px: int = 1, progress: bool = False, allow_test_pattern: bool = False,
                     classical_config=None, classical_decoder=None, model=None, model_path=None,
                     tile_px: int | None = None, threads: int | None = None, overlap_px: int | None = None,
-                    providers=None) -> tuple:
+                    providers=None, depth_range_m: tuple[float, float] | None = None) -> tuple:
     """The classical decoder's job, written into ``out_dir`` (``run_job``'s staging folder).
 
     ``calibration_path``, after ``calibration_for``'s checks, makes the decoder use that camera's
@@ -200,6 +204,8 @@ def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibratio
     if providers is not None:
         raise ValueError("--provider picks the network's onnxruntime provider; the classical decoder runs none "
                          "(drop --provider or use --decoder cnn)")
+    if depth_range_m is not None:
+        check_depth_range(depth_range_m)  # before any work
     frame, quality, timings = _read_checked(frame_or_path, allow_test_pattern)
     camera, calibration = camera_for(frame, calibration_path, calibration_id)
     t0 = time.perf_counter()
@@ -208,7 +214,8 @@ def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibratio
     timings["decode_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     written = write_outputs(out_dir, result.aif, result.depth_m, frame.geometry, frame.roi.y_px, frame.roi.x_px,
-                            ply_step_px=ply_step_px, depth_sigma_m=result.depth_sigma_m)
+                            ply_step_px=ply_step_px, depth_sigma_m=result.depth_sigma_m,
+                            depth_range_m=depth_range_m)
     timings["write_outputs_s"] = time.perf_counter() - t0
     report = {
         "schema": "bmi-infer-report/1",
