@@ -196,3 +196,21 @@ def test_cli_depth_range(model_path, dng, tmp_path):
         run = _bmi("infer", dng, "--out", tmp_path / "x", "--model", model_path, "--depth-range", bad)
         assert run.returncode == 1 and "--depth-range" in run.stderr, (bad, run.stderr)
         assert not (tmp_path / "x").exists()
+
+
+def test_psf_export_writes_a_png_when_the_name_says_png(tmp_path, capsys):
+    import cv2
+
+    from bmi_sdk.cli import main
+
+    args = ["psf", "export", "--wavelength-nm", "587.6", "--depth-m", "2", "--field-deg", "30"]
+    assert main(args + ["--out", str(tmp_path / "k.npy")]) == 0
+    assert main(args + ["--out", str(tmp_path / "k.png")]) == 0
+    kernel = np.load(tmp_path / "k.npy")
+    png = cv2.imread(str(tmp_path / "k.png"), cv2.IMREAD_UNCHANGED)
+    assert (tmp_path / "k.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert png.dtype == np.uint16 and png.shape == kernel.shape and png.max() == 65535
+    np.testing.assert_allclose(png / 65535, kernel / kernel.max(), atol=1 / 65535)
+    assert "normalised to the peak" in capsys.readouterr().out
+    assert main(args + ["--out", str(tmp_path / "k.tif")]) == 1
+    assert "name it .npy" in capsys.readouterr().err and not (tmp_path / "k.tif").exists()
