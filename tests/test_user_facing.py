@@ -214,3 +214,31 @@ def test_psf_export_writes_a_png_when_the_name_says_png(tmp_path, capsys):
     assert "normalised to the peak" in capsys.readouterr().out
     assert main(args + ["--out", str(tmp_path / "k.tif")]) == 1
     assert "name it .npy" in capsys.readouterr().err and not (tmp_path / "k.tif").exists()
+
+
+def test_simulate_save_truth_writes_the_window_the_frame_shows(tmp_path):
+    from bmi_sdk.scenes import generate_scene
+
+    rng = np.random.default_rng(1)
+    rgb = rng.uniform(0, 1, (66, 67, 3)).astype(np.float32)      # odd width: the frame keeps whole RGGB cells
+    depth = rng.uniform(1, 5, (66, 67)).astype(np.float32)
+    depth[2, 3] = 0                                               # unknown
+    np.save(tmp_path / "rgb.npy", rgb)
+    np.save(tmp_path / "d.npy", depth)
+    run = _bmi("simulate", "--rgb", tmp_path / "rgb.npy", "--depth", tmp_path / "d.npy", "--psf-mode", "tensor",
+               "--field-deg", 20, "--noise", 0.005, "--out", tmp_path / "f.dng", "--save-truth")
+    assert run.returncode == 0, run.stderr[-2000:]
+    sidecar = json.loads((tmp_path / "f.json").read_text())
+    truth_range = np.load(tmp_path / "f_truth_range.npy")
+    truth_rgb = np.load(tmp_path / "f_truth_rgb.npy")
+    assert list(truth_range.shape) == sidecar["shape"] == [66, 66] and truth_rgb.shape == (66, 66, 3)
+    assert np.isnan(truth_range[2, 3]) and np.array_equal(np.delete(truth_range.ravel(), 2 * 66 + 3),
+                                                          np.delete(depth[:, :66].ravel(), 2 * 66 + 3))
+    np.testing.assert_array_equal(truth_rgb, rgb[:, :66])
+
+    run = _bmi("simulate", "--procedural", 5, "--size", 64, "--psf-mode", "tensor", "--noise", 0.005,
+               "--out", tmp_path / "p.dng", "--save-truth")
+    assert run.returncode == 0, run.stderr[-2000:]
+    scene = generate_scene(64, 64, 5)
+    np.testing.assert_array_equal(np.load(tmp_path / "p_truth_range.npy"), scene.range_m)
+    np.testing.assert_array_equal(np.load(tmp_path / "p_truth_rgb.npy"), scene.rgb)
