@@ -98,7 +98,7 @@ def save_dng(frame: RawFrame, path, overwrite: bool = True) -> None:
     with atomic_path(path) as tmp:
         tifffile.imwrite(tmp, data, photometric=32803, subfiletype=0, compression=None,
                          metadata=None, extratags=extratags)
-    write_json(side, frame.metadata() | {"dng": path.name, "pixel_sha256": pixel_sha256(data)})
+    write_json(side, frame.metadata | {"dng": path.name, "pixel_sha256": pixel_sha256(data)})
 
 
 def _cfa_string(raw) -> str:

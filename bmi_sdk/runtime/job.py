@@ -9,7 +9,7 @@ import warnings
 from ..resources import peak_rss_mb
 from .model import Model, select_model
 from .output_set import OutputSet
-from .outputs import check_depth_range, write_outputs, write_report
+from .outputs import check_depth_range, write_frame_outputs, write_report
 from .pipeline import InferenceResult, frame_lens_name, infer_frame
 from .provenance import input_path_of, provenance
 from .quality import FrameQualityWarning, quality_gate
@@ -148,8 +148,7 @@ def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None 
     result = infer_frame(model, frame, overlap_px=overlap_px, progress=progress)
     timings["infer_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    written = write_outputs(out_dir, result.aif, result.depth_m, frame.geometry, frame.roi.y_px, frame.roi.x_px,
-                            ply_step_px=ply_step_px, depth_range_m=depth_range_m)
+    written = write_frame_outputs(out_dir, result, frame, ply_step_px=ply_step_px, depth_range_m=depth_range_m)
     timings["write_outputs_s"] = time.perf_counter() - t0
     report = {
         "schema": "bmi-infer-report/1",
@@ -213,9 +212,7 @@ def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibratio
     result = decode_frame(decoder, frame, camera, progress=progress)
     timings["decode_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    written = write_outputs(out_dir, result.aif, result.depth_m, frame.geometry, frame.roi.y_px, frame.roi.x_px,
-                            ply_step_px=ply_step_px, depth_sigma_m=result.depth_sigma_m,
-                            depth_range_m=depth_range_m)
+    written = write_frame_outputs(out_dir, result, frame, ply_step_px=ply_step_px, depth_range_m=depth_range_m)
     timings["write_outputs_s"] = time.perf_counter() - t0
     report = {
         "schema": "bmi-infer-report/1",
