@@ -242,3 +242,33 @@ def test_simulate_save_truth_writes_the_window_the_frame_shows(tmp_path):
     scene = generate_scene(64, 64, 5)
     np.testing.assert_array_equal(np.load(tmp_path / "p_truth_range.npy"), scene.range_m)
     np.testing.assert_array_equal(np.load(tmp_path / "p_truth_rgb.npy"), scene.rgb)
+
+
+# -- logging -----------------------------------------------------------------------------------------------------
+
+def test_diagnostics_go_through_logging_and_follow_v_and_q(model_path, tmp_path, capsys):
+    import warnings
+
+    from bmi_sdk.cli import main
+    from devices import Roi, open_camera
+    from firmware_sim import FirmwareDevice, make_source
+
+    with open_camera("sim://", device=FirmwareDevice(source=make_source("dark"), seed=1)) as cam:
+        cam.settings.roi = Roi(2980, 2240, 96, 64)
+        cam.capture().save_dng(tmp_path / "dark.dng")
+    infer = ["infer", str(tmp_path / "dark.dng"), "--model", str(model_path), "--tile-px", "64", "--quiet"]
+    outputs = {}
+    for flags in ([], ["-q"], ["-v"]):
+        with warnings.catch_warnings():
+            warnings.simplefilter("always")
+            code = main(flags + infer + ["--out", str(tmp_path / ("o" + "".join(flags)))])
+        outputs[tuple(flags)] = (code, capsys.readouterr())
+    code, captured = outputs[()]
+    assert code == 0 and "bmi infer: warning: median signal" in captured.err and "bmi infer: info" not in captured.err
+    assert "warning" not in captured.out and "tiles run" in captured.out       # results stay on stdout
+    code, captured = outputs[("-q",)]
+    assert code == 0 and captured.err == "" and "tiles run" in captured.out
+    code, captured = outputs[("-v",)]
+    assert code == 0 and "bmi infer: info: input " in captured.err and "execution provider CPU" in captured.err
+    assert main(["-q", "infer", str(tmp_path / "missing.dng"), "--out", str(tmp_path / "m")]) == 1
+    assert "bmi infer: error: no raw file" in capsys.readouterr().err      # -q never hides an error

@@ -17,12 +17,9 @@ def depth_range(text: str) -> tuple[float, float]:
 
 
 def _run(args) -> int:
-    import sys
-    import warnings
-
     from bmi_sdk.cli._infer_many import infer_many, wants_batch
+    from bmi_sdk.cli._logging import command_logger
     from bmi_sdk.runtime import run_job
-    from bmi_sdk.runtime.quality import FrameQualityWarning
 
     if args.depth_range is not None:
         args.depth_range = depth_range(args.depth_range)
@@ -44,22 +41,17 @@ def _run(args) -> int:
         options["classical_config"] = ClassicalConfig(window_px=args.window_px, stride_px=args.stride_px,
                                                       candidates=args.candidates, noise_sigma=args.noise_sigma)
 
-    def show(message, category, *rest, **kw):  # frame-quality findings as one line on stderr, not a source line
-        if issubclass(category, FrameQualityWarning):
-            print(f"bmi infer: warning: {message}", file=sys.stderr)
-        else:
-            original(message, category, *rest, **kw)
-    original, warnings.showwarning = warnings.showwarning, show
-    try:
-        result, report = run_job(args.raw, args.out, model_path=args.model, calibration_id=args.calibration_id,
-                                 calibration_path=args.calibration,
-                                 tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
-                                 ply_step_px=args.ply_step, progress=not args.quiet, overwrite=args.overwrite,
-                                 allow_test_pattern=args.allow_test_pattern, decoder=args.decoder,
-                                 depth_range_m=args.depth_range,
-                                 **({"providers": args.provider} if args.provider else {}), **options)
-    finally:
-        warnings.showwarning = original
+    # frame-quality findings (FrameQualityWarning) reach stderr through logging: "bmi infer: warning: …"
+    result, report = run_job(args.raw, args.out, model_path=args.model, calibration_id=args.calibration_id,
+                             calibration_path=args.calibration,
+                             tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
+                             ply_step_px=args.ply_step, progress=not args.quiet, overwrite=args.overwrite,
+                             allow_test_pattern=args.allow_test_pattern, decoder=args.decoder,
+                             depth_range_m=args.depth_range,
+                             **({"providers": args.provider} if args.provider else {}), **options)
+    command_logger("infer").info("input %s; bmi-sdk %s, onnxruntime %s; execution provider %s",
+                                 report["input_path"], report["software"]["bmi_sdk"],
+                                 report["software"]["onnxruntime"], report["execution_provider"])
     if report["decoder"] == "classical":
         stats = report["decoder_stats"]
         print(f"classical decoder, camera {report['camera']['sha256'][:12]}…, "
@@ -72,7 +64,7 @@ def _run(args) -> int:
               f"points.ply ({report['ply_points']} points, with σ), report.json")
         return 0
     if report["calibration_note"]:
-        print(f"note: {report['calibration_note']}")
+        command_logger("infer").warning("%s", report["calibration_note"])
     t = report["stage_timings_s"]
     print(f"model {report['model']['preset']} sha256 {report['model']['sha256'][:12]}… on "
           f"{report['execution_provider']}, "
