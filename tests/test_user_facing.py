@@ -272,3 +272,36 @@ def test_diagnostics_go_through_logging_and_follow_v_and_q(model_path, tmp_path,
     assert code == 0 and "bmi infer: info: input " in captured.err and "execution provider CPU" in captured.err
     assert main(["-q", "infer", str(tmp_path / "missing.dng"), "--out", str(tmp_path / "m")]) == 1
     assert "bmi infer: error: no raw file" in capsys.readouterr().err      # -q never hides an error
+
+
+# -- DNG colour ----------------------------------------------------------------------------------------------------
+
+def test_dng_colour_tags_make_raw_viewers_render_the_scenes_colours(tmp_path):
+    """A flat patch of linear sRGB (0.2, 0.4, 0.1), saved as DNG and developed by LibRaw (rawpy) with the
+    camera's white balance into linear sRGB, keeps its colour: R/G 0.5, B/G 0.25. With the identity
+    ColorMatrix the DNG used to carry, LibRaw rendered it grey (R/G 1.01, B/G 1.00)."""
+    import rawpy
+    import tifffile
+
+    from devices import Roi, open_camera
+    from devices.dng import XYZ_TO_CAMERA
+    from firmware_sim import FirmwareDevice, make_source
+
+    with open_camera("sim://", device=FirmwareDevice(source=make_source("flat:0.2,0.4,0.1"), seed=1)) as cam:
+        cam.settings.roi = Roi(2980, 2240, 96, 64)
+        cam.capture().save_dng(tmp_path / "flat.dng")
+    with tifffile.TiffFile(tmp_path / "flat.dng") as tif:
+        tags = tif.pages[0].tags
+        matrix = np.asarray(tags["ColorMatrix1"].value, float).reshape(-1, 2)
+        neutral = np.asarray(tags["AsShotNeutral"].value, float).reshape(-1, 2)
+        assert tags["CalibrationIlluminant1"].value == 21                       # D65
+    np.testing.assert_allclose((matrix[:, 0] / matrix[:, 1]).reshape(3, 3), XYZ_TO_CAMERA, atol=1e-6)
+    np.testing.assert_allclose(neutral[:, 0] / neutral[:, 1], 1.0)
+    np.testing.assert_allclose(XYZ_TO_CAMERA @ [0.95047, 1.0, 1.08883], 1.0, atol=1e-3)  # D65 white → (1, 1, 1)
+    with rawpy.imread(str(tmp_path / "flat.dng")) as raw:
+        assert list(raw.camera_whitebalance[:3]) == pytest.approx([1.0, 1.0, 1.0])
+        np.testing.assert_allclose(raw.color_matrix[:, :3], np.eye(3), atol=1e-5)   # camera RGB is sRGB
+        rgb = raw.postprocess(gamma=(1, 1), no_auto_bright=True, use_camera_wb=True, output_bps=16,
+                              output_color=rawpy.ColorSpace.sRGB)
+    mean = rgb[16:-16, 16:-16].reshape(-1, 3).mean(axis=0)
+    assert mean[0] / mean[1] == pytest.approx(0.5, abs=0.02) and mean[2] / mean[1] == pytest.approx(0.25, abs=0.02)
