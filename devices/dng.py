@@ -1,7 +1,9 @@
 """Raw frames as DNG (uncompressed, written with tifffile, read back with rawpy) plus a JSON sidecar.
 
 The DNG carries what DNG has tags for: CFA pattern (RGGB), black and white
-level, camera make/model/serial, exposure. The sidecar ``<name>.json`` carries
+level, camera make/model/serial, exposure, and the camera's colour
+(``ColorMatrix1`` under ``CalibrationIlluminant1`` D65, ``AsShotNeutral``), so
+that raw viewers and LibRaw render the frame's colours as the scene had them. The sidecar ``<name>.json`` carries
 the rest (curved-sensor geometry, lens identity, ROI, frame metadata,
 calibration id) and the SHA-256 of the pixels, so a sidecar that belongs to
 another file is detected. Both are written atomically (temp name + rename),
@@ -31,6 +33,29 @@ from .frame import SIDECAR_SCHEMA, FrameStatus, RawFrame, Roi
 MAKE = "BMI"
 _CFA_CODES = {"R": 0, "G": 1, "B": 2}
 _TAG_UNIQUE_MODEL = 50708
+
+SRGB_TO_XYZ_D65 = np.array([[0.4124564, 0.3575761, 0.1804375],
+                            [0.2126729, 0.7151522, 0.0721750],
+                            [0.0193339, 0.1191920, 0.9503041]])
+"""IEC 61966-2-1: linear sRGB → CIE XYZ, D65 white."""
+XYZ_TO_CAMERA = np.linalg.inv(SRGB_TO_XYZ_D65)
+"""``ColorMatrix1`` (XYZ under D65 → camera RGB). The simulated sensor records the scene's linear sRGB
+channels with equal gains (``firmware_sim`` renders linear sRGB per CFA colour; ``SensorModel`` applies one
+gain to all), so its native primaries are sRGB's; it maps D65 white to (1, 1, 1), as DNG asks."""
+AS_SHOT_NEUTRAL = (1.0, 1.0, 1.0)
+"""``AsShotNeutral``: the camera RGB of a neutral (D65 white) surface: equal, the sensor has no channel gains."""
+_RATIONAL_DENOMINATOR = 1_000_000
+
+
+def _rationals(values, signed: bool) -> tuple[int, ...]:
+    """DNG (S)RATIONAL pairs (numerator, denominator) for ``values``."""
+    pairs = []
+    for v in np.asarray(values, dtype=np.float64).ravel():
+        num = int(round(v * _RATIONAL_DENOMINATOR))
+        if not signed and num < 0:
+            raise ValueError(f"{v} cannot be an unsigned DNG rational")
+        pairs += [num, _RATIONAL_DENOMINATOR]
+    return tuple(pairs)
 
 
 def sidecar_path(path) -> Path:
@@ -91,14 +116,15 @@ def save_dng(frame: RawFrame, path, overwrite: bool = True) -> None:
         (50710, "B", 3, (0, 1, 2), True),                           # CFAPlaneColor
         (50714, "H", 1, (int(frame.black_level_dn),), True),        # BlackLevel
         (50717, "H", 1, (int(frame.white_level_dn),), True),        # WhiteLevel
-        (50721, "2i", 9, (1, 1, 0, 1, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 1), True),  # ColorMatrix1 = I
+        (50721, "2i", 9, _rationals(XYZ_TO_CAMERA, signed=True), True),     # ColorMatrix1: XYZ (D65) → camera
         (50778, "H", 1, (21,), True),                               # CalibrationIlluminant1 = D65
+        (50728, "2I", 3, _rationals(AS_SHOT_NEUTRAL, signed=False), True),  # AsShotNeutral
         (33434, "2I", 1, (exposure, 1_000_000), True),              # ExposureTime (s)
     ]
     with atomic_path(path) as tmp:
         tifffile.imwrite(tmp, data, photometric=32803, subfiletype=0, compression=None,
                          metadata=None, extratags=extratags)
-    write_json(side, frame.metadata() | {"dng": path.name, "pixel_sha256": pixel_sha256(data)})
+    write_json(side, frame.metadata | {"dng": path.name, "pixel_sha256": pixel_sha256(data)})
 
 
 def _cfa_string(raw) -> str:

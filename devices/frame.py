@@ -91,8 +91,9 @@ class RawFrame:
             raise IncompleteFrameError(f"frame {self.frame_id} is {self.status.value}")
         return self
 
+    @property
     def metadata(self) -> dict:
-        """Everything but the pixels, JSON-able (the DNG sidecar carries it)."""
+        """Everything but the pixels, as a new JSON-able dict (the DNG sidecar carries it): ``frame.metadata["roi"]``."""
         return {
             "schema": SIDECAR_SCHEMA, "frame_id": self.frame_id, "status": self.status.value, "cfa": self.cfa,
             "black_level_dn": self.black_level_dn, "white_level_dn": self.white_level_dn,

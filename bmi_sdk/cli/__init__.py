@@ -3,7 +3,8 @@
 Every module in this package that defines ``register(subparsers)`` adds its
 subcommands; ``main`` discovers them, so a new command group is one new file.
 Handlers import their heavy dependencies (torch, jax, onnxruntime) inside the
-handler so that ``bmi --help`` stays fast.
+handler so that ``bmi --help`` stays fast. Diagnostics (warnings, notes, errors)
+go through ``logging`` (``_logging``; ``-v`` / ``-q``), results to stdout.
 """
 
 from __future__ import annotations
@@ -15,10 +16,17 @@ import sys
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from bmi_sdk import __version__
+
     parser = argparse.ArgumentParser(
         prog="bmi",
         description="bmi-sdk: monocentric RGBD camera — optics, simulation, device, calibration, inference.",
     )
+    parser.add_argument("--version", action="version", version=f"bmi-sdk {__version__}")
+    parser.add_argument("-v", "--verbose", dest="log_verbose", action="count", default=0,
+                        help="more diagnostics on stderr (-v info, -vv debug)")
+    parser.add_argument("-q", "--quiet", dest="log_quiet", action="count", default=0,
+                        help="errors only on stderr (no warnings or notes)")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
         if info.name.startswith("_"):  # __main__ and private helpers are not command groups
@@ -31,21 +39,25 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from ._logging import command_logger, configure
+
     parser = build_parser()
     args = parser.parse_args(argv)
     handler = getattr(args, "handler", None)
     if handler is None:
         parser.print_help()
         return 2
+    configure(args.log_verbose, args.log_quiet, args.command)
+    log = command_logger(args.command)
     try:
         return int(handler(args) or 0)
     except KeyboardInterrupt:
-        print("cancelled", file=sys.stderr)
+        log.error("cancelled")
         return 130
     except Exception as exc:
         if not isinstance(exc, _user_error_types()):
             raise  # a bug: keep the traceback
-        print(f"bmi {args.command}: error: {exc}", file=sys.stderr)
+        log.error("%s", exc)
         return 1
 
 

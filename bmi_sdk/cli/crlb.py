@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import sys
 import time
@@ -108,8 +109,9 @@ def _run(args) -> int:
             row = p.to_dict()
             row["lens"] = name
             if p.energy_captured_min < MIN_ENERGY_CAPTURED:
-                print(f"warning: {name} {p.field_deg:g}° {p.depth_m:g} m: the {kernel_px[name]} px kernel holds only "
-                      f"{p.energy_captured_min:.3f} of the energy; raise --kernel-px-{name}", file=sys.stderr)
+                logging.getLogger("bmi.crlb").warning(
+                    f"{name} {p.field_deg:g}° {p.depth_m:g} m: the {kernel_px[name]} px kernel holds only "
+                    f"{p.energy_captured_min:.3f} of the energy; raise --kernel-px-{name}")
             rows.append(row)
     if args.plot:
         noise = "8-bit quantisation" if args.noise_sigma is None else f"σ = {settings.noise_sigma:g}"

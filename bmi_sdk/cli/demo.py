@@ -16,6 +16,7 @@ export of the ``tiny`` preset (said loudly: its errors mean nothing).
 
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
@@ -111,7 +112,7 @@ def _run(args) -> int:
     t0 = time.perf_counter()
     source, source_warning = _source(args.seed, scene)
     if source_warning:
-        print(f"WARNING: {source_warning}")
+        logging.getLogger("bmi.demo").warning("%s", source_warning)
     device = FirmwareDevice(seed=args.seed)
     device.load_source(source)
     # The capture is a full-frame exact-mode optical render: ~160 s on an idle 2-core machine, several
@@ -126,7 +127,7 @@ def _run(args) -> int:
     t0 = time.perf_counter()
     model_path, model_warning = _model(out, args.model)
     if model_warning:
-        print(f"WARNING: {model_warning}")
+        logging.getLogger("bmi.demo").warning("%s", model_warning)
         _stage(timings, f"export untrained stand-in model → {model_path}", t0)
     t0 = time.perf_counter()
     model = Model(model_path, tile_px=args.tile_px)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import sys
 import time
 
@@ -92,8 +93,8 @@ def _acquire(args) -> int:
         stats = dict(cam.stats)
     print(f"wrote {written} DNG files to {out} (skipped {bad} incomplete/corrupt; link stats {stats})")
     if patterns:
-        print(f"warning: {patterns} of {written} frames are the digital test pattern, not the scene "
-              f"(TEST_PATTERN register set on the device)", file=sys.stderr)
+        logging.getLogger("bmi.acquire").warning(f"{patterns} of {written} frames are the digital test pattern, "
+                                                 "not the scene (TEST_PATTERN register set on the device)")
     return 0
 
 
@@ -118,7 +119,7 @@ def _read_token(path: str) -> bytes:
     if len(token) > MAX_TOKEN_BYTES:
         raise ValueError(f"--token-file {path} holds {len(token)} bytes; a token is at most {MAX_TOKEN_BYTES}")
     if os.stat(path).st_mode & 0o077:
-        print(f"warning: --token-file {path} can be read by other users (chmod 600 it)", file=sys.stderr)
+        logging.getLogger("bmi.firmware-sim").warning(f"--token-file {path} can be read by other users (chmod 600 it)")
     return token
 
 

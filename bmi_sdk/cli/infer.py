@@ -3,14 +3,33 @@
 from __future__ import annotations
 
 
+def depth_range(text: str) -> tuple[float, float]:
+    """``--depth-range NEAR,FAR`` (metres) → (near, far), refused unless 0 < NEAR < FAR."""
+    from bmi_sdk.runtime.outputs import check_depth_range
+
+    parts = text.split(",")
+    if len(parts) != 2:
+        raise ValueError(f"--depth-range wants NEAR,FAR in metres (e.g. 0.7,10), got {text!r}")
+    try:
+        return check_depth_range(parts)
+    except ValueError as exc:
+        raise ValueError(f"--depth-range {text}: {exc}") from None
+
+
 def _run(args) -> int:
-    import sys
-    import warnings
-
     from bmi_sdk.cli._infer_many import infer_many, wants_batch
+    from bmi_sdk.cli._logging import command_logger
     from bmi_sdk.runtime import run_job
-    from bmi_sdk.runtime.quality import FrameQualityWarning
 
+    if args.depth_range is not None:
+        args.depth_range = depth_range(args.depth_range)
+    if args.provider is not None:  # an unavailable provider fails here, naming the available ones, before any work
+        from bmi_sdk.runtime.model import choose_providers
+
+        if args.decoder == "classical":
+            raise ValueError("--provider picks the network's onnxruntime provider; the classical decoder runs none "
+                             "(drop --provider or use --decoder cnn)")
+        choose_providers(args.provider)
     if wants_batch(args):
         return infer_many(args)
     args.raw = args.raw[0]
@@ -22,20 +41,17 @@ def _run(args) -> int:
         options["classical_config"] = ClassicalConfig(window_px=args.window_px, stride_px=args.stride_px,
                                                       candidates=args.candidates, noise_sigma=args.noise_sigma)
 
-    def show(message, category, *rest, **kw):  # frame-quality findings as one line on stderr, not a source line
-        if issubclass(category, FrameQualityWarning):
-            print(f"bmi infer: warning: {message}", file=sys.stderr)
-        else:
-            original(message, category, *rest, **kw)
-    original, warnings.showwarning = warnings.showwarning, show
-    try:
-        result, report = run_job(args.raw, args.out, model_path=args.model, calibration_id=args.calibration_id,
-                                 calibration_path=args.calibration,
-                                 tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
-                                 ply_step_px=args.ply_step, progress=not args.quiet, overwrite=args.overwrite,
-                                 allow_test_pattern=args.allow_test_pattern, decoder=args.decoder, **options)
-    finally:
-        warnings.showwarning = original
+    # frame-quality findings (FrameQualityWarning) reach stderr through logging: "bmi infer: warning: …"
+    result, report = run_job(args.raw, args.out, model_path=args.model, calibration_id=args.calibration_id,
+                             calibration_path=args.calibration,
+                             tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
+                             ply_step_px=args.ply_step, progress=not args.quiet, overwrite=args.overwrite,
+                             allow_test_pattern=args.allow_test_pattern, decoder=args.decoder,
+                             depth_range_m=args.depth_range,
+                             **({"providers": args.provider} if args.provider else {}), **options)
+    command_logger("infer").info("input %s; bmi-sdk %s, onnxruntime %s; execution provider %s",
+                                 report["input_path"], report["software"]["bmi_sdk"],
+                                 report["software"]["onnxruntime"], report["execution_provider"])
     if report["decoder"] == "classical":
         stats = report["decoder_stats"]
         print(f"classical decoder, camera {report['camera']['sha256'][:12]}…, "
@@ -44,18 +60,19 @@ def _run(args) -> int:
               f"candidate evaluations {stats['candidate_evaluations']} (coarse + fine) against "
               f"{stats['candidate_evaluations_exhaustive']} exhaustive; peak memory {report['peak_rss_mb']:.0f} MB")
         print("stages: " + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in stats["timings_s"].items()))
-        print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_sigma.npy, confidence.png, depth_mm.png, "
+        print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_z.npy, depth_sigma.npy, confidence.png, depth_mm.png, "
               f"points.ply ({report['ply_points']} points, with σ), report.json")
         return 0
     if report["calibration_note"]:
-        print(f"note: {report['calibration_note']}")
+        command_logger("infer").warning("%s", report["calibration_note"])
     t = report["stage_timings_s"]
-    print(f"model {report['model']['preset']} sha256 {report['model']['sha256'][:12]}…, "
+    print(f"model {report['model']['preset']} sha256 {report['model']['sha256'][:12]}… on "
+          f"{report['execution_provider']}, "
           f"calibration {report['calibration_id'] or 'nominal PSFs'}")
     print(f"tiles run {result.tiles_run}, skipped {result.tiles_skipped} (outside the image circle); "
           f"peak memory {report['peak_rss_mb']:.0f} MB")
     print("stages: " + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in t.items()))
-    print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_mm.png, points.ply ({report['ply_points']} points), "
+    print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_z.npy, depth_mm.png, points.ply ({report['ply_points']} points), "
           "report.json")
     return 0
 
@@ -77,7 +94,13 @@ def register(subparsers) -> None:
     p.add_argument("--tile-px", type=int, default=512, help="tile size, a multiple of 4 (default 512)")
     p.add_argument("--overlap-px", type=int, default=None,
                    help="tile overlap (default: receptive field + half the largest PSF, from the manifest)")
+    p.add_argument("--provider", default=None, metavar="NAME",
+                   help="onnxruntime execution provider for the network, e.g. cpu, cuda, tensorrt or "
+                        "CUDAExecutionProvider (default: the best available: TensorRT, CUDA, then CPU)")
     p.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: all cores)")
+    p.add_argument("--depth-range", default=None, metavar="NEAR,FAR",
+                   help="fixed range (metres) of depth_preview.png's colours, e.g. 0.7,10, so that frames compare "
+                        "(default: each frame's 1st-99th percentile)")
     p.add_argument("--ply-step", type=int, default=1, help="one point per N×N pixels in points.ply (default 1)")
     p.add_argument("--decoder", choices=("cnn", "classical"), default="cnn",
                    help="cnn: the shipped end-to-end network (default); classical: depth evidence from the "

@@ -13,21 +13,54 @@ def _depth(text: str) -> float:
     return value
 
 
-def _export(args) -> int:
+def kernel_png(kernel):
+    """uint16 image of a kernel normalised to its peak (peak → 65535): a view, not the kernel's values."""
     import numpy as np
 
-    from bmi_sdk.io_atomic import save_npy
+    peak = float(kernel.max())
+    if not peak > 0:
+        raise ValueError("the kernel has no positive value to normalise to")
+    return np.round(np.clip(kernel / peak, 0, 1) * 65535).astype(np.uint16)
+
+
+def _kernel_format(path: str) -> str:
+    """"npy" or "png" from the output's name; any other name is refused (checked before the PSF is traced)."""
+    for fmt in ("npy", "png"):
+        if path.lower().endswith("." + fmt):
+            return fmt
+    raise ValueError(f"--out {path}: name it .npy (the float kernel) or .png (a 16-bit view of it)")
+
+
+def _write_kernel(path: str, kernel) -> str:
+    """``.npy``: the float32 kernel (sum 1); ``.png``: ``kernel_png``. Returns what was written, in words."""
+    import numpy as np
+
+    from bmi_sdk.io_atomic import atomic_path, save_npy
+
+    if _kernel_format(path) == "npy":
+        save_npy(path, kernel.astype(np.float32))
+        return "float32 kernel, sum 1"
+    import cv2
+
+    with atomic_path(path, suffix=".png") as tmp:
+        if not cv2.imwrite(str(tmp), kernel_png(kernel)):
+            raise OSError(f"OpenCV could not write {path}")
+    return "16-bit PNG normalised to the peak (a view; the .npy keeps the values)"
+
+
+def _export(args) -> int:
     from bmi_sdk.optics import fit_pupil, get_lens, psf_from_pupil
 
     from bmi_sdk.optics.export_limits import check_export_request, check_kernel
 
+    _kernel_format(args.out)  # a wrong name fails before the PSF is traced
     lens = get_lens(args.lens)
     check_export_request(lens, args.field_deg, args.depth_m, args.wavelength_nm, args.pitch_um)
     fit = fit_pupil(lens, args.field_deg, args.depth_m, args.wavelength_nm * 1e-3)
     psf = psf_from_pupil(fit, args.kernel_px, args.pitch_um, args.oversample)
     check_kernel(psf, args.kernel_px)
-    save_npy(args.out, psf.kernel.astype(np.float32))
-    print(f"wrote {args.out}: {args.kernel_px}×{args.kernel_px}, sum 1, energy captured {psf.energy_captured:.5f}, "
+    what = _write_kernel(args.out, psf.kernel)
+    print(f"wrote {args.out}: {args.kernel_px}×{args.kernel_px} {what}, energy captured {psf.energy_captured:.5f}, "
           f"pupil fit residual {fit.fit_rms_waves:.1e} waves")
     return 0
 
@@ -51,13 +84,15 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("psf", help="export one PSF or build the PSF tensor",
                               description="Pixel-integrated PSFs computed from the exact traced wavefront.")
     sub = p.add_subparsers(dest="psf_command", metavar="ACTION")
-    e = sub.add_parser("export", help="write one PSF (.npy, odd size, centred on the chief ray, sum 1)",
+    e = sub.add_parser("export", help="write one PSF (.npy float, or a .png view; odd size, centred on the chief ray)",
                        description="One pixel-integrated PSF on the sensor's tangent plane: rows sagittal, "
                                    "columns radial (+col away from the optical centre).")
     e.add_argument("--wavelength-nm", type=float, required=True)
     e.add_argument("--depth-m", type=_depth, required=True, help="range from the lens centre in metres, or 'inf'")
     e.add_argument("--field-deg", type=float, required=True)
-    e.add_argument("--out", required=True, help="output .npy")
+    e.add_argument("--out", required=True,
+                   help="output: NAME.npy, the float32 kernel (sum 1); or NAME.png, a viewable 16-bit image of "
+                        "the kernel normalised to its peak (peak = 65535; not the kernel's values)")
     e.add_argument("--lens", default="bmi_monocentric")
     e.add_argument("--kernel-px", type=int, default=41, help="odd kernel size (default 41: ≥ 99 %% energy at 0.7 m)")
     e.add_argument("--pitch-um", type=float, default=2.0)

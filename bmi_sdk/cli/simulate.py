@@ -70,6 +70,21 @@ def _write_preview(path: Path, linear_rgb) -> None:
             raise OSError(f"could not write {path}")
 
 
+def _save_truth(out: Path, rgb, range_m, frame_shape) -> tuple[Path, Path]:
+    """``<stem>_truth_range.npy`` (float32 range in metres along each ray, NaN unknown) and
+    ``<stem>_truth_rgb.npy`` (float32 linear RGB) of the scene window the frame shows, pixel for pixel."""
+    import numpy as np
+
+    from bmi_sdk.io_atomic import save_npy
+
+    if tuple(range_m.shape) != tuple(frame_shape) or tuple(rgb.shape[:2]) != tuple(frame_shape):
+        raise RuntimeError(f"the frame ({frame_shape}) does not show the scene window ({range_m.shape})")
+    paths = out.with_name(out.stem + "_truth_range.npy"), out.with_name(out.stem + "_truth_rgb.npy")
+    save_npy(paths[0], np.asarray(range_m, np.float32))
+    save_npy(paths[1], np.asarray(rgb, np.float32))
+    return paths
+
+
 def _show(bar, done: int, total: int) -> None:
     """Move the render bar to the device's heartbeat (blocks of the scene rendered so far)."""
     bar.total = total
@@ -128,6 +143,9 @@ def _run(args) -> int:
         frame = cam.capture()
         _show(bar, bar.total or 1, bar.total or 1)
         frame.save_dng(args.out)
+    if args.save_truth:
+        truth = _save_truth(Path(args.out), rgb, depth, frame.data.shape)
+        print(f"wrote ground truth {truth[0].name} (range, m) and {truth[1].name} (linear RGB)")
     print(f"wrote {args.out} (+ .json sidecar): {width}×{height} at sensor offset (row {row0}, col {col0}), "
           f"noise {'photon model' if args.noise is None else f'σ = {args.noise}'}, {time.perf_counter() - t0:.1f} s")
     if args.preview:
@@ -160,5 +178,8 @@ def register(subparsers) -> None:
                    help="render through a built camera with this hardware error (repeat; the names and units of "
                         "bmi calibrate --simulate, e.g. decenter_um=10,0 stray_light_fraction=0.03); exact mode")
     p.add_argument("--seed", type=int, default=0, help="noise seed")
+    p.add_argument("--save-truth", action="store_true",
+                   help="also write the ground truth of the frame's window: <stem>_truth_range.npy (float32 range "
+                        "in metres along each ray, NaN unknown) and <stem>_truth_rgb.npy (float32 linear RGB)")
     p.add_argument("--preview", action="store_true", help="also write PNG previews of the coded image and scene")
     p.set_defaults(handler=_run)

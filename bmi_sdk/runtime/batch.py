@@ -87,6 +87,8 @@ class DecodeOptions:
     classical_config: object = None        # decode.ClassicalConfig for decoder "classical"
     overwrite: bool = False
     allow_test_pattern: bool = False
+    providers: str | tuple[str, ...] | None = None   # onnxruntime execution provider(s); None: the best available
+    depth_range_m: tuple[float, float] | None = None  # fixed depth_preview.png colours (near, far), metres
 
 
 @dataclass
@@ -122,7 +124,8 @@ class FrameDecoder:
         calibration_id = self._calibration_in_use(frame)
         key = (o.model_path, calibration_id, frame_lens_name(frame))
         if key not in self.models:
-            self.models[key] = load_model_for(frame, o.model_path, calibration_id, o.tile_px, o.threads)
+            self.models[key] = load_model_for(frame, o.model_path, calibration_id, o.tile_px, o.threads,
+                                              o.providers)
         return self.models[key]
 
     def decode(self, frame_path: str | os.PathLike, out_dir: str | os.PathLike) -> dict:
@@ -141,7 +144,9 @@ class FrameDecoder:
                 result, report = run_job(frame, out_dir, decoder="classical", calibration_id=o.calibration_id,
                                          calibration_path=o.calibration_path, ply_step_px=o.ply_step_px,
                                          overwrite=o.overwrite, allow_test_pattern=o.allow_test_pattern,
-                                         classical_decoder=self.classical_decoder_for(frame))
+                                         classical_decoder=self.classical_decoder_for(frame),
+                                         input_path=frame_path, providers=o.providers,
+                                         depth_range_m=o.depth_range_m)
                 return {**summary, "ok": True, "calibration_note": None, "decoder": "classical",
                         "camera_sha256": report["camera"]["sha256"], "blocks_run": report["blocks_run"],
                         "seconds": time.perf_counter() - t0}
@@ -149,7 +154,8 @@ class FrameDecoder:
             result, report = run_job(frame, out_dir, model=model, calibration_id=o.calibration_id,
                                      calibration_path=o.calibration_path, overlap_px=o.overlap_px,
                                      ply_step_px=o.ply_step_px, overwrite=o.overwrite,
-                                     allow_test_pattern=o.allow_test_pattern)
+                                     allow_test_pattern=o.allow_test_pattern, input_path=frame_path,
+                                     depth_range_m=o.depth_range_m)
         except (ValueError, FileNotFoundError, OSError) as exc:
             return {**summary, "ok": False, "error": f"{type(exc).__name__}: {exc}",
                     "seconds": time.perf_counter() - t0}

@@ -9,8 +9,9 @@ import warnings
 from ..resources import peak_rss_mb
 from .model import Model, select_model
 from .output_set import OutputSet
-from .outputs import write_outputs, write_report
+from .outputs import check_depth_range, write_frame_outputs, write_report
 from .pipeline import InferenceResult, frame_lens_name, infer_frame
+from .provenance import input_path_of, provenance
 from .quality import FrameQualityWarning, quality_gate
 
 
@@ -37,7 +38,8 @@ def _frame_report(frame, quality) -> dict:
 
 
 def load_model_for(frame, model_path: str | os.PathLike | None = None, calibration_id: str | None = None,
-                   tile_px: int = 512, threads: int | None = None) -> tuple[Model, str | None]:
+                   tile_px: int = 512, threads: int | None = None,
+                   providers: str | list[str] | None = None) -> tuple[Model, str | None]:
     """The model for ``frame``: ``model_path`` if given, else the packaged model for the calibration in use.
 
     The calibration is ``calibration_id`` if given, else the frame's own
@@ -49,7 +51,7 @@ def load_model_for(frame, model_path: str | os.PathLike | None = None, calibrati
     if model_path is None:
         lens = frame_lens_name(frame) or "bmi_monocentric"
         model_path, note = select_model(calibration_id or getattr(frame, "calibration_id", None), lens=lens)
-    return Model(model_path, tile_px=tile_px, threads=threads), note
+    return Model(model_path, tile_px=tile_px, threads=threads, providers=providers), note
 
 
 def calibration_for(frame, calibration_path: str | os.PathLike, calibration_id: str | None = None) -> dict:
@@ -85,7 +87,7 @@ DEFAULT_DECODER = "cnn"
 
 
 def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = False, decoder: str = DEFAULT_DECODER,
-            **options) -> tuple[InferenceResult, dict]:
+            input_path: str | os.PathLike | None = None, **options) -> tuple[InferenceResult, dict]:
     """Read (if a path), decode, write outputs and ``report.json`` into ``out_dir``; return (result, report).
 
     ``decoder``: ``cnn`` (the shipped end-to-end network; ``options`` are ``_job_into``'s) or
@@ -93,12 +95,19 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = Fals
     writes the depth 1σ too; ``options`` are ``_classical_into``'s). The outputs are one set
     (``OutputSet``): ``out_dir`` is checked before any work (writable; no earlier results
     unless ``overwrite``) and changes only once every file is written.
+
+    The report records the software versions, the execution provider (None for ``classical``) and
+    the input path: ``frame_or_path`` when it is a path, else ``input_path`` (the file a caller
+    read the frame from), else None.
     """
     if decoder not in DECODERS:
         raise ValueError(f"unknown decoder {decoder!r}; one of {DECODERS}")
     job = _classical_into if decoder == "classical" else _job_into
     with OutputSet(out_dir, overwrite=overwrite) as output_set:
         result, report = job(frame_or_path, output_set.staging, **options)
+        provider = report["model"]["execution_provider"] if decoder == "cnn" else None
+        source = input_path_of(frame_or_path) or (os.path.abspath(input_path) if input_path is not None else None)
+        report.update(provenance(source, provider))
         report["files"] = {name: os.path.join(out_dir, name) for name in report["files"]}
         write_report(output_set.staging, report)  # with the paths the files will have
         output_set.commit()
@@ -109,7 +118,9 @@ def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None 
               model_path: str | os.PathLike | None = None, calibration_id: str | None = None,
               calibration_path: str | os.PathLike | None = None, tile_px: int = 512,
               threads: int | None = None, overlap_px: int | None = None, ply_step_px: int = 1,
-              progress: bool = False, allow_test_pattern: bool = False) -> tuple[InferenceResult, dict]:
+              progress: bool = False, allow_test_pattern: bool = False,
+              providers: str | list[str] | None = None,
+              depth_range_m: tuple[float, float] | None = None) -> tuple[InferenceResult, dict]:
     """The job, written into ``out_dir`` (``run_job``'s staging folder).
 
     ``calibration_path`` (a ``bmi calibrate`` file) selects the model trained
@@ -118,7 +129,10 @@ def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None 
     The frame passes ``quality_gate`` first: its findings go to
     ``warnings.warn`` (``FrameQualityWarning``) and the report's
     ``frame_quality``; a test pattern is refused unless ``allow_test_pattern``.
+    ``depth_range_m`` (near, far): fixed colours for ``depth_preview.png`` (``write_outputs``).
     """
+    if depth_range_m is not None:
+        check_depth_range(depth_range_m)  # before any work
     frame, quality, timings = _read_checked(frame_or_path, allow_test_pattern)
     calibration = None
     if calibration_path is not None:
@@ -127,15 +141,14 @@ def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None 
     note = None
     if model is None:
         t0 = time.perf_counter()
-        model, note = load_model_for(frame, model_path, calibration_id, tile_px, threads)
+        model, note = load_model_for(frame, model_path, calibration_id, tile_px, threads, providers)
         timings["load_model_s"] = model.load_s
         timings["warmup_s"] = model.warmup_s
     t0 = time.perf_counter()
     result = infer_frame(model, frame, overlap_px=overlap_px, progress=progress)
     timings["infer_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    written = write_outputs(out_dir, result.aif, result.depth_m, frame.geometry, frame.roi.y_px, frame.roi.x_px,
-                            ply_step_px=ply_step_px)
+    written = write_frame_outputs(out_dir, result, frame, ply_step_px=ply_step_px, depth_range_m=depth_range_m)
     timings["write_outputs_s"] = time.perf_counter() - t0
     report = {
         "schema": "bmi-infer-report/1",
@@ -170,13 +183,14 @@ def camera_for(frame, calibration_path=None, calibration_id: str | None = None):
 def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibration_id: str | None = None,
                     ply_step_px: int = 1, progress: bool = False, allow_test_pattern: bool = False,
                     classical_config=None, classical_decoder=None, model=None, model_path=None,
-                    tile_px: int | None = None, threads: int | None = None, overlap_px: int | None = None) -> tuple:
+                    tile_px: int | None = None, threads: int | None = None, overlap_px: int | None = None,
+                    providers=None, depth_range_m: tuple[float, float] | None = None) -> tuple:
     """The classical decoder's job, written into ``out_dir`` (``run_job``'s staging folder).
 
     ``calibration_path``, after ``calibration_for``'s checks, makes the decoder use that camera's
     corrected kernels at every (θ, φ) (``BuiltCamera.from_calibration``); nothing is retrained.
     ``classical_decoder`` reuses a built decoder (its memoised kernels) across frames of one camera.
-    The network's options (``model``, ``model_path``) are refused; its tiling options
+    The network's options (``model``, ``model_path``, ``providers``) are refused; its tiling options
     (``tile_px``, ``threads``, ``overlap_px``) do not apply and are ignored.
     """
     from ..decode import ClassicalConfig
@@ -186,6 +200,11 @@ def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibratio
     if model is not None or model_path is not None:
         raise ValueError("--model names a network; the classical decoder uses none (drop --model or use "
                          "--decoder cnn)")
+    if providers is not None:
+        raise ValueError("--provider picks the network's onnxruntime provider; the classical decoder runs none "
+                         "(drop --provider or use --decoder cnn)")
+    if depth_range_m is not None:
+        check_depth_range(depth_range_m)  # before any work
     frame, quality, timings = _read_checked(frame_or_path, allow_test_pattern)
     camera, calibration = camera_for(frame, calibration_path, calibration_id)
     t0 = time.perf_counter()
@@ -193,8 +212,7 @@ def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibratio
     result = decode_frame(decoder, frame, camera, progress=progress)
     timings["decode_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    written = write_outputs(out_dir, result.aif, result.depth_m, frame.geometry, frame.roi.y_px, frame.roi.x_px,
-                            ply_step_px=ply_step_px, depth_sigma_m=result.depth_sigma_m)
+    written = write_frame_outputs(out_dir, result, frame, ply_step_px=ply_step_px, depth_range_m=depth_range_m)
     timings["write_outputs_s"] = time.perf_counter() - t0
     report = {
         "schema": "bmi-infer-report/1",

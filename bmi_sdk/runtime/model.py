@@ -3,7 +3,9 @@
 The model's bytes are checked against its manifest (``bmi_sdk.model_manifest``)
 before onnxruntime sees them. Session options are explicit: intra-op threads
 (default: the machine's cores), one inter-op thread, sequential execution,
-full graph optimisation, memory pattern and arena on. The session is only ever
+full graph optimisation, memory pattern and arena on (or the caller's own
+``SessionOptions``). The execution provider is the one asked for, else the best
+available (``choose_providers``: TensorRT, CUDA, CPU). The session is only ever
 fed ``1 × 6 × tile × tile`` (onnxruntime grows its arena for every new input
 shape), and a warm-up run at load time pays the first-run allocation and
 kernel selection outside the timed frame.
@@ -24,6 +26,40 @@ from ..model_manifest import ModelError, verify_model
 MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 DEFAULT_MODEL = MODELS_DIR / "default.onnx"
 TILE_BYTES_PER_PX = 700  # onnxruntime's peak per tile pixel, packaged model: 754 B/px at 512, 670 at 1024 measured
+
+
+PREFERRED_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
+"""Best first: the default is the first of these onnxruntime says it has."""
+
+
+def _provider_name(name: str, available: list[str]) -> str:
+    """onnxruntime's name for ``name``: exact (``CUDAExecutionProvider``) or short, any case (``cuda``)."""
+    for full in available:
+        if name.lower() in (full.lower(), full.lower().removesuffix("executionprovider")):
+            return full
+    raise ValueError(f"execution provider {name!r} is not available here; available: {', '.join(available)}")
+
+
+def choose_providers(requested: str | list[str] | tuple[str, ...] | None = None) -> list[str]:
+    """The providers for a session, best first, each checked against ``onnxruntime.get_available_providers()``.
+
+    ``requested``: a name or a list of names (full or short: ``CUDAExecutionProvider`` or ``cuda``);
+    None picks the best available in ``PREFERRED_PROVIDERS`` order. CPU is appended as the fallback
+    for operators another provider lacks. An unavailable name is a ``ValueError`` naming the available ones.
+    """
+    import onnxruntime as ort
+
+    available = list(ort.get_available_providers())
+    if requested is None:
+        chosen = [next(p for p in PREFERRED_PROVIDERS if p in available)]
+    else:
+        names = [requested] if isinstance(requested, str) else list(requested)
+        if not names:
+            raise ValueError(f"no execution provider named; available: {', '.join(available)}")
+        chosen = [_provider_name(n, available) for n in names]
+    if "CPUExecutionProvider" not in chosen:
+        chosen.append("CPUExecutionProvider")
+    return chosen
 
 
 def session_options(threads: int | None = None, optimization: str = "all"):
@@ -53,10 +89,15 @@ class Model:
     corrupted (SHA-256 mismatch) or unreadable model, or one whose graph does
     not have the contract's input/outputs. A model exported with a fixed input
     size fixes ``tile_px`` to that size; asking for another one is an error.
+
+    ``providers``: execution provider name(s) for ``choose_providers`` (default: the best available);
+    ``provider`` is the one the session actually runs on. ``sess_options``: an
+    ``onnxruntime.SessionOptions`` used as given instead of ``session_options(threads, optimization)``.
     """
 
     def __init__(self, path: str | os.PathLike = DEFAULT_MODEL, *, tile_px: int | None = 512,
-                 threads: int | None = None, optimization: str = "all", warmup: bool = True):
+                 threads: int | None = None, optimization: str = "all", warmup: bool = True,
+                 providers: str | list[str] | None = None, sess_options=None):
         import onnxruntime as ort
 
         self.path = Path(path)
@@ -65,9 +106,14 @@ class Model:
                              "(with its .manifest.json) or export one with bmi_sdk.nn")
         t0 = time.perf_counter()
         self.manifest = verify_model(self.path)
+        chosen = choose_providers(providers)
+        if sess_options is None:
+            sess_options = session_options(threads, optimization)
+        else:
+            threads = sess_options.intra_op_num_threads or None
+            optimization = "caller's SessionOptions"
         try:
-            self.session = ort.InferenceSession(str(self.path), sess_options=session_options(threads, optimization),
-                                                providers=["CPUExecutionProvider"])
+            self.session = ort.InferenceSession(str(self.path), sess_options=sess_options, providers=chosen)
         except Exception as exc:  # onnxruntime raises its own exception types for unreadable graphs
             raise ModelError(f"onnxruntime cannot load {self.path}: {exc}") from exc
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
@@ -93,6 +139,7 @@ class Model:
         self.tile_px = int(tile_px)
         self.threads = int(threads or os.cpu_count() or 1)
         self.optimization = optimization
+        self.provider = self.session.get_providers()[0]
         self._batch_fixed = isinstance(shape[0], int)
         self.load_s = time.perf_counter() - t0
         self.warmup_s = 0.0
@@ -134,7 +181,7 @@ class Model:
         return {"path": str(self.path), "sha256": self.sha256, "preset": self.manifest["preset"],
                 "lens": self.manifest["lens"], "psf_tensor_key": self.manifest["psf_tensor_key"],
                 "calibration_id": self.manifest["calibration_id"], "receptive_field_px": self.receptive_field_px,
-                "tile_px": self.tile_px, "threads": self.threads, "graph_optimization": self.optimization,
+                "tile_px": self.tile_px, "threads": self.threads, "execution_provider": self.provider, "graph_optimization": self.optimization,
                 "load_s": self.load_s, "warmup_s": self.warmup_s}
 
 

@@ -1,6 +1,6 @@
 """A run's output files as one set: staged in a hidden folder, moved into place only when all are written.
 
-``bmi infer`` writes seven files and ``report.json``. Written one by one into
+``bmi infer`` writes eight files and ``report.json``. Written one by one into
 the output folder, a run that fails half-way (disk full, Ctrl-C, a crash)
 would leave new files beside an earlier run's, with nothing to tell them apart.
 ``OutputSet`` writes them into ``OUT/.bmi-infer-XXXX/`` (same file system, so
@@ -24,8 +24,8 @@ import tempfile
 from pathlib import Path
 
 REPORT_NAME = "report.json"
-RESULT_NAMES = ("aif.npy", "aif.png", "aif_preview.png", "depth.npy", "depth_mm.png", "depth_preview.png",
-                "points.ply", REPORT_NAME)
+RESULT_NAMES = ("aif.npy", "aif.png", "aif_preview.png", "depth.npy", "depth_z.npy", "depth_mm.png",
+                "depth_preview.png", "points.ply", REPORT_NAME)
 STAGING_PREFIX = ".bmi-infer-"
 
 

@@ -6,8 +6,10 @@ never leaves half a file under its final name.
 * ``aif.npy``      H×W×3 float32 linear RGB (the space of ``bmi simulate``'s input)
 * ``aif.png``      16-bit sRGB-encoded, for viewing; ``aif_preview.png`` 8-bit, at most ``preview_px`` wide
 * ``depth.npy``    H×W float32 range in metres along each pixel's chief ray, NaN where invalid
+* ``depth_z.npy``  H×W float32 planar z-depth in metres (along the optical axis, as RGB-D tools assume), NaN where invalid
 * ``depth_mm.png`` 16-bit range in millimetres, 0 where invalid (saturates at 65.535 m)
-* ``depth_preview.png`` colourised inverse range with a colour bar labelled in metres
+* ``depth_preview.png`` colourised inverse range with a colour bar labelled in metres (the frame's
+  1st–99th percentile, or a fixed ``depth_range_m`` so that frames can be compared)
 * ``points.ply``   binary PLY, x y z (metres, camera frame x right, y down, z forward) + RGB (sRGB 8-bit),
   one point per ``ply_step_px``-th valid pixel: range × that pixel's chief-ray direction
 * ``report.json``  the report dict given
@@ -75,6 +77,33 @@ def depth_preview(depth_m: np.ndarray, max_px: int = 1500, near_m: float | None 
     return np.concatenate([img, np.full((h, 6, 3), 255, np.uint8), bar, labels], axis=1)
 
 
+def check_depth_range(depth_range_m) -> tuple[float, float]:
+    """(near_m, far_m) of a fixed depth-colour range, refused unless 0 < near < far, both finite."""
+    try:
+        near, far = (float(v) for v in depth_range_m)
+    except (TypeError, ValueError):
+        raise ValueError(f"depth range must be two numbers NEAR,FAR in metres, got {depth_range_m!r}") from None
+    if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):
+        raise ValueError(f"depth range needs 0 < NEAR < FAR (metres, finite), got {near}, {far}")
+    return near, far
+
+
+def range_to_z_map(depth_m: np.ndarray, geometry: SensorGeometry, row0: int = 0, col0: int = 0,
+                   rows_per_block: int = 256) -> np.ndarray:
+    """Planar z-depth (m, float32) of a range map: range × cos θ of each pixel's chief ray (``SensorGeometry.range_to_z``)
+    at its absolute sensor position (``row0``, ``col0``: the frame's ROI offset); NaN where the range is invalid
+    or the pixel lies outside the image circle. Computed per block of rows to bound memory on a full frame."""
+    z = np.full(depth_m.shape, np.nan, np.float32)
+    cols = col0 + np.arange(depth_m.shape[1])
+    for b0 in range(0, depth_m.shape[0], rows_per_block):
+        rows = row0 + np.arange(b0, min(b0 + rows_per_block, depth_m.shape[0]))
+        theta_deg, _ = geometry.field_angles(rows[:, None], cols[None, :])
+        d = depth_m[b0:b0 + len(rows)]
+        ok = np.isfinite(d) & (d > 0)
+        z[b0:b0 + len(rows)] = np.where(ok, geometry.range_to_z(d, theta_deg), np.nan)
+    return z
+
+
 def write_ply(path: str | os.PathLike, depth_m: np.ndarray, aif: np.ndarray, geometry: SensorGeometry,
               row0: int = 0, col0: int = 0, step_px: int = 1, rows_per_block: int = 256,
               depth_sigma_m: np.ndarray | None = None) -> int:
@@ -130,12 +159,17 @@ def confidence_image(depth_m: np.ndarray, depth_sigma_m: np.ndarray) -> np.ndarr
 
 def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarray, geometry: SensorGeometry,
                   row0: int = 0, col0: int = 0, *, ply_step_px: int = 1, preview_px: int = 1500,
-                  depth_sigma_m: np.ndarray | None = None) -> dict:
+                  depth_sigma_m: np.ndarray | None = None,
+                  depth_range_m: tuple[float, float] | None = None) -> dict:
     """Write the image, depth and point-cloud files into ``out_dir``; return {name: path} and the point count.
+
+    ``depth_range_m`` (near, far): the fixed range of ``depth_preview.png``'s colours (default: the
+    frame's 1st–99th percentile, which differs from frame to frame).
 
     With ``depth_sigma_m`` (the decoder's 1σ of the range, metres) also ``depth_sigma.npy``,
     ``confidence.png`` (``confidence_image``) and a per-point ``sigma`` in the PLY.
     """
+    near_m, far_m = check_depth_range(depth_range_m) if depth_range_m is not None else (None, None)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     srgb = linear_to_srgb(aif)
@@ -144,11 +178,13 @@ def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarr
     _imwrite(out / "aif_preview.png", _downscale((srgb[..., ::-1] * 255 + 0.5).astype(np.uint8), preview_px))
     del srgb
     save_npy(out / "depth.npy", depth_m.astype(np.float32))
+    save_npy(out / "depth_z.npy", range_to_z_map(depth_m, geometry, row0, col0))
     mm = np.where(np.isfinite(depth_m), np.clip(np.round(depth_m * 1000), 1, 65535), 0).astype(np.uint16)
     _imwrite(out / "depth_mm.png", mm)
     del mm
-    _imwrite(out / "depth_preview.png", depth_preview(depth_m, preview_px))
-    names = ["aif.npy", "aif.png", "aif_preview.png", "depth.npy", "depth_mm.png", "depth_preview.png", "points.ply"]
+    _imwrite(out / "depth_preview.png", depth_preview(depth_m, preview_px, near_m, far_m))
+    names = ["aif.npy", "aif.png", "aif_preview.png", "depth.npy", "depth_z.npy", "depth_mm.png",
+             "depth_preview.png", "points.ply"]
     if depth_sigma_m is not None:
         save_npy(out / "depth_sigma.npy", np.where(np.isfinite(depth_m), depth_sigma_m, np.nan).astype(np.float32))
         _imwrite(out / "confidence.png", confidence_image(depth_m, depth_sigma_m))
@@ -157,6 +193,13 @@ def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarr
                        depth_sigma_m=depth_sigma_m)
     files = {name: str(out / name) for name in names}
     return {"files": files, "ply_points": points, "ply_step_px": ply_step_px}
+
+
+def write_frame_outputs(out_dir: str | os.PathLike, result, frame, **options) -> dict:
+    """``write_outputs`` for a decoded frame: geometry and ROI offset come from ``frame`` (a ``devices.RawFrame``),
+    the AiF, range and (classical decoder) range 1σ from ``result``. ``options``: ``write_outputs``'s keywords."""
+    return write_outputs(out_dir, result.aif, result.depth_m, frame.geometry, frame.roi.y_px, frame.roi.x_px,
+                         depth_sigma_m=getattr(result, "depth_sigma_m", None), **options)
 
 
 def write_report(out_dir: str | os.PathLike, report: dict) -> Path:
