@@ -45,7 +45,7 @@ from typing import Sequence
 import numpy as np
 
 from bmi_sdk.geometry import SensorGeometry
-from bmi_sdk.io_atomic import atomic_path, write_json
+from bmi_sdk.io_atomic import write_json
 from bmi_sdk.lenses import LENS_KERNEL_PX, lens_geometry, lens_tensor  # noqa: F401  (re-exported)
 from bmi_sdk.model_io import field_channels, raw_to_rgb, window_cfa
 from bmi_sdk.sensor import CFA_PATTERN, add_gaussian_noise, bayer_mosaic, relative_illumination
