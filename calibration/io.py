@@ -28,6 +28,7 @@ from pathlib import Path
 from bmi_sdk import __version__
 from bmi_sdk.geometry import BMI_SENSOR
 from bmi_sdk.io_atomic import write_json
+from bmi_sdk.json_files import read_json_object
 from bmi_sdk.optics import TensorSpec, get_lens
 from bmi_sdk.optics.perturb import PARAMETERS, SIZES, UNITS, VECTOR_NAMES, Perturbation, perturbed_tensor
 
@@ -121,13 +122,9 @@ def load_calibration(path) -> Calibration:
     """Read and validate a calibration file (schema, parameters, id, corrected tensor hash)."""
     path = Path(path)
     try:
-        doc = json.loads(path.read_text())
+        doc = read_json_object(path, CalibrationError)
     except FileNotFoundError:
         raise CalibrationError(f"{path}: no such calibration file") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise CalibrationError(f"{path}: not JSON ({exc})") from None
-    if not isinstance(doc, dict):
-        raise CalibrationError(f"{path}: holds a JSON {type(doc).__name__}, expected an object")
     if doc.get("schema") != SCHEMA:
         raise CalibrationError(f"{path}: schema {doc.get('schema')!r}, expected {SCHEMA!r}")
     for key in ("calibration_id", "device", "parameters", "captures", "nominal_tensor", "corrected_tensor",

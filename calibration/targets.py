@@ -32,6 +32,7 @@ import numpy as np
 
 from bmi_sdk.geometry import BMI_SENSOR
 from bmi_sdk.io_atomic import write_json
+from bmi_sdk.json_files import read_json_object
 from bmi_sdk.optics import get_lens
 from bmi_sdk.optics.perturb import Perturbation, spot_kernels, trace_spots
 
@@ -278,12 +279,7 @@ def load_captures(folder) -> Captures:
     if not path.exists():
         raise CalibrationError(f"{folder}: no captures.json (write captures with `bmi calibrate --simulate ... "
                                "--save-captures DIR` or follow CapturePlan.steps with the real camera)")
-    try:
-        meta = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise CalibrationError(f"{path}: not JSON ({exc})") from None
-    if not isinstance(meta, dict):
-        raise CalibrationError(f"{path}: holds a JSON {type(meta).__name__}, expected an object")
+    meta = read_json_object(path, CalibrationError)
     if meta.get("schema") != CAPTURES_SCHEMA:
         raise CalibrationError(f"{path}: schema {meta.get('schema')!r}, expected {CAPTURES_SCHEMA!r}")
     for key, kind in (("target", dict), ("plan", dict), ("device", dict), ("frames", list)):

@@ -25,6 +25,7 @@ import numpy as np
 
 from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
 from bmi_sdk.io_atomic import atomic_path, write_json
+from bmi_sdk.json_files import read_json_object
 from firmware_sim.device import MODEL_NAME
 
 from .errors import RawFileError
@@ -142,13 +143,7 @@ _SIDECAR_FIELDS = ("frame_id", "status", "cfa", "black_level_dn", "white_level_d
 
 def _read_sidecar(side: Path) -> dict:
     """The sidecar as a JSON object; ``RawFileError`` naming the problem for bad JSON or another shape."""
-    try:
-        meta = json.loads(side.read_text())
-    except (UnicodeDecodeError, ValueError) as exc:
-        raise RawFileError(f"sidecar {side} is not valid JSON ({exc})") from None
-    if not isinstance(meta, dict):
-        raise RawFileError(f"sidecar {side} holds a JSON {type(meta).__name__}, expected an object")
-    return meta
+    return read_json_object(side, RawFileError, f"sidecar {side}")
 
 
 def _check_sidecar_fields(path: Path, meta: dict, shape: tuple) -> None:

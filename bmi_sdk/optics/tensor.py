@@ -25,6 +25,7 @@ import numpy as np
 
 from .. import __version__
 from ..io_atomic import atomic_path, write_json
+from ..json_files import read_json_object
 from . import spectral
 from .prescription import Lens, load_lens
 from .psf import DEFAULT_GUARD, DEFAULT_OVERSAMPLE, psf_from_pupil
@@ -334,12 +335,7 @@ class PsfTensor:
         meta_path = path.with_suffix(".json")
         if not meta_path.exists():
             raise FileNotFoundError(f"{meta_path}: PSF tensor metadata missing")
-        try:
-            meta = json.loads(meta_path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ValueError(f"{meta_path}: not JSON ({exc})") from None
-        if not isinstance(meta, dict):
-            raise ValueError(f"{meta_path}: holds a JSON {type(meta).__name__}, expected an object")
+        meta = read_json_object(meta_path)
         if meta.get("schema") != SCHEMA:
             raise ValueError(f"{meta_path}: schema {meta.get('schema')!r}, expected {SCHEMA!r}")
         digest = hashlib.sha256(path.read_bytes()).hexdigest()
