@@ -16,7 +16,7 @@ from bmi_sdk.decode import ClassicalConfig, ClassicalDecoder, inverse_depth_cand
 from bmi_sdk.decode.aif import bracket
 from bmi_sdk.decode.bayer import estimate_noise_sigma, normalised_planes
 from bmi_sdk.decode.classical import local_spread, upsample_grid
-from bmi_sdk.decode.evidence import Evidence, fold_power, folded_model, hann_taper, plane_nll, rfft_multiplicity
+from bmi_sdk.decode.evidence import Evidence, fold_power, folded_model, plane_nll, rfft_multiplicity
 from bmi_sdk.lenses import lens_geometry, lens_tensor
 from bmi_sdk.nn.data import simulate_raw
 from bmi_sdk.optics.perturb import Perturbation

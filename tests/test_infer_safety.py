@@ -9,10 +9,9 @@ import warnings
 
 import pytest
 import torch
-from torch import nn
 
 from bmi_sdk.cli import main
-from bmi_sdk.runtime import export_model, run_job
+from bmi_sdk.runtime import run_job
 from bmi_sdk.runtime.quality import (MAX_SATURATED_FRACTION, MIN_SIGNAL_FRACTION, MIN_STRUCTURE,
                                      FrameQualityWarning, TestPatternFrameError, assess_frame)
 from devices import Roi, open_camera
@@ -21,16 +20,9 @@ from firmware_sim import FirmwareDevice, make_source
 ROI = Roi(2980, 2240, 96, 64)
 
 
-class PassThrough(nn.Module):
-    """aif = the demosaiced input, depth = 1 + θ/60°: a model that follows the contract and costs nothing."""
-
-    def forward(self, x):
-        return x[:, :3] * 1.0, 1.0 + x[:, 3:4]
-
-
 @pytest.fixture(scope="module")
-def model(tmp_path_factory):
-    return export_model(PassThrough(), tmp_path_factory.mktemp("m") / "pass.onnx", preset="test-pass")
+def model(passthrough_model):
+    return passthrough_model
 
 
 def _capture(scene="chart", test_pattern=0, exposure_us=None):

@@ -46,19 +46,14 @@ class SmallUNet(nn.Module):
         return x[:, :3] + 0.1 * o[:, :3], 0.7 + nn.functional.softplus(o[:, 3:])
 
 
-class PassThrough(nn.Module):
-    def forward(self, x):
-        return x[:, :3] * 1.0, 1.0 + x[:, 3:4]
-
-
 @pytest.fixture(scope="module")
 def unet(tmp_path_factory):
     return export_model(SmallUNet(), tmp_path_factory.mktemp("m") / "unet.onnx", preset="test-unet")
 
 
 @pytest.fixture(scope="module")
-def passthrough(tmp_path_factory):
-    return export_model(PassThrough(), tmp_path_factory.mktemp("p") / "pass.onnx", preset="test-pass")
+def passthrough(passthrough_model):
+    return passthrough_model
 
 
 def _raw(h, w, seed=0):

@@ -9,21 +9,14 @@ import sys
 
 import numpy as np
 import pytest
-import torch
-from torch import nn
 
 import bmi_sdk
-from bmi_sdk.runtime import Model, export_model, run_job
-
-
-class PassThrough(nn.Module):
-    def forward(self, x):
-        return x[:, :3] * 1.0, 1.0 + x[:, 3:4]
+from bmi_sdk.runtime import Model, run_job
 
 
 @pytest.fixture(scope="module")
-def model_path(tmp_path_factory):
-    return export_model(PassThrough(), tmp_path_factory.mktemp("m") / "pass.onnx", preset="test-pass")
+def model_path(passthrough_model):
+    return passthrough_model
 
 
 @pytest.fixture(scope="module")
