@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import resource
 import shutil
+import sys
 import time
 from pathlib import Path
 
@@ -128,10 +129,9 @@ def _run(args) -> int:
     frames = _frames(work, args.frames, height_px, width_px)
     rows = []
     for scheduler in [None, *schedulers]:
-        rows.append(_cache_row(args, work, scheduler))
-        print(rows[-1], flush=True)
-        rows.append(_infer_row(args, work, frames, scheduler))
-        print(rows[-1], flush=True)
+        rows += [_cache_row(args, work, scheduler), _infer_row(args, work, frames, scheduler)]
+        for row in rows[-2:]:
+            print(f"{row[0]} on {row[1]}: {row[-1]}", file=sys.stderr, flush=True)  # progress
     rows.sort(key=lambda r: r[0])
     text = markdown_table(["job", "where", "work", "start s", "job s", "CPU s", "cores got", "throughput"], rows)
     text += (f"\n\nIn-process: cache shards in this one process, frames decoded with onnxruntime on all "
