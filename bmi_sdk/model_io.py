@@ -44,6 +44,20 @@ def window_cfa(sensor_cfa: str, row0: int, col0: int) -> str:
     return _SHIFT[(row0 % 2, col0 % 2)]
 
 
+def reflect_indices(start: int, length: int, size: int) -> np.ndarray:
+    """Indices ``start … start+length-1`` folded into ``[0, size)`` by mirror reflection (edge not repeated).
+
+    Reflection maps index i to one of the same parity, so a Bayer mosaic keeps
+    its phase; it works for any extent, also far beyond a tiny frame.
+    """
+    idx = np.arange(start, start + length)
+    if size == 1:
+        return np.zeros(length, np.intp)
+    period = 2 * (size - 1)
+    m = np.mod(idx, period)
+    return np.where(m < size, m, period - m).astype(np.intp)
+
+
 def raw_to_rgb(raw: np.ndarray, black_level: float, white_level: float, cfa: str = "RGGB") -> np.ndarray:
     """Raw Bayer window (H × W integers) → H × W × 3 float32 linear RGB in [0, 1].
 

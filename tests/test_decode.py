@@ -126,7 +126,7 @@ def _plane_frame(depth_m: float, field_deg: float, size: int = 160, sigma: float
 @pytest.fixture(scope="module")
 def nominal_decoder():
     psf_map = PsfMap(lens_tensor("bmi_monocentric"), GEOMETRY, mode="tensor")
-    return ClassicalDecoder(psf_map, inverse_depth_candidates(psf_map.tensor.depth_m, 48), ClassicalConfig())
+    return ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig())
 
 
 def test_a_textured_plane_at_two_metres_decodes_within_six_percent(nominal_decoder):

@@ -128,7 +128,7 @@ def fit_sigma_model(nominal_map, seed: int = FIT_SEED, tiles: int = FIT_TILES) -
 
 
 def _full_frame(nominal, geometry) -> str:
-    from bmi_sdk.decode import ClassicalConfig, ClassicalDecoder, inverse_depth_candidates
+    from bmi_sdk.decode import ClassicalConfig, ClassicalDecoder
     from bmi_sdk.nn.data import STANDARD_SIGMA, simulate_raw
     from bmi_sdk.render import PsfMap, render_coded
     from bmi_sdk.scenes import generate_scene
@@ -144,7 +144,7 @@ def _full_frame(nominal, geometry) -> str:
     render_s = time.perf_counter() - t0
     del optical
     config = ClassicalConfig()
-    decoder = ClassicalDecoder(psf_map, inverse_depth_candidates(nominal.depth_m, config.candidates), config)
+    decoder = ClassicalDecoder.for_psf_map(psf_map, config)
     rss0 = peak_rss_mb()
     lines = [f"Full 6000×4500 procedural frame (seed 7), tensor-mode render {render_s:.0f} s; "
              f"peak RSS before decoding {rss0:.0f} MB.", ""]
@@ -164,7 +164,7 @@ def _full_frame(nominal, geometry) -> str:
 
 
 def run(full: bool = False) -> str:
-    from bmi_sdk.decode import ClassicalConfig, ClassicalDecoder, inverse_depth_candidates
+    from bmi_sdk.decode import ClassicalConfig, ClassicalDecoder
     from bmi_sdk.lenses import lens_geometry, lens_tensor
     from bmi_sdk.nn.evaluate import Benchmark
     from bmi_sdk.render import PsfMap
@@ -180,7 +180,7 @@ def run(full: bool = False) -> str:
     out.append(markdown_table(["configuration", "candidates", "AbsRel", "δ1", "RMSE m", "PSNR dB", "σ z RMS",
                                "CPU s / tile"], _knob_rows(bench, renders, nominal_map)))
     config = ClassicalConfig()
-    decoder = ClassicalDecoder(nominal_map, inverse_depth_candidates(nominal.depth_m, config.candidates), config)
+    decoder = ClassicalDecoder.for_psf_map(nominal_map, config)
     plane_rows = [[f"{d:g} m"] + [plane_absrel(nominal, geometry, decoder, f, d) for f in PLANE_FIELDS_DEG]
                   for d in PLANE_DEPTHS_M]
     out += ["", f"Textured fronto-parallel planes ({PLANE_PX}² window, φ 30°, σ 0.005, the same tensor kernels "

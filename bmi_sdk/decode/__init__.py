@@ -1,7 +1,7 @@
 """Physics-driven decoding: depth evidence from the camera's own kernels, and the classical decoder.
 
     from bmi_sdk.decode import ClassicalDecoder, ClassicalConfig, inverse_depth_candidates
-    decoder = ClassicalDecoder(psf_map, inverse_depth_candidates(psf_map.tensor.depth_m, 48))
+    decoder = ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig(candidates=48))
     result = decoder.decode(raw, black_level_dn, white_level_dn, geometry, row0, col0)
 
 Modules: ``bayer`` (raw planes, noise), ``candidates`` (1/d grid), ``evidence`` (the likelihood),

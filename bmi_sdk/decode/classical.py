@@ -38,11 +38,11 @@ import numpy as np
 from scipy import ndimage
 
 from ..geometry import SensorGeometry
-from ..model_io import raw_to_rgb, window_cfa
+from ..model_io import raw_to_rgb, reflect_indices, window_cfa
 from ..sensor import relative_illumination
 from .aif import wiener_blend
 from .bayer import estimate_noise_sigma, normalised_planes
-from .candidates import Candidates
+from .candidates import Candidates, inverse_depth_candidates
 from .evidence import Evidence, hann_taper, plane_nll, window_spectra
 from .kernels import ZoneKernels
 
@@ -106,6 +106,11 @@ class ClassicalDecoder:
         self.zones = ZoneKernels(psf_map, candidates, config.slopes, config.window_px)
         self.threads = config.threads or os.cpu_count() or 1
 
+    @classmethod
+    def for_psf_map(cls, psf_map, config: ClassicalConfig = ClassicalConfig()) -> "ClassicalDecoder":
+        """A decoder over ``psf_map``'s kernels at ``config.candidates`` depths spaced in 1/d on its depth grid."""
+        return cls(psf_map, inverse_depth_candidates(psf_map.tensor.depth_m, config.candidates), config)
+
     # -- evidence ---------------------------------------------------------------------------------
     def _block_nll(self, spectra: list, zone, which: np.ndarray, noise_var: float, taper_energy: float) -> np.ndarray:
         models = self.zones.models(zone, which)                   # (planes, A, D, n, m)
@@ -159,10 +164,8 @@ class ClassicalDecoder:
                 skipped += 1
                 continue
             t0 = time.perf_counter()
-            centre_r = row0 + (br + (nr - 1) / 2) * cfg.stride_px
-            centre_c = col0 + (bc + (nc - 1) / 2) * cfg.stride_px
-            theta, phi = geometry.field_angles(np.array([centre_r]), np.array([centre_c]))
-            zone = ZoneKernels.zone(float(np.nan_to_num(theta[0], nan=geometry.max_field_deg)), float(phi[0]))
+            zone = ZoneKernels.zone_at(geometry, row0 + (br + (nr - 1) / 2) * cfg.stride_px,
+                                       col0 + (bc + (nc - 1) / 2) * cfg.stride_px)
             ps = slice(br * sp, br * sp + (nr - 1) * sp + n), slice(bc * sp, bc * sp + (nc - 1) * sp + n)
             spectra = [window_spectra(padded[p][ps], n, sp, taper, self.threads)[0] for p in range(4)]
             t1 = time.perf_counter()
@@ -229,12 +232,10 @@ class ClassicalDecoder:
                 core_valid = valid[r:r1, c:c1]
                 if not core_valid.any():
                     continue
-                rows = _reflect(np.arange(r - halo, r1 + halo), height)
-                cols = _reflect(np.arange(c - halo, c1 + halo), width)
-                window = raw[np.ix_(rows, cols)]
+                window = raw[np.ix_(reflect_indices(r - halo, r1 - r + 2 * halo, height),
+                                    reflect_indices(c - halo, c1 - c + 2 * halo, width))]
                 rgb = raw_to_rgb(window, black, white, window_cfa(cfa, row0 + r - halo, col0 + c - halo))
-                theta, phi = geometry.field_angles(np.array([row0 + (r + r1) / 2]), np.array([col0 + (c + c1) / 2]))
-                zone = ZoneKernels.zone(float(np.nan_to_num(theta[0], nan=geometry.max_field_deg)), float(phi[0]))
+                zone = ZoneKernels.zone_at(geometry, row0 + (r + r1) / 2, col0 + (c + c1) / 2)
                 inv_core = np.where(core_valid, inv_px[r:r1, c:c1], np.nanmedian(inv_px[r:r1, c:c1][core_valid]))
                 core = (slice(halo, halo + r1 - r), slice(halo, halo + c1 - c))
                 aif = wiener_blend(rgb, inv_core, cand_inv, lambda idx, z=zone: self.zones.kernels(z, aif_cands[idx]),
@@ -243,13 +244,6 @@ class ClassicalDecoder:
                 out[r:r1, c:c1] = np.where(core_valid[..., None] & (falloff[..., None] > 0),
                                            aif / np.maximum(falloff, 1e-6)[..., None], 0.0)
         return out
-
-
-def _reflect(index: np.ndarray, size: int) -> np.ndarray:
-    """Mirror indices into [0, size) keeping parity (…, 2, 1, 0, 1, 2, …): the Bayer phase is kept."""
-    period = 2 * (size - 1)
-    index = np.abs(index) % period
-    return np.where(index >= size, period - index, index)
 
 
 def local_spread(inv: np.ndarray) -> np.ndarray:

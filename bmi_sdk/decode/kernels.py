@@ -35,9 +35,15 @@ class ZoneKernels:
     def zone(theta_deg: float, phi_deg: float) -> tuple[float, float]:
         """The zone key of a field position: θ and φ rounded to the zone step (φ wrapped to (−180, 180])."""
         step = ZONE_STEP_DEG
-        theta = round(float(np.nan_to_num(theta_deg, nan=0.0)) / step) * step
+        theta = round(float(theta_deg) / step) * step
         phi = round(((float(phi_deg) + 180.0) % 360.0 - 180.0) / step) * step
         return round(theta, 6), round(0.0 if theta == 0 else phi, 6)
+
+    @staticmethod
+    def zone_at(geometry, row_px: float, col_px: float) -> tuple[float, float]:
+        """The zone of sensor pixel (row, col); beyond the geometry's mapping, the image circle's edge."""
+        theta, phi = geometry.field_angles(np.array([row_px]), np.array([col_px]))
+        return ZoneKernels.zone(float(np.nan_to_num(theta[0], nan=geometry.max_field_deg)), float(phi[0]))
 
     def kernels(self, zone: tuple[float, float], which: np.ndarray) -> np.ndarray:
         """(C, len(which), K, K) unit-sum kernels of candidates ``which`` (indices into ``candidates``)."""

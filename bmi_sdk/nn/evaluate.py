@@ -249,11 +249,9 @@ class ClassicalTiles:
     name = "classical"
 
     def __init__(self, psf_map, config=None, name: str = "classical"):
-        from bmi_sdk.decode import ClassicalConfig, ClassicalDecoder, inverse_depth_candidates
+        from bmi_sdk.decode import ClassicalConfig, ClassicalDecoder
 
-        config = config or ClassicalConfig()
-        self.decoder = ClassicalDecoder(psf_map, inverse_depth_candidates(psf_map.tensor.depth_m, config.candidates),
-                                        config)
+        self.decoder = ClassicalDecoder.for_psf_map(psf_map, config or ClassicalConfig())
         self.name = name
 
     def __call__(self, raw: np.ndarray, geometry, row0: int, col0: int):

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..built_camera import BuiltCamera
-from ..decode import ClassicalConfig, ClassicalDecoder, inverse_depth_candidates
-from .pipeline import frame_lens_name
+from ..decode import ClassicalConfig, ClassicalDecoder
+from .pipeline import check_decodable
 
 
 @dataclass
@@ -37,24 +37,12 @@ class ClassicalResult:
 
 def classical_decoder(camera: BuiltCamera, config: ClassicalConfig = ClassicalConfig()) -> ClassicalDecoder:
     """A decoder over ``camera``'s kernels at ``config.candidates`` depths spaced in 1/d."""
-    psf_map = camera.psf_map()
-    candidates = inverse_depth_candidates(psf_map.tensor.depth_m, config.candidates)
-    return ClassicalDecoder(psf_map, candidates, config)
+    return ClassicalDecoder.for_psf_map(camera.psf_map(), config)
 
 
 def decode_frame(decoder: ClassicalDecoder, frame, camera: BuiltCamera, progress: bool = False) -> ClassicalResult:
     """Decode a ``devices.RawFrame`` taken by ``camera`` (refused, naming why, when it cannot be)."""
-    if not getattr(frame, "is_bmi", True):
-        reason = (frame.source or {}).get("foreign_raw_reason", "not a BMI frame")
-        raise ValueError(f"this raw frame is not from a BMI camera ({reason}); the decoder needs BMI captures")
-    frame.check()
-    lens = frame_lens_name(frame)
-    if lens is not None and lens != camera.lens_name:
-        raise ValueError(f"frame was taken through lens {lens!r}; the decoder's camera has {camera.lens_name!r}")
-    if frame.roi.x_px % 2 or frame.roi.y_px % 2:
-        raise ValueError(f"ROI offset ({frame.roi.x_px}, {frame.roi.y_px}) is odd: not whole RGGB cells")
-    if frame.cfa != "RGGB":
-        raise ValueError(f"the decoder reads RGGB sensors, the frame says {frame.cfa!r}")
+    check_decodable(frame, camera.lens_name, "the decoder's camera has", "the classical decoder")
     out = decoder.decode(frame.data, frame.black_level_dn, frame.white_level_dn, frame.geometry,
                          row0=frame.roi.y_px, col0=frame.roi.x_px, cfa=frame.cfa, progress=progress)
     stats = dict(out.stats, camera_sha256=camera.sha256(), calibration_id=camera.calibration_id)

@@ -21,9 +21,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..geometry import SensorGeometry
-from ..model_io import field_channels, raw_to_rgb, window_cfa
+from ..model_io import field_channels, raw_to_rgb, reflect_indices, window_cfa
 from .model import Model
-from .tiling import TilePlan, reflect_indices
+from .tiling import TilePlan
 
 _DEMOSAIC_MARGIN_PX = 2  # bilinear demosaic reads one neighbour; 2 keeps the window's phase
 
@@ -48,18 +48,26 @@ def frame_lens_name(frame) -> str | None:
     return (getattr(frame, "lens", None) or {}).get("name")
 
 
-def check_frame(frame, model: Model) -> None:
-    """Refuse a frame the model cannot decode, naming why (foreign camera, incomplete, other lens, odd ROI)."""
+def check_decodable(frame, lens: str, lens_owner: str, reader: str) -> None:
+    """Refuse a frame a decoder cannot read, naming why: foreign camera, incomplete frame, another lens than
+    ``lens`` (what ``lens_owner`` expects), an odd ROI offset, another CFA than RGGB. ``reader`` names the
+    decoder in the messages."""
     if not getattr(frame, "is_bmi", True):
         reason = (frame.source or {}).get("foreign_raw_reason", "not a BMI frame")
-        raise ValueError(f"this raw frame is not from a BMI camera ({reason}); the network only decodes BMI captures")
+        raise ValueError(f"this raw frame is not from a BMI camera ({reason}); {reader} only decodes BMI captures")
     frame.check()
-    lens = frame_lens_name(frame)
-    if lens is not None and lens != model.manifest["lens"]:
-        raise ValueError(f"frame was taken through lens {lens!r}; model {model.path.name} was trained for "
-                         f"{model.manifest['lens']!r}")
+    frame_lens = frame_lens_name(frame)
+    if frame_lens is not None and frame_lens != lens:
+        raise ValueError(f"frame was taken through lens {frame_lens!r}; {lens_owner} {lens!r}")
     if frame.roi.x_px % 2 or frame.roi.y_px % 2:
         raise ValueError(f"ROI offset ({frame.roi.x_px}, {frame.roi.y_px}) is odd: not whole RGGB cells")
+    if frame.cfa != "RGGB":
+        raise ValueError(f"{reader} reads RGGB sensors, the frame says {frame.cfa!r}")
+
+
+def check_frame(frame, model: Model) -> None:
+    """Refuse a frame the model cannot decode, naming why (``check_decodable``)."""
+    check_decodable(frame, model.manifest["lens"], f"model {model.path.name} was trained for", "the network")
 
 
 def infer_frame(model: Model, frame, *, overlap_px: int | None = None, progress: bool = False) -> InferenceResult:

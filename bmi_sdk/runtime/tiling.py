@@ -129,17 +129,3 @@ class TilePlan:
         return {"tile_px": self.tile_px, "overlap_px": self.overlap_px, "context_px": self.context_px,
                 "ramp_px": self.ramp_px, "pad_px": self.pad_px, "step_px": self.step_px,
                 "grid": [len(self.row_origins), len(self.col_origins)]}
-
-
-def reflect_indices(start: int, length: int, size: int) -> np.ndarray:
-    """Indices ``start … start+length-1`` folded into ``[0, size)`` by mirror reflection (edge not repeated).
-
-    Reflection maps index i to one of the same parity, so a Bayer mosaic keeps
-    its phase; it works for any extent, also far beyond a tiny frame.
-    """
-    idx = np.arange(start, start + length)
-    if size == 1:
-        return np.zeros(length, np.intp)
-    period = 2 * (size - 1)
-    m = np.mod(idx, period)
-    return np.where(m < size, m, period - m).astype(np.intp)
