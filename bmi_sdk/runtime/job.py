@@ -29,12 +29,26 @@ def _read_checked(frame_or_path, allow_test_pattern: bool):
     return frame, quality, timings
 
 
-def _frame_report(frame, quality) -> dict:
-    """The report's description of the frame, whichever decoder ran."""
-    return {"frame_calibration_id": getattr(frame, "calibration_id", None),
-            "frame": {"frame_id": frame.frame_id, "shape": list(frame.data.shape), "roi": vars(frame.roi),
-                      "lens": frame.lens, "device": frame.device, "source": frame.source},
-            "frame_quality": quality.to_dict()}
+def _write_and_report(out_dir, result, frame, quality, timings: dict, head: dict, ply_step_px: int,
+                      depth_range_m) -> dict:
+    """Write a decoded frame's files into ``out_dir`` and return its report, whichever decoder ran: the
+    decoder's own ``head`` entries, the frame, its quality, the result's summary, timings, memory and files.
+    ``run_job`` completes the report and writes it once."""
+    t0 = time.perf_counter()
+    written = write_frame_outputs(out_dir, result, frame, ply_step_px=ply_step_px, depth_range_m=depth_range_m)
+    timings["write_outputs_s"] = time.perf_counter() - t0
+    return {
+        "schema": "bmi-infer-report/1",
+        **head,
+        "frame_calibration_id": getattr(frame, "calibration_id", None),
+        "frame": {"frame_id": frame.frame_id, "shape": list(frame.data.shape), "roi": vars(frame.roi),
+                  "lens": frame.lens, "device": frame.device, "source": frame.source},
+        "frame_quality": quality.to_dict(),
+        **result.summary(),
+        "stage_timings_s": timings,
+        "peak_rss_mb": peak_rss_mb(),
+        **written,
+    }
 
 
 def load_model_for(frame, model_path: str | os.PathLike | None = None, calibration_id: str | None = None,
@@ -147,24 +161,9 @@ def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None 
     t0 = time.perf_counter()
     result = infer_frame(model, frame, overlap_px=overlap_px, progress=progress)
     timings["infer_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    written = write_frame_outputs(out_dir, result, frame, ply_step_px=ply_step_px, depth_range_m=depth_range_m)
-    timings["write_outputs_s"] = time.perf_counter() - t0
-    report = {
-        "schema": "bmi-infer-report/1",
-        "decoder": "cnn",
-        "model": model.describe(),
-        "calibration_id": model.manifest["calibration_id"],
-        "calibration_note": note,
-        "calibration_file": calibration,
-        **_frame_report(frame, quality),
-        **result.summary(),
-        "stage_timings_s": timings,
-        "peak_rss_mb": peak_rss_mb(),
-        **written,
-    }
-    write_report(out_dir, report)
-    return result, report
+    head = {"decoder": "cnn", "model": model.describe(), "calibration_id": model.manifest["calibration_id"],
+            "calibration_note": note, "calibration_file": calibration}
+    return result, _write_and_report(out_dir, result, frame, quality, timings, head, ply_step_px, depth_range_m)
 
 
 def camera_for(frame, calibration_path=None, calibration_id: str | None = None):
@@ -211,21 +210,6 @@ def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibratio
     decoder = classical_decoder or build_decoder(camera, classical_config or ClassicalConfig())
     result = decode_frame(decoder, frame, camera, progress=progress)
     timings["decode_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    written = write_frame_outputs(out_dir, result, frame, ply_step_px=ply_step_px, depth_range_m=depth_range_m)
-    timings["write_outputs_s"] = time.perf_counter() - t0
-    report = {
-        "schema": "bmi-infer-report/1",
-        "decoder": "classical",
-        "camera": camera.to_dict() | {"sha256": camera.sha256()},
-        "calibration_id": camera.calibration_id,
-        "calibration_note": None,
-        "calibration_file": calibration,
-        **_frame_report(frame, quality),
-        **result.summary(),
-        "stage_timings_s": timings,
-        "peak_rss_mb": peak_rss_mb(),
-        **written,
-    }
-    write_report(out_dir, report)
-    return result, report
+    head = {"decoder": "classical", "camera": camera.to_dict() | {"sha256": camera.sha256()},
+            "calibration_id": camera.calibration_id, "calibration_note": None, "calibration_file": calibration}
+    return result, _write_and_report(out_dir, result, frame, quality, timings, head, ply_step_px, depth_range_m)
