@@ -112,8 +112,10 @@ class ClassicalDecoder:
         return cls(psf_map, inverse_depth_candidates(psf_map.tensor.depth_m, config.candidates), config)
 
     # -- evidence ---------------------------------------------------------------------------------
-    def _block_nll(self, spectra: list, zone, which: np.ndarray, noise_var: float, taper_energy: float) -> np.ndarray:
-        models = self.zones.models(zone, which)                   # (planes, A, D, n, m)
+    @staticmethod
+    def _block_nll(spectra: list, models: np.ndarray, noise_var: float, taper_energy: float) -> np.ndarray:
+        """(windows, D) NLL summed over the planes, each plane's prior slope profiled out; ``models`` is
+        ``ZoneKernels.models`` (planes, slopes, D, n, m)."""
         total = None
         for p, power in enumerate(spectra):
             best = np.min([plane_nll(power, models[p, a], noise_var, taper_energy) for a in range(models.shape[1])],
@@ -169,16 +171,16 @@ class ClassicalDecoder:
             ps = slice(br * sp, br * sp + (nr - 1) * sp + n), slice(bc * sp, bc * sp + (nc - 1) * sp + n)
             spectra = [window_spectra(padded[p][ps], n, sp, taper, self.threads)[0] for p in range(4)]
             t1 = time.perf_counter()
-            self.zones.models(zone, coarse)
+            models = self.zones.models(zone, coarse)
             t2 = time.perf_counter()
-            coarse_nll = self._block_nll(spectra, zone, coarse, noise ** 2, taper_energy)
+            coarse_nll = self._block_nll(spectra, models, noise ** 2, taper_energy)
             best = np.unique(coarse[np.argmin(coarse_nll, axis=1)])
             reach = np.arange(-cfg.coarse_step, cfg.coarse_step + 1)
             which = np.unique(np.clip(best[:, None] + reach[None, :], 0, n_cand - 1))
             t3 = time.perf_counter()
-            self.zones.models(zone, which)
+            models = self.zones.models(zone, which)
             t4 = time.perf_counter()
-            nll = self._block_nll(spectra, zone, which, noise ** 2, taper_energy)
+            nll = self._block_nll(spectra, models, noise ** 2, taper_energy)
             depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
             inv[br:br + nr, bc:bc + nc] = 1.0 / depth_b
             sig[br:br + nr, bc:bc + nc] = sigma_b
