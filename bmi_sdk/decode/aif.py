@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import fft as sfft
 
+from .evidence import power_law_prior
+
 
 
 def bracket(inv_depth: np.ndarray, candidate_inv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -41,7 +43,7 @@ def wiener_blend(rgb: np.ndarray, inv_depth: np.ndarray, candidate_inv: np.ndarr
     kernels = kernels_of(needed)                                # (3, n, K, K)
     k = kernels.shape[-1]
     spectrum = sfft.rfft2(np.ascontiguousarray(rgb.transpose(2, 0, 1), np.float32), workers=threads)  # (3, h, m)
-    s = prior_spectrum_rect(h, w).astype(np.float32)
+    s = power_law_prior(sfft.fftfreq(h), sfft.rfftfreq(w), 1.0 / max(h, w)).astype(np.float32)
     padded = np.zeros((len(needed), 3, h, w), np.float32)
     padded[..., :k, :k] = kernels.transpose(1, 0, 2, 3)
     otf = sfft.rfft2(np.roll(padded, (-(k // 2), -(k // 2)), axis=(-2, -1)), workers=threads)  # (n, 3, h, m)
@@ -55,13 +57,6 @@ def wiener_blend(rgb: np.ndarray, inv_depth: np.ndarray, candidate_inv: np.ndarr
         weight = np.where(lo == j, 1.0 - frac, 0.0) + np.where(lo + 1 == j, frac, 0.0)
         out += (weight[..., None] * restored[n].transpose(1, 2, 0)).astype(np.float32)
     return out
-
-
-def prior_spectrum_rect(h: int, w: int) -> np.ndarray:
-    """S = 1 / (|f|² + f0²) on the (h, w/2+1) rfft grid of an h × w block (f0: one bin)."""
-    f_r = sfft.fftfreq(h)[:, None]
-    f_c = sfft.rfftfreq(w)[None, :]
-    return 1.0 / (f_r ** 2 + f_c ** 2 + (1.0 / max(h, w)) ** 2)
 
 
 def _prior_level(spectrum: np.ndarray, power: np.ndarray, s: np.ndarray, noise_sigma: float,

@@ -48,14 +48,13 @@ def hann_taper(n: int) -> np.ndarray:
     return np.outer(w, w).astype(np.float32)
 
 
-def prior_spectrum(n_full: int, slope: float = 2.0, floor_cycles: float | None = None) -> np.ndarray:
-    """S(f) = 1 / (|f|² + f0²)^(slope/2) on the n_full × n_full full-resolution DFT grid (f in cycles per pixel).
+def power_law_prior(f_row: np.ndarray, f_col: np.ndarray, floor_cycles: float, slope: float = 2.0) -> np.ndarray:
+    """S(f) = (|f|² + f0²)^(−slope/2) on the grid of row × column frequencies (cycles per pixel).
 
-    f0 (default one DFT bin) keeps the DC term finite; DC itself never enters the likelihood.
+    f0 (``floor_cycles``, one DFT bin in practice) keeps the DC term finite; DC itself never enters the
+    likelihood. The evidence uses full-resolution DFT grids, the AiF the rfft grid of a block.
     """
-    f = sfft.fftfreq(n_full)
-    f0 = 1.0 / n_full if floor_cycles is None else floor_cycles
-    return (f[:, None] ** 2 + f[None, :] ** 2 + f0 ** 2) ** (-0.5 * slope)
+    return (f_row[:, None] ** 2 + f_col[None, :] ** 2 + floor_cycles ** 2) ** (-0.5 * slope)
 
 
 def fold_power(power_full: np.ndarray, n_plane: int) -> np.ndarray:
@@ -81,7 +80,8 @@ def folded_model(kernels: np.ndarray, n_plane: int, slope: float = 2.0) -> np.nd
         raise ValueError(f"a {k}-px kernel does not fit a {n_full}-px window")
     padded = np.zeros(kernels.shape[:-2] + (n_full, n_full), np.float64)
     padded[..., :k, :k] = kernels
-    power = np.abs(np.fft.fft2(padded)) ** 2 * prior_spectrum(n_full, slope)  # the kernel's shift only changes phase
+    f = sfft.fftfreq(n_full)
+    power = np.abs(np.fft.fft2(padded)) ** 2 * power_law_prior(f, f, 1.0 / n_full, slope)  # a shift only changes phase
     return fold_power(power, n_plane)
 
 
