@@ -238,3 +238,17 @@ def test_simulate_calibrate_infer_loop_uses_the_calibrated_kernels(tmp_path):
     sidecar = json.loads((tmp_path / "f.json").read_text())
     assert sidecar["source"]["injected_perturbation"]["decenter_um"] == [8.0, 0.0]
     assert np.isfinite(np.load(tmp_path / "o" / "depth.npy")).any()
+
+
+def test_overwriting_a_classical_run_with_the_network_leaves_no_stale_sigma(tmp_path, passthrough_model):
+    """--overwrite replaces the whole set: the network writes no depth σ, so the classical run's must go."""
+    _bmi("simulate", "--procedural", 5, "--size", 96, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
+         "--out", tmp_path / "f.dng")
+    _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--decoder", "classical", "--quiet")
+    assert (tmp_path / "o" / "depth_sigma.npy").exists() and (tmp_path / "o" / "confidence.png").exists()
+    _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--model", passthrough_model, "--tile-px", 64,
+         "--overwrite", "--quiet")
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert report["decoder"] == "cnn"
+    assert not (tmp_path / "o" / "depth_sigma.npy").exists() and not (tmp_path / "o" / "confidence.png").exists()
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == sorted(report["files"]) + ["report.json"]

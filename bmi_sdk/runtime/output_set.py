@@ -1,11 +1,12 @@
 """A run's output files as one set: staged in a hidden folder, moved into place only when all are written.
 
-``bmi infer`` writes eight files and ``report.json``. Written one by one into
+``bmi infer`` writes eight files (ten with the classical decoder's 1σ) and ``report.json``. Written one by one into
 the output folder, a run that fails half-way (disk full, Ctrl-C, a crash)
 would leave new files beside an earlier run's, with nothing to tell them apart.
 ``OutputSet`` writes them into ``OUT/.bmi-infer-XXXX/`` (same file system, so
-a rename moves them), then removes the old ``report.json``, renames each file
-into ``OUT`` and renames ``report.json`` last. So:
+a rename moves them), then removes the old ``report.json`` and any earlier result this run
+does not write (a classical run's ``depth_sigma.npy`` under a network run's set), renames each
+file into ``OUT`` and renames ``report.json`` last. So:
 
 * a failure while writing leaves ``OUT`` exactly as it was;
 * ``report.json`` in ``OUT`` marks a complete set from one run (the renames
@@ -23,9 +24,11 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from .outputs import OUTPUT_NAMES, SIGMA_OUTPUT_NAMES
+
 REPORT_NAME = "report.json"
-RESULT_NAMES = ("aif.npy", "aif.png", "aif_preview.png", "depth.npy", "depth_z.npy", "depth_mm.png",
-                "depth_preview.png", "points.ply", REPORT_NAME)
+RESULT_NAMES = (*OUTPUT_NAMES, *SIGMA_OUTPUT_NAMES, REPORT_NAME)
+"""Every file a run may leave in ``OUT`` (``outputs.write_outputs``' names, whichever decoder ran)."""
 STAGING_PREFIX = ".bmi-infer-"
 
 
@@ -58,6 +61,9 @@ class OutputSet:
         names = sorted(p.name for p in self.staging.iterdir())
         with contextlib.suppress(FileNotFoundError):
             (self.out_dir / REPORT_NAME).unlink()  # the old set is no longer complete from here on
+        for stale in set(RESULT_NAMES) - set(names):  # an earlier run's file this run does not write
+            with contextlib.suppress(FileNotFoundError):
+                (self.out_dir / stale).unlink()
         for name in sorted(names, key=lambda n: n == REPORT_NAME):
             os.replace(self.staging / name, self.out_dir / name)
         return {name: str(self.out_dir / name) for name in names}

@@ -157,6 +157,13 @@ def confidence_image(depth_m: np.ndarray, depth_sigma_m: np.ndarray) -> np.ndarr
     return np.where(np.isfinite(conf), np.round(conf), 0).astype(np.uint8)
 
 
+OUTPUT_NAMES = ("aif.npy", "aif.png", "aif_preview.png", "depth.npy", "depth_z.npy", "depth_mm.png",
+                "depth_preview.png", "points.ply")
+"""The files ``write_outputs`` always writes."""
+SIGMA_OUTPUT_NAMES = ("depth_sigma.npy", "confidence.png")
+"""The files it adds when the decoder reports a depth 1σ (the classical decoder)."""
+
+
 def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarray, geometry: SensorGeometry,
                   row0: int = 0, col0: int = 0, *, ply_step_px: int = 1, preview_px: int = 1500,
                   depth_sigma_m: np.ndarray | None = None,
@@ -183,12 +190,11 @@ def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarr
     _imwrite(out / "depth_mm.png", mm)
     del mm
     _imwrite(out / "depth_preview.png", depth_preview(depth_m, preview_px, near_m, far_m))
-    names = ["aif.npy", "aif.png", "aif_preview.png", "depth.npy", "depth_z.npy", "depth_mm.png",
-             "depth_preview.png", "points.ply"]
+    names = list(OUTPUT_NAMES)
     if depth_sigma_m is not None:
         save_npy(out / "depth_sigma.npy", np.where(np.isfinite(depth_m), depth_sigma_m, np.nan).astype(np.float32))
         _imwrite(out / "confidence.png", confidence_image(depth_m, depth_sigma_m))
-        names += ["depth_sigma.npy", "confidence.png"]
+        names += list(SIGMA_OUTPUT_NAMES)
     points = write_ply(out / "points.ply", depth_m, aif, geometry, row0, col0, ply_step_px,
                        depth_sigma_m=depth_sigma_m)
     files = {name: str(out / name) for name in names}
