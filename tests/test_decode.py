@@ -252,3 +252,13 @@ def test_overwriting_a_classical_run_with_the_network_leaves_no_stale_sigma(tmp_
     assert report["decoder"] == "cnn"
     assert not (tmp_path / "o" / "depth_sigma.npy").exists() and not (tmp_path / "o" / "confidence.png").exists()
     assert sorted(p.name for p in (tmp_path / "o").iterdir()) == sorted(report["files"]) + ["report.json"]
+
+
+def test_a_refused_run_leaves_no_output_folder(tmp_path):
+    _bmi("simulate", "--procedural", 5, "--size", 64, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
+         "--out", tmp_path / "f.dng")
+    run = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", "infer", str(tmp_path / "f.dng"), "--out",
+                          str(tmp_path / "o"), "--decoder", "classical", "--candidates", "2"], capture_output=True,
+                         text=True)
+    assert run.returncode == 1 and "at least 3 candidates" in run.stderr
+    assert not (tmp_path / "o").exists()

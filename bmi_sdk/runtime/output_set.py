@@ -8,7 +8,7 @@ a rename moves them), then removes the old ``report.json`` and any earlier resul
 does not write (a classical run's ``depth_sigma.npy`` under a network run's set), renames each
 file into ``OUT`` and renames ``report.json`` last. So:
 
-* a failure while writing leaves ``OUT`` exactly as it was;
+* a failure while writing leaves ``OUT`` exactly as it was (a folder the run created is removed);
 * ``report.json`` in ``OUT`` marks a complete set from one run (the renames
   take microseconds; a kill between them leaves no report, never a wrong one).
 
@@ -39,6 +39,7 @@ class OutputSet:
         self.out_dir = Path(out_dir)
         self.overwrite = overwrite
         self.staging: Path | None = None
+        self._created = False  # this run made out_dir: a run that fails before commit() removes it again
         if self.out_dir.exists() and not self.out_dir.is_dir():
             raise NotADirectoryError(f"output folder {self.out_dir} is a file")
         earlier = [n for n in RESULT_NAMES if (self.out_dir / n).exists()]
@@ -49,6 +50,7 @@ class OutputSet:
     def __enter__(self) -> "OutputSet":
         """Create the staging folder ``self.staging`` (this is the writability check)."""
         try:
+            self._created = not self.out_dir.exists()
             self.out_dir.mkdir(parents=True, exist_ok=True)
             self.staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.out_dir))
         except OSError as exc:
@@ -66,9 +68,13 @@ class OutputSet:
                 (self.out_dir / stale).unlink()
         for name in sorted(names, key=lambda n: n == REPORT_NAME):
             os.replace(self.staging / name, self.out_dir / name)
+        self._created = False
         return {name: str(self.out_dir / name) for name in names}
 
     def __exit__(self, *exc) -> None:
         if self.staging is not None:
             shutil.rmtree(self.staging, ignore_errors=True)
             self.staging = None
+        if self._created:  # failed before commit: leave no empty output folder behind
+            with contextlib.suppress(OSError):
+                self.out_dir.rmdir()
