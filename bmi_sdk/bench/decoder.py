@@ -43,6 +43,7 @@ def _knob_rows(bench, renders, nominal_map) -> list[list]:
     variants += [(f"stride {s} px", replace(base, stride_px=s)) for s in (8, 32) if s != base.stride_px]
     variants += [("slopes 1.6–3.2 (5)", replace(base, slopes=(1.6, 2.0, 2.4, 2.8, 3.2))),
                  ("confidence fill 1.5 windows", replace(base, fill_windows=1.5)),
+                 ("AiF on every 2nd candidate", replace(base, aif_step=2)),
                  ("AiF on every candidate", replace(base, aif_step=1))]
     rows = []
     for name, config in variants:
