@@ -92,6 +92,8 @@ class DecodeResult:
     grid_sigma_inv: np.ndarray     # window grid reported 1σ of 1/d (step 4)
     grid_sigma_laplace: np.ndarray  # window grid Laplace σ_L of 1/d
     grid_spread: np.ndarray        # window grid 3 × 3 spread of 1/d
+    grid_evidence: np.ndarray      # window grid × coarse candidates: NLL − the window's minimum (NaN in skipped blocks)
+    evidence_inv_depth_per_m: np.ndarray  # 1/d of the coarse candidates (the last axis of grid_evidence)
     stats: dict = field(default_factory=dict)
 
 
@@ -146,7 +148,8 @@ class ClassicalDecoder:
         sig = np.full((grid_rows, grid_cols), np.nan)
         cand_inv = self.candidates.inv_depth_per_m
         n_cand = len(self.candidates)
-        coarse = np.unique(np.r_[np.arange(0, n_cand, cfg.coarse_step), n_cand - 1])
+        coarse = coarse_indices(n_cand, cfg.coarse_step)
+        evidence = np.full((grid_rows, grid_cols, len(coarse)), np.nan, np.float32)
         evaluations = {"full": 0, "done": 0}
         blocks = [(br, bc) for br in range(0, grid_rows, cfg.block_windows) for bc in range(0, grid_cols, cfg.block_windows)]
         skipped = 0
@@ -174,6 +177,7 @@ class ClassicalDecoder:
             models = self.zones.models(zone, coarse)
             t2 = time.perf_counter()
             coarse_nll = self._block_nll(spectra, models, noise ** 2, taper_energy)
+            evidence[br:br + nr, bc:bc + nc] = (coarse_nll - coarse_nll.min(axis=1, keepdims=True)).reshape(nr, nc, -1)
             best = np.unique(coarse[np.argmin(coarse_nll, axis=1)])
             reach = np.arange(-cfg.coarse_step, cfg.coarse_step + 1)
             which = np.unique(np.clip(best[:, None] + reach[None, :], 0, n_cand - 1))
@@ -215,7 +219,8 @@ class ClassicalDecoder:
                  "candidate_evaluations": evaluations["done"],
                  "candidate_evaluations_exhaustive": evaluations["full"],
                  "kernel_sets_computed": self.zones.kernel_sets_computed, "timings_s": timings}
-        return DecodeResult(depth, depth_sigma, aif, valid, inv, sig, sigma_laplace, spread, stats)
+        return DecodeResult(depth, depth_sigma, aif, valid, inv, sig, sigma_laplace, spread, evidence,
+                            cand_inv[coarse], stats)
 
     # -- all-in-focus -----------------------------------------------------------------------------
     def _aif(self, raw, black, white, cfa, inv_px, valid, geometry, row0, col0, noise) -> np.ndarray:
@@ -226,7 +231,7 @@ class ClassicalDecoder:
         halo += halo % 2
         out = np.zeros((height, width, 3), np.float32)
         n_cand = len(self.candidates)
-        aif_cands = np.unique(np.r_[np.arange(0, n_cand, cfg.aif_step), n_cand - 1])
+        aif_cands = coarse_indices(n_cand, cfg.aif_step)
         cand_inv = self.candidates.inv_depth_per_m[aif_cands]
         for r in range(0, height, block):
             for c in range(0, width, block):
@@ -246,6 +251,11 @@ class ClassicalDecoder:
                 out[r:r1, c:c1] = np.where(core_valid[..., None] & (falloff[..., None] > 0),
                                            aif / np.maximum(falloff, 1e-6)[..., None], 0.0)
         return out
+
+
+def coarse_indices(n_candidates: int, coarse_step: int) -> np.ndarray:
+    """Indices of the coarse pass's candidates: every ``coarse_step``-th one and the last."""
+    return np.unique(np.r_[np.arange(0, n_candidates, coarse_step), n_candidates - 1])
 
 
 def local_spread(inv: np.ndarray) -> np.ndarray:
