@@ -21,6 +21,15 @@ def register(subparsers) -> None:
     p.add_argument("--samples", type=int, default=768, help="rendered pairs in the cache")
     p.add_argument("--crop", type=int, default=128, help="training crop size in pixels (multiple of 4)")
     p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--lr", type=float, default=5e-4, help="initial learning rate (cosine decay to 1e-6)")
+    p.add_argument("--decoder", default="cnn", choices=["cnn", "learned"],
+                   help="cnn: the end-to-end network; learned: the refinement of the classical decoder "
+                        "(its channels in, a depth σ out; docs/decoder.md)")
+    p.add_argument("--init-from", default=None,
+                   help="ONNX model whose weights start the run (default for --decoder learned: the shipped "
+                        "default.onnx; its new input channels and σ output start at zero)")
+    p.add_argument("--refine-sigma", type=float, nargs=2, default=(0.003, 0.012), metavar=("MIN", "MAX"),
+                   help="--decoder learned: noise σ range of the decoded training frames (log-uniform)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sigma", type=float, default=None,
                    help="training noise σ, fraction of full scale (default 0.005, the paper's standard); "
@@ -51,13 +60,20 @@ def _run(args) -> int:
     torch.set_num_threads(args.threads)
     spec = CacheSpec(lens=args.lens, samples=args.samples, crop_px=args.crop, seed=args.seed)
     sigma = STANDARD_SIGMA if args.sigma is None else args.sigma
-    config = TrainConfig(preset=args.preset, steps=args.steps, batch_size=args.batch, sigma=sigma,
-                         sigma_max=args.sigma_max, seed=args.seed, cache=spec)
+    refine, init_from = None, args.init_from
+    if args.decoder == "learned":
+        from bmi_sdk.nn.refine_data import RefineSpec
+        from bmi_sdk.runtime.model import DEFAULT_MODEL
+
+        refine = RefineSpec(sigma_min=args.refine_sigma[0], sigma_max=args.refine_sigma[1], seed=args.seed)
+        init_from = init_from or str(DEFAULT_MODEL)
+    config = TrainConfig(preset=args.preset, steps=args.steps, batch_size=args.batch, lr=args.lr, sigma=sigma,
+                         sigma_max=args.sigma_max, seed=args.seed, cache=spec, refine=refine, init_from=init_from)
     cache = Path(args.cache or f".bmi_cache/train/{args.lens}-{args.samples}-{args.crop}-s{args.seed}")
     t0 = time.perf_counter()
     build_cache(cache, spec, workers=args.render_workers, scheduler=args.scheduler)
     t_render = time.perf_counter() - t0
-    ckpt = train(config, args.out, cache, save_every=args.save_every)
+    ckpt = train(config, args.out, cache, save_every=args.save_every, workers=args.render_workers)
     if args.no_export:
         return 0
     net, _ = load_weights(ckpt)
@@ -65,8 +81,9 @@ def _run(args) -> int:
     training = {"command": "bmi train " + " ".join(_argv(args)), "config": config.to_dict(),
                 "train_seconds": sum(s["seconds"] for s in log["sessions"]),
                 "cache_seconds_this_call": round(t_render, 1), "final_loss": log["curve"][-1] if log["curve"] else None}
+    classical = refine.classical_config().to_dict() if refine is not None else None
     manifest = export_with_manifest(net, Path(args.out) / "model.onnx", preset=args.preset, lens=args.lens,
-                                    training=training)
+                                    training=training, classical_config=classical)
     print(f"exported {Path(args.out) / 'model.onnx'} ({manifest.name})")
     return 0
 
@@ -75,9 +92,11 @@ def _argv(args) -> list[str]:
     out = [f"--preset {args.preset}", f"--steps {args.steps}", f"--out {args.out}"]
     if args.lens != "bmi_monocentric":
         out.append(f"--lens {args.lens}")
-    for name, default in (("samples", 768), ("crop", 128), ("batch", 8), ("seed", 0), ("sigma", None),
-                          ("sigma_max", None)):
+    for name, default in (("samples", 768), ("crop", 128), ("batch", 8), ("lr", 5e-4), ("decoder", "cnn"),
+                          ("init_from", None), ("seed", 0), ("sigma", None), ("sigma_max", None)):
         if getattr(args, name) != default:
             out.append(f"--{name.replace('_', '-')} {getattr(args, name)}")
+    if args.decoder == "learned" and tuple(args.refine_sigma) != (0.003, 0.012):
+        out.append(f"--refine-sigma {args.refine_sigma[0]} {args.refine_sigma[1]}")
     out.append(f"--threads {args.threads}")  # CPU float reductions depend on it: part of a bit-exact rerun
     return out

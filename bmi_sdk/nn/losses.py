@@ -105,3 +105,23 @@ def total_loss(aif_preds: list[torch.Tensor], depth_pred_m: torch.Tensor, aif_ta
              "silog": silog_loss(depth_pred_m, depth_target_m, mask, lam)}
     total = sum(WEIGHTS[k] * v for k, v in terms.items())
     return total, {k: float(v.detach()) for k, v in terms.items()}
+
+
+SIGMA_WEIGHT = 0.1
+"""Weight of the σ head's likelihood (``sigma_nll_loss``) in the learned refinement's loss."""
+
+
+def sigma_nll_loss(depth_pred_m: torch.Tensor, sigma_pred_m: torch.Tensor, target_m: torch.Tensor,
+                   mask: torch.Tensor) -> torch.Tensor:
+    """Gaussian negative log-likelihood of the log-depth error under the predicted relative 1σ.
+
+    With g = log d̂ − log d (the depth held fixed: ``detach``, so the σ head learns how wrong the depth
+    is without pulling the depth towards easy pixels) and s = σ̂ / d̂ (σ of log d to first order):
+    L = mean over valid pixels of ½ (g / s)² + log s. Its minimum over s is s = |g| per pixel, so on
+    average s² matches the squared error: an honest σ, not a small one.
+    """
+    m = mask.to(depth_pred_m.dtype)
+    g = (torch.log(depth_pred_m.detach().clamp_min(1e-6)) - torch.log(target_m.clamp_min(1e-6)))
+    s = (sigma_pred_m / depth_pred_m.clamp_min(1e-6)).clamp_min(1e-4)  # exp of the σ output: no depth gradient
+    per_px = 0.5 * (g / s).square() + torch.log(s)
+    return (per_px * m).sum() / m.sum().clamp_min(1.0)

@@ -24,6 +24,13 @@ Departures from MIMO-UNet, each for a reason:
 * ``multi_scale_input=False`` (the paper's input-scale ablation) removes the
   two coarse input branches (SCM + FAM); the decoders are unchanged.
 
+The learned refinement (``--decoder learned``, docs/decoder.md) is this network
+with ``extra_channels`` > 0: the classical decoder's per-pixel channels
+(``decode.features``) are appended to the input and read by the full-resolution
+head only (the coarse SCM branches keep the 6 contract channels), and with
+``sigma_head``: the depth head has a second output, log(σ_d / d), trained with
+a Gaussian likelihood (``losses.sigma_nll_loss``), so it returns a depth 1σ.
+
 With width 32 and 8 residual blocks per stage (``PRESETS["paper"]``) the
 network has 10.08 M parameters, the paper's count.
 """
@@ -42,6 +49,8 @@ from bmi_sdk.model_io import INPUT_CHANNELS
 RGB_CHANNELS = 3
 DEPTH_REF_M = math.sqrt(0.7 * 10.0)
 """Reference range of the depth head (geometric mean of the paper's 0.7–10 m): a zero output means 2.65 m."""
+LOG_SIGMA_MIN, LOG_SIGMA_MAX = -7.0, 3.0
+"""Bounds of the σ head's log(σ_d / d): 0.1 % to 20× the depth."""
 
 
 @dataclass(frozen=True)
@@ -52,12 +61,16 @@ class ModelConfig:
     res_blocks: int = 8
     field_input: bool = True
     multi_scale_input: bool = True
+    extra_channels: int = 0   # appended input channels read by the head (the learned refinement's features)
+    sigma_head: bool = False  # a second depth output: log(σ_d / d)
 
     def __post_init__(self):
         if self.width < 4 or self.width % 4:
             raise ValueError(f"width must be a multiple of 4 and ≥ 4 (SCM splits it in quarters), got {self.width}")
         if self.res_blocks < 1:
             raise ValueError(f"res_blocks must be ≥ 1, got {self.res_blocks}")
+        if self.extra_channels < 0:
+            raise ValueError(f"extra_channels must be ≥ 0, got {self.extra_channels}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -177,14 +190,15 @@ def _up(x, factor: int):
 
 
 class DualHeadMimoUNet(nn.Module):
-    """N × 6 × H × W (H, W multiples of 4) → (AiF list [¼, ½, full] each N×3, depth_m N×1×H×W)."""
+    """N × (6 + extra) × H × W (H, W multiples of 4) → (AiF list [¼, ½, full] each N×3, depth_m N×1×H×W),
+    plus depth_sigma_m N×1×H×W with ``sigma_head``."""
 
     def __init__(self, config: ModelConfig = PRESETS["paper"]):
         super().__init__()
         self.config = config
         w, n = config.width, config.res_blocks
         c_in = INPUT_CHANNELS if config.field_input else RGB_CHANNELS
-        self.head = BasicConv(c_in, w, 3)
+        self.head = BasicConv(c_in + config.extra_channels, w, 3)
         self.down = nn.ModuleList([BasicConv(w, 2 * w, 3, stride=2), BasicConv(2 * w, 4 * w, 3, stride=2)])
         self.encoder = nn.ModuleList([_res_stack(w, n), _res_stack(2 * w, n), _res_stack(4 * w, n)])
         if config.multi_scale_input:
@@ -196,13 +210,14 @@ class DualHeadMimoUNet(nn.Module):
                                         BasicConv(2 * w, RGB_CHANNELS, 3, relu=False),
                                         BasicConv(w, RGB_CHANNELS, 3, relu=False)])
         self.depth_decoder = Decoder(w, n)
-        self.depth_out = BasicConv(w, 1, 3, relu=False)
+        self.depth_out = BasicConv(w, 2 if config.sigma_head else 1, 3, relu=False)
 
     def forward(self, coded: torch.Tensor):
-        x = coded if self.config.field_input else coded[:, :RGB_CHANNELS]
+        x = coded[:, :INPUT_CHANNELS] if self.config.field_input else coded[:, :RGB_CHANNELS]
         x2 = _half(x)
         x4 = _half(x2)
-        e1 = self.encoder[0](self.head(x))
+        head_in = torch.cat([x, coded[:, INPUT_CHANNELS:]], dim=1) if self.config.extra_channels else x
+        e1 = self.encoder[0](self.head(head_in))
         z = self.down[0](e1)
         if self.config.multi_scale_input:
             z = self.fam[0](z, self.scm[0](x2))
@@ -218,20 +233,23 @@ class DualHeadMimoUNet(nn.Module):
         aif = [self.image_out[0](f4) + x4[:, :RGB_CHANNELS], self.image_out[1](f2) + x2[:, :RGB_CHANNELS],
                self.image_out[2](f1) + x[:, :RGB_CHANNELS]]
         _, _, g1 = self.depth_decoder(e3, skip2, skip1)
-        depth_m = DEPTH_REF_M * torch.exp(self.depth_out(g1))
+        out = self.depth_out(g1)
+        depth_m = DEPTH_REF_M * torch.exp(out[:, :1])
+        if self.config.sigma_head:
+            return aif, depth_m, depth_m * torch.exp(out[:, 1:].clamp(LOG_SIGMA_MIN, LOG_SIGMA_MAX))
         return aif, depth_m
 
 
 class InferenceWrapper(nn.Module):
-    """The exported graph: ``coded`` → (``aif`` full resolution, ``depth_m``), the model_io contract."""
+    """The exported graph: ``coded`` → (``aif`` full resolution, ``depth_m``[, ``depth_sigma_m``]), model_io."""
 
     def __init__(self, net: DualHeadMimoUNet):
         super().__init__()
         self.net = net
 
     def forward(self, coded):
-        aif, depth_m = self.net(coded)
-        return aif[-1], depth_m
+        aif, *depth = self.net(coded)
+        return (aif[-1], *depth)
 
 
 def parameter_count(net: nn.Module) -> int:

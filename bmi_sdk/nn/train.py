@@ -4,7 +4,13 @@ Optimiser as in the paper (§4.1): Adam, β = (0.9, 0.99), initial learning rate
 5e-4, batch 8; the learning rate follows a cosine from 5e-4 to 1e-6 over the
 run's ``steps`` (the paper does not state its schedule). Losses: ``losses``.
 
-Reproducibility: weights are initialised from ``torch.manual_seed(seed)`` and
+The learned refinement (``refine`` set: ``bmi train --decoder learned``) trains the same network with the
+classical decoder's channels appended to its input (``refine_data``) and a σ head (``losses.sigma_nll_loss``),
+starting from the weights of a trained end-to-end model (``init_from``, the shipped ``default.onnx``): the
+new input channels and the σ output start at zero, so step 0 reproduces that model and training only adds
+what the evidence brings.
+
+Reproducibility: weights are initialised from ``torch.manual_seed(seed)`` (then ``init_from``) and
 the batch of step t is a pure function of (seed, t) (``PairCache.batch``), so a
 run resumed from its checkpoint takes exactly the steps the uninterrupted run
 would have. Checkpoints hold only tensors, numbers and strings and are read
@@ -24,9 +30,11 @@ import numpy as np
 import torch
 
 from bmi_sdk.io_atomic import atomic_path, write_json
+from bmi_sdk.model_io import INPUT_CHANNELS
 from bmi_sdk.nn.data import STANDARD_SIGMA, CacheSpec, PairCache, build_cache, check_noise_range
-from bmi_sdk.nn.losses import SILOG_LAMBDA, total_loss
-from bmi_sdk.nn.model import DualHeadMimoUNet, preset_config
+from bmi_sdk.nn.losses import SIGMA_WEIGHT, SILOG_LAMBDA, sigma_nll_loss, total_loss
+from bmi_sdk.nn.model import DualHeadMimoUNet, ModelConfig, preset_config
+from bmi_sdk.nn.refine_data import RefinePairs, RefineSpec, build_refine_cache
 
 CHECKPOINT = "checkpoint.pt"
 LR_FINAL = 1e-6
@@ -44,6 +52,8 @@ class TrainConfig:
     silog_lambda: float = SILOG_LAMBDA
     seed: int = 0
     cache: CacheSpec = field(default_factory=CacheSpec)
+    refine: RefineSpec | None = None  # set: the learned refinement (classical channels in, σ out)
+    init_from: str | None = None      # an ONNX model whose weights start the run (``init_from_onnx``)
 
     def __post_init__(self):
         check_noise_range(self.sigma, self.sigma_max)
@@ -58,6 +68,8 @@ class TrainConfig:
         d = dict(d)
         d["betas"] = tuple(d["betas"])
         d["cache"] = CacheSpec(**d["cache"])
+        if d.get("refine") is not None:
+            d["refine"] = RefineSpec(**d["refine"])
         return cls(**d)
 
 
@@ -71,17 +83,67 @@ def learning_rate(config: TrainConfig, step: int) -> float:
     return LR_FINAL + 0.5 * (config.lr - LR_FINAL) * (1 + math.cos(math.pi * min(t, 1.0)))
 
 
+def network_config(config: TrainConfig, extra_channels: int = 0) -> ModelConfig:
+    """The network a run trains: its preset, plus ``extra_channels`` inputs and a σ head for a refinement."""
+    base = preset_config(config.preset)
+    if config.refine is None:
+        return base
+    return ModelConfig(**{**base.to_dict(), "extra_channels": extra_channels, "sigma_head": True})
+
+
+def init_from_onnx(net: DualHeadMimoUNet, onnx_path: str | Path) -> int:
+    """Copy the weights of an exported model (initializers ``net.<parameter>``) into ``net``; returns how many
+    tensors were copied. Where ``net`` is wider, the extra input channels of the head and the σ output of
+    the depth head start at zero (the σ bias at log 0.2), so ``net`` computes what the exported model does."""
+    import onnx
+    from onnx import numpy_helper
+
+    weights = {t.name.removeprefix("net."): numpy_helper.to_array(t) for t in onnx.load(str(onnx_path)).graph.initializer}
+    state = net.state_dict()
+    # the exported graph keeps only the full-resolution AiF output: the coarse outputs' convolutions are
+    # not in it and keep their seeded initialisation (they feed only the multi-scale training loss)
+    missing = [k for k in state if k not in weights and not k.startswith(("image_out.0.", "image_out.1."))]
+    if missing:
+        raise ValueError(f"{onnx_path} lacks {len(missing)} of the network's tensors (e.g. {missing[0]}): "
+                         "another architecture")
+    copied = 0
+    with torch.no_grad():
+        for name, target in state.items():
+            if name not in weights:
+                continue
+            copied += 1
+            src = torch.from_numpy(np.array(weights[name]))
+            if src.shape == target.shape:
+                target.copy_(src)
+            elif name == "head.0.weight" and src.shape[1] < target.shape[1] and src.shape[0] == target.shape[0]:
+                target.zero_()
+                target[:, :src.shape[1]] = src
+            elif name.startswith("depth_out.0.") and src.shape[0] == 1 and target.shape[0] == 2:
+                target.zero_()
+                target[:1] = src
+                if name.endswith("bias"):
+                    target[1] = math.log(0.2)
+            else:
+                raise ValueError(f"{onnx_path}: tensor {name} has shape {tuple(src.shape)}, "
+                                 f"the network {tuple(target.shape)}")
+    return copied
+
+
 class Trainer:
     """One run: model, optimiser, data; ``step()`` advances by one batch, ``save``/``load`` checkpoint it."""
 
     def __init__(self, config: TrainConfig, cache_dir: str | Path, device: torch.device | None = None):
         self.config = config
         self.device = device or default_device()
-        self.data = PairCache(cache_dir)
+        self.data = PairCache(cache_dir) if config.refine is None else RefinePairs(cache_dir, config.refine)
         if self.data.spec != config.cache:
             raise ValueError(f"cache {cache_dir} holds {self.data.spec}, the run asks for {config.cache}")
         torch.manual_seed(config.seed)
-        self.net = DualHeadMimoUNet(preset_config(config.preset)).to(self.device)
+        extra = self.data.extra_channels if config.refine is not None else 0
+        self.net = DualHeadMimoUNet(network_config(config, extra))
+        if config.init_from is not None:
+            init_from_onnx(self.net, config.init_from)
+        self.net.to(self.device)
         self.opt = torch.optim.Adam(self.net.parameters(), lr=config.lr, betas=config.betas)
         self.step_index = 0
         self.history: list[dict] = []
@@ -94,8 +156,12 @@ class Trainer:
         for group in self.opt.param_groups:
             group["lr"] = learning_rate(c, self.step_index)
         self.net.train()
-        aif_preds, depth_pred = self.net(x)
+        aif_preds, depth_pred, *sigma_pred = self.net(x)
         loss, terms = total_loss(aif_preds, depth_pred, aif, depth_m, valid, c.silog_lambda)
+        if sigma_pred:
+            sigma_term = sigma_nll_loss(depth_pred, sigma_pred[0], depth_m, valid)
+            loss = loss + SIGMA_WEIGHT * sigma_term
+            terms["sigma_nll"] = float(sigma_term.detach())
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
@@ -126,18 +192,23 @@ def load_weights(checkpoint: str | Path) -> tuple[DualHeadMimoUNet, TrainConfig]
     """The network (eval mode, CPU) and config of a checkpoint."""
     state = torch.load(checkpoint, map_location="cpu", weights_only=True)
     config = TrainConfig.from_dict(json.loads(state["config"]))
-    net = DualHeadMimoUNet(preset_config(config.preset))
+    head_in = state["model"]["head.0.weight"].shape[1]
+    net = DualHeadMimoUNet(network_config(config, max(head_in - INPUT_CHANNELS, 0)))
     net.load_state_dict(state["model"])
     return net.eval(), config
 
 
 def train(config: TrainConfig, out_dir: str | Path, cache_dir: str | Path, save_every: int = 250,
-          progress: bool = True, device: torch.device | None = None, scheduler: str | None = None) -> Path:
-    """Build the render cache if needed (on Dask with ``scheduler``: ``local:N`` / ``tcp://HOST:PORT``), then
-    train (resuming from ``out_dir``'s checkpoint); returns the checkpoint."""
+          progress: bool = True, device: torch.device | None = None, scheduler: str | None = None,
+          workers: int = 1) -> Path:
+    """Build the render cache if needed (on Dask with ``scheduler``: ``local:N`` / ``tcp://HOST:PORT``), and
+    for a refinement its classical decodes (``workers`` processes), then train (resuming from ``out_dir``'s
+    checkpoint); returns the checkpoint."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     build_cache(cache_dir, config.cache, progress=progress, scheduler=scheduler)
+    if config.refine is not None:
+        build_refine_cache(cache_dir, config.refine, workers=workers, progress=progress)
     trainer = Trainer(config, cache_dir, device)
     ckpt = out_dir / CHECKPOINT
     if ckpt.exists():

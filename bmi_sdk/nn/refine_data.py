@@ -1,0 +1,206 @@
+"""Training pairs of the learned refinement: a render cache's pairs, each decoded once by the classical decoder.
+
+The refinement network (``--decoder learned``) reads the classical decoder's channels
+(``decode.features``) beside the usual input. Decoding a 144² crop costs 0.2–0.8 s, a training step
+~0.3 s, so the decode cannot run per step as the noise draw does for the end-to-end network
+(``data.PairCache``). Each cached render is therefore given one raw frame (its own noise σ, drawn
+log-uniform over [``sigma_min``, ``sigma_max``] so the network learns how noise changes the evidence)
+and decoded once; the raw frame and the channels are stored (npz shards, atomic, resumable) beside the
+render cache. Per step: random crop at even offsets (the Bayer phase is kept), demosaic of the stored
+raw crop, dihedral augmentation of the RGB, the classical channels, the targets and the field
+channels (``data.dihedral_field``).
+
+The decoder reads the nominal camera's kernels (``psf_mode="tensor"``, as the render cache was made).
+Sampling camera errors per pair, rendered and decoded with the matching kernels, is not done here
+(docs/decoder.md says why and what it costs).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bmi_sdk.io_atomic import write_json
+from bmi_sdk.model_io import field_channels, raw_to_rgb, window_cfa
+from bmi_sdk.nn.data import (BLACK_LEVEL_DN, WHITE_LEVEL_DN, PairCache, dihedral, dihedral_field, lens_geometry,
+                             lens_tensor, simulate_raw)
+from bmi_sdk.sensor import CFA_PATTERN
+
+REFINE_SCHEMA = "bmi-refine-cache/1"
+
+
+@dataclass(frozen=True)
+class RefineSpec:
+    """How the pairs of a render cache are decoded for the refinement: noise range, seed, decoder knobs."""
+
+    sigma_min: float = 0.003
+    sigma_max: float = 0.012
+    seed: int = 0
+    decoder: dict = field(default_factory=dict)  # ClassicalConfig fields that differ from the defaults
+
+    def __post_init__(self):
+        if not 0 < self.sigma_min <= self.sigma_max:
+            raise ValueError(f"the refinement's noise range needs 0 < sigma_min <= sigma_max, "
+                             f"got {self.sigma_min} and {self.sigma_max}")
+        self.classical_config()  # unknown or bad decoder knobs fail here, not after hours of decoding
+
+    def classical_config(self, threads: int | None = None):
+        from bmi_sdk.decode import ClassicalConfig
+
+        return ClassicalConfig(**{**self.decoder, "slopes": tuple(self.decoder.get("slopes", (2.0,))),
+                                  "threads": threads})
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def key(self) -> str:
+        import hashlib
+
+        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:12]
+
+
+def refine_dir(cache_dir: str | Path, spec: RefineSpec) -> Path:
+    """Where the decoded pairs of ``cache_dir`` under ``spec`` live."""
+    return Path(cache_dir) / f"refine-{spec.key()}"
+
+
+def _decoder(lens: str, spec: RefineSpec, threads: int | None):
+    from bmi_sdk.decode import ClassicalDecoder
+    from bmi_sdk.render import PsfMap
+
+    psf_map = PsfMap(lens_tensor(lens), lens_geometry(lens), mode="tensor")
+    return ClassicalDecoder.for_psf_map(psf_map, spec.classical_config(threads))
+
+
+def decode_pair(decoder, geometry, optical: np.ndarray, origin, spec: RefineSpec, index: int) -> dict:
+    """One stored pair: the raw frame of cached render ``index`` (its σ drawn with (seed, index)) and the
+    classical channels of its decode."""
+    from bmi_sdk.decode.features import refinement_features
+
+    rng = np.random.default_rng([spec.seed, 31, index])
+    sigma = float(np.exp(rng.uniform(np.log(spec.sigma_min), np.log(spec.sigma_max))))
+    row0, col0 = int(origin[0]), int(origin[1])
+    raw = simulate_raw(optical.astype(np.float32), sigma, rng, row0, col0)
+    result = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0, CFA_PATTERN)
+    feats = refinement_features(result, decoder.config.stride_px)
+    return {"raw": raw, "features": feats.astype(np.float16), "sigma": np.float32(sigma)}
+
+
+def _decode_shard(lens: str, cache_dir: Path, spec: RefineSpec, shard_file: str, first_index: int,
+                  threads: int | None) -> int:
+    """Decode one render shard into the refine folder (published once); returns the pairs written."""
+    from bmi_sdk.scaleout import publish_once
+
+    out = refine_dir(cache_dir, spec) / shard_file
+    if out.exists():
+        return 0
+    decoder = _decoder(lens, spec, threads)
+    geometry = lens_geometry(lens)
+    with np.load(Path(cache_dir) / shard_file, allow_pickle=False) as z:
+        optical, origin = z["optical"], z["origin"]
+    items = [decode_pair(decoder, geometry, optical[k], origin[k], spec, first_index + k) for k in range(len(optical))]
+    arrays = {k: np.stack([it[k] for it in items]) for k in items[0]}
+    return len(items) if publish_once(out, lambda tmp: np.savez(tmp, **arrays), suffix=".npz") else 0
+
+
+def build_refine_cache(cache_dir: str | Path, spec: RefineSpec, workers: int = 1, progress: bool = True) -> Path:
+    """Decode every render shard of ``cache_dir`` not yet decoded under ``spec`` (resumable); returns the folder.
+
+    ``workers`` > 1 decodes shards in that many single-threaded processes.
+    """
+    cache_dir = Path(cache_dir)
+    meta = json.loads((cache_dir / "cache.json").read_text())
+    lens = meta["spec"]["lens"]
+    out = refine_dir(cache_dir, spec)
+    out.mkdir(exist_ok=True)
+    meta_path = out / "refine.json"
+    identity = {"schema": REFINE_SCHEMA, "spec": spec.to_dict(), "renders": meta}
+    if meta_path.exists() and json.loads(meta_path.read_text()) != identity:
+        raise ValueError(f"{out} holds another refinement cache; remove it")
+    write_json(meta_path, identity)
+    shards = sorted(p.name for p in cache_dir.glob("shard_*.npz"))
+    todo = [s for s in shards if not (out / s).exists()]
+    firsts = [int(s.removeprefix("shard_").removesuffix(".npz")) * meta["shard_samples"] for s in todo]
+    bar = None
+    if progress and todo:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(todo), desc="classical decode of the training pairs", unit="shard")
+    pool = None
+    try:
+        if workers > 1 and len(todo) > 1:
+            from bmi_sdk.optics.tensor import _spawn_single_threaded_pool
+
+            pool = _spawn_single_threaded_pool(workers)
+            done = pool.map(_decode_shard, [lens] * len(todo), [cache_dir] * len(todo), [spec] * len(todo), todo,
+                            firsts, [1] * len(todo))
+        else:
+            done = (_decode_shard(lens, cache_dir, spec, s, f, None) for s, f in zip(todo, firsts))
+        for _ in done:
+            if bar is not None:
+                bar.update()
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+        if bar is not None:
+            bar.close()
+    return out
+
+
+class RefinePairs:
+    """The decoded pairs in memory and the per-step batch assembly (the ``PairCache`` interface)."""
+
+    def __init__(self, cache_dir: str | Path, spec: RefineSpec):
+        self.renders = PairCache(cache_dir)
+        self.spec = self.renders.spec
+        self.geometry = self.renders.geometry
+        folder = refine_dir(cache_dir, spec)
+        shards = sorted(folder.glob("shard_*.npz"))
+        expected = len(sorted(Path(cache_dir).glob("shard_*.npz")))
+        if len(shards) != expected:
+            raise ValueError(f"{folder}: {len(shards)} of {expected} decoded shards; run build_refine_cache")
+        parts: dict = {}
+        for path in shards:
+            with np.load(path, allow_pickle=False) as z:
+                for k in z.files:
+                    parts.setdefault(k, []).append(z[k])
+        self.arrays = {k: np.concatenate(v) for k, v in parts.items()}
+        if len(self.arrays["raw"]) != len(self.renders):
+            raise ValueError(f"{folder}: {len(self.arrays['raw'])} decoded pairs for {len(self.renders)} renders")
+
+    @property
+    def extra_channels(self) -> int:
+        return int(self.arrays["features"].shape[1])
+
+    def __len__(self) -> int:
+        return len(self.renders)
+
+    def pair(self, index: int, rng: np.random.Generator, augment: bool = True):
+        """(input (6 + C)×S×S, AiF 3×S×S, range 1×S×S, valid 1×S×S) float32 of one decoded pair."""
+        spec, r = self.spec, self.renders.arrays
+        s, j = spec.crop_px, spec.jitter_px
+        dr, dc = (2 * int(rng.integers(0, j + 1)) for _ in range(2)) if augment else (j - j % 2, j - j % 2)
+        row0, col0 = int(r["origin"][index, 0]) + dr, int(r["origin"][index, 1]) + dc
+        sl = (slice(dr, dr + s), slice(dc, dc + s))
+        raw = self.arrays["raw"][index][sl]
+        seen = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, window_cfa(CFA_PATTERN, row0, col0))
+        feats = self.arrays["features"][index][(slice(None), *sl)].astype(np.float32).transpose(1, 2, 0)
+        rgb = r["rgb"][index][sl].astype(np.float32)
+        range_m = r["range_m"][index][sl]
+        field_ch = field_channels(self.geometry, row0, col0, s, s)
+        valid = self.geometry.valid_mask(row0, col0, s, s) & np.isfinite(range_m)
+        k = int(rng.integers(8)) if augment else 0
+        seen, feats, rgb, range_m, valid = (dihedral(x, k) for x in (seen, feats, rgb, range_m, valid))
+        field_ch = dihedral_field(field_ch, k)
+        x = np.concatenate([seen.transpose(2, 0, 1), field_ch, feats.transpose(2, 0, 1)])
+        return (x, rgb.transpose(2, 0, 1), np.nan_to_num(range_m, nan=1.0)[None], valid[None].astype(np.float32))
+
+    def batch(self, seed: int, step: int, batch_size: int, sigma: float = 0.0, sigma_max: float | None = None):
+        """The batch of ``step`` (a pure function of (seed, step)); the noise is the stored one (σ ignored)."""
+        rng = np.random.default_rng([seed, step])
+        items = [self.pair(int(rng.integers(len(self))), rng) for _ in range(batch_size)]
+        return tuple(np.stack(parts) for parts in zip(*items))
+
