@@ -29,6 +29,10 @@ FIELD_NORM_DEG = 60.0
 SIZE_MULTIPLE = 4
 INPUT_NAME = "coded"
 OUTPUT_NAMES = ("aif", "depth_m")
+SIGMA_OUTPUT_NAME = "depth_sigma_m"
+"""The learned refinement's third output: 1σ of ``depth_m`` (m). Its input is the 6 channels above followed
+by the classical decoder's channels (``decode.features``); its manifest says how many and the decoder
+knobs that make them (``decoder: "learned"``, ``classical_config``)."""
 
 # OpenCV names Bayer codes after the 2×2 pattern starting at the second row/col:
 # an RGGB sensor is COLOR_BayerBG2RGB (checked against a synthetic mosaic in the tests).

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from .io_atomic import write_json
-from .model_io import INPUT_CHANNELS, INPUT_NAME, OUTPUT_NAMES, SIZE_MULTIPLE
+from .model_io import INPUT_CHANNELS, INPUT_NAME, OUTPUT_NAMES, SIGMA_OUTPUT_NAME, SIZE_MULTIPLE
 
 SCHEMA = "bmi-model/1"
 REQUIRED_KEYS = ("schema", "sha256", "file", "preset", "input_name", "output_names", "input_channels",
@@ -103,6 +103,30 @@ def read_manifest(onnx_path: str | os.PathLike) -> dict:
     return manifest
 
 
+def model_decoder(manifest: dict) -> str:
+    """``cnn`` (the end-to-end network) or ``learned`` (the refinement of the classical decoder)."""
+    return manifest.get("decoder", "cnn")
+
+
+def check_contract(manifest: dict, name: str) -> None:
+    """Refuse a manifest whose I/O is neither the end-to-end network's nor the learned refinement's."""
+    decoder = model_decoder(manifest)
+    if decoder == "cnn":
+        outputs, channels_ok, expected = list(OUTPUT_NAMES), manifest["input_channels"] == INPUT_CHANNELS, \
+            f"{INPUT_NAME!r} × {INPUT_CHANNELS}, outputs {list(OUTPUT_NAMES)}"
+    elif decoder == "learned":
+        outputs = [*OUTPUT_NAMES, SIGMA_OUTPUT_NAME]
+        channels_ok = isinstance(manifest["input_channels"], int) and manifest["input_channels"] > INPUT_CHANNELS \
+            and isinstance(manifest.get("classical_config"), dict)
+        expected = f"{INPUT_NAME!r} × ({INPUT_CHANNELS} + classical channels), a classical_config, outputs {outputs}"
+    else:
+        raise ModelError(f"model {name}: unknown decoder {decoder!r} in its manifest (cnn or learned)")
+    if manifest["input_name"] != INPUT_NAME or list(manifest["output_names"]) != outputs or not channels_ok:
+        raise ModelError(f"model {name} follows another I/O contract (input {manifest['input_name']!r}"
+                         f" × {manifest['input_channels']}, outputs {manifest['output_names']}); this SDK expects "
+                         f"{expected}")
+
+
 def verify_model(onnx_path: str | os.PathLike) -> dict:
     """Check ``onnx_path`` against its manifest; return the manifest.
 
@@ -119,11 +143,7 @@ def verify_model(onnx_path: str | os.PathLike) -> dict:
     if digest != manifest["sha256"]:
         raise ModelError(f"model {onnx_path} does not match its manifest: SHA-256 {digest[:16]}… "
                          f"!= {str(manifest['sha256'])[:16]}… (corrupted or replaced file)")
-    if manifest["input_name"] != INPUT_NAME or list(manifest["output_names"]) != list(OUTPUT_NAMES) \
-            or manifest["input_channels"] != INPUT_CHANNELS:
-        raise ModelError(f"model {onnx_path.name} follows another I/O contract (input {manifest['input_name']!r}"
-                         f" × {manifest['input_channels']}, outputs {manifest['output_names']}); this SDK expects "
-                         f"{INPUT_NAME!r} × {INPUT_CHANNELS}, outputs {list(OUTPUT_NAMES)}")
+    check_contract(manifest, onnx_path.name)
     if int(manifest["size_multiple"]) <= 0 or int(manifest["receptive_field_px"]) <= 0:
         raise ModelError(f"manifest of {onnx_path.name}: size_multiple and receptive_field_px must be > 0")
     return manifest

@@ -52,6 +52,16 @@ def _run(args) -> int:
     command_logger("infer").info("input %s; bmi-sdk %s, onnxruntime %s; execution provider %s",
                                  report["input_path"], report["software"]["bmi_sdk"],
                                  report["software"]["onnxruntime"], report["execution_provider"])
+    if report["decoder"] == "learned":
+        stats = report["decoder_stats"]
+        print(f"learned refinement {report['model']['sha256'][:12]}… on {report['execution_provider']}, camera "
+              f"{report['camera']['sha256'][:12]}…, calibration {report['calibration_id'] or 'nominal PSFs'}, "
+              f"noise σ {stats['noise_sigma']:.4f}")
+        print(f"classical blocks run {stats['blocks_run']}, skipped {stats['blocks_skipped']}; network tiles run "
+              f"{report['tiles_run']}, skipped {report['tiles_skipped']}; peak memory {report['peak_rss_mb']:.0f} MB")
+        print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_z.npy, depth_sigma.npy, confidence.png, depth_mm.png, "
+              f"points.ply ({report['ply_points']} points, with σ), report.json")
+        return 0
     if report["decoder"] == "classical":
         stats = report["decoder_stats"]
         print(f"classical decoder, camera {report['camera']['sha256'][:12]}…, "
@@ -78,6 +88,7 @@ def _run(args) -> int:
 
 
 def register(subparsers) -> None:
+    from bmi_sdk.runtime.job import DEFAULT_DECODER
     from bmi_sdk.scaleout import add_scheduler_argument
 
     p = subparsers.add_parser("infer", help="raw frame (DNG + sidecar) → AiF image, depth map, point cloud, report",
@@ -102,9 +113,11 @@ def register(subparsers) -> None:
                    help="fixed range (metres) of depth_preview.png's colours, e.g. 0.7,10, so that frames compare "
                         "(default: each frame's 1st-99th percentile)")
     p.add_argument("--ply-step", type=int, default=1, help="one point per N×N pixels in points.ply (default 1)")
-    p.add_argument("--decoder", choices=("cnn", "classical"), default="cnn",
-                   help="cnn: the shipped end-to-end network (default); classical: depth evidence from the "
-                        "camera's own (calibrated) kernels, no network, writes the depth 1σ (docs/decoder.md)")
+    p.add_argument("--decoder", choices=("cnn", "classical", "learned"), default=DEFAULT_DECODER,
+                   help=f"cnn: the shipped end-to-end network; classical: depth evidence from the camera's own "
+                        f"(calibrated) kernels, no network, writes the depth 1σ; learned: the classical evidence "
+                        f"refined by a network (learned.onnx), with a depth 1σ (default {DEFAULT_DECODER}; "
+                        f"docs/decoder.md)")
     p.add_argument("--window-px", type=int, default=64, help="classical: evidence window (default 64)")
     p.add_argument("--stride-px", type=int, default=16, help="classical: window stride (default 16)")
     p.add_argument("--candidates", type=int, default=48,

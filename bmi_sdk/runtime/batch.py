@@ -103,6 +103,7 @@ class FrameDecoder:
     options: DecodeOptions
     models: dict = field(default_factory=dict)
     classical: dict = field(default_factory=dict)   # camera SHA-256 → decode.ClassicalDecoder (its kernels)
+    learned: dict = field(default_factory=dict)     # (model path, camera SHA-256) → (Model, its classical stage)
     _calibration_file_id: str | None = field(default=None, init=False)
 
     def _calibration_in_use(self, frame) -> str | None:
@@ -150,6 +151,16 @@ class FrameDecoder:
                 return {**summary, "ok": True, "calibration_note": None, "decoder": "classical",
                         "camera_sha256": report["camera"]["sha256"], "blocks_run": report["blocks_run"],
                         "seconds": time.perf_counter() - t0}
+            if o.decoder == "learned":
+                model, stage = self.learned_for(frame)
+                result, report = run_job(frame, out_dir, decoder="learned", model=model, learned_decoder=stage,
+                                         calibration_id=o.calibration_id, calibration_path=o.calibration_path,
+                                         overlap_px=o.overlap_px, ply_step_px=o.ply_step_px, overwrite=o.overwrite,
+                                         allow_test_pattern=o.allow_test_pattern, input_path=frame_path,
+                                         depth_range_m=o.depth_range_m)
+                return {**summary, "ok": True, "calibration_note": None, "decoder": "learned",
+                        "model_sha256": report["model"]["sha256"], "camera_sha256": report["camera"]["sha256"],
+                        "tiles_run": result.network.tiles_run, "seconds": time.perf_counter() - t0}
             model, note = self.model_for(frame)
             result, report = run_job(frame, out_dir, model=model, calibration_id=o.calibration_id,
                                      calibration_path=o.calibration_path, overlap_px=o.overlap_px,
@@ -178,6 +189,23 @@ class FrameDecoder:
                 config = replace(config, threads=o.threads)
             self.classical[key] = classical_decoder(camera, config)
         return self.classical[key]
+
+
+    def learned_for(self, frame):
+        """(Model, classical stage) of the learned refinement for the camera that took ``frame``: built once per
+        (model, camera), then reused."""
+        from .job import camera_for
+        from .learned import learned_decoder
+        from .model import Model, select_model
+
+        o = self.options
+        camera, _ = camera_for(frame, o.calibration_path, o.calibration_id)
+        path = o.model_path or select_model(None, lens=camera.lens_name, decoder="learned")[0]
+        key = (str(path), camera.sha256())
+        if key not in self.learned:
+            model = Model(path, tile_px=o.tile_px, threads=o.threads, providers=o.providers)
+            self.learned[key] = (model, learned_decoder(model, camera, o.threads))
+        return self.learned[key]
 
 
 def _decode(decoder: FrameDecoder, job: tuple[Path, Path]) -> dict:

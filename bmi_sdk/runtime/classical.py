@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..built_camera import BuiltCamera
-from ..decode import ClassicalConfig, ClassicalDecoder
+from ..decode import ClassicalConfig, ClassicalDecoder, DecodeResult
 from .pipeline import check_decodable
 
 
@@ -26,6 +26,7 @@ class ClassicalResult:
     depth_sigma_m: np.ndarray
     valid: np.ndarray
     stats: dict = field(default_factory=dict)
+    decoded: DecodeResult | None = None  # the decoder's whole result (window grids, evidence)
 
     def summary(self) -> dict:
         skipped = self.stats["candidate_evaluations_exhaustive"] - self.stats["candidate_evaluations"]
@@ -46,4 +47,4 @@ def decode_frame(decoder: ClassicalDecoder, frame, camera: BuiltCamera, progress
     out = decoder.decode(frame.data, frame.black_level_dn, frame.white_level_dn, frame.geometry,
                          row0=frame.roi.y_px, col0=frame.roi.x_px, cfa=frame.cfa, progress=progress)
     stats = dict(out.stats, camera_sha256=camera.sha256(), calibration_id=camera.calibration_id)
-    return ClassicalResult(out.aif, out.depth_m, out.depth_sigma_m, out.valid, stats)
+    return ClassicalResult(out.aif, out.depth_m, out.depth_sigma_m, out.valid, stats, out)

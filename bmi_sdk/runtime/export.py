@@ -15,12 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..model_io import INPUT_CHANNELS, INPUT_NAME, OUTPUT_NAMES
+from ..model_io import INPUT_CHANNELS, INPUT_NAME, OUTPUT_NAMES, SIGMA_OUTPUT_NAME
 from ..model_manifest import write_manifest
 
 
-def measure_receptive_field(net, size_px: int = 256, seed: int = 0) -> int:
-    """Full width (px) of the input region that influences the centre output pixel, both outputs together.
+def measure_receptive_field(net, size_px: int = 256, seed: int = 0, channels: int = INPUT_CHANNELS) -> int:
+    """Full width (px) of the input region that influences the centre output pixel, all outputs together.
 
     A random input and random weights make every path of the graph carry a
     non-zero gradient; the measured width is exact for the architecture (for
@@ -33,9 +33,9 @@ def measure_receptive_field(net, size_px: int = 256, seed: int = 0) -> int:
     c = size_px // 2
     for s in range(3):
         g = torch.Generator().manual_seed(seed + s)
-        x = torch.rand(1, INPUT_CHANNELS, size_px, size_px, generator=g, requires_grad=True)
-        aif, depth = net(x)
-        (aif[0, :, c, c].sum() + depth[0, 0, c, c]).backward()
+        x = torch.rand(1, channels, size_px, size_px, generator=g, requires_grad=True)
+        aif, *depth = net(x)
+        (aif[0, :, c, c].sum() + sum(d[0, 0, c, c] for d in depth)).backward()
         hit = np.argwhere(x.grad.abs().sum(dim=(0, 1)).numpy() > 0)
         if len(hit) == 0:
             continue
@@ -47,11 +47,14 @@ def measure_receptive_field(net, size_px: int = 256, seed: int = 0) -> int:
 
 def export_model(net, onnx_path: str | os.PathLike, *, preset: str, lens: str = "bmi_monocentric",
                  calibration_id: str | None = None, training: dict | None = None, metrics: dict | None = None,
-                 probe_px: int = 256, **extra) -> Path:
+                 probe_px: int = 256, extra_channels: int = 0, classical_config: dict | None = None,
+                 **extra) -> Path:
     """Export ``net`` (``coded`` → ``aif``, ``depth_m``) with dynamic H, W and write its manifest; return the .onnx path.
 
     ``psf_tensor_key`` is the nominal PSF tensor's cache key for ``lens``
-    unless ``extra`` names another one (a calibrated tensor's).
+    unless ``extra`` names another one (a calibrated tensor's). With ``extra_channels`` > 0 the network
+    is a learned refinement (6 + extra_channels inputs → ``aif``, ``depth_m``, ``depth_sigma_m``) whose
+    classical channels are made with ``classical_config`` (required then).
     """
     import torch
 
@@ -60,18 +63,24 @@ def export_model(net, onnx_path: str | os.PathLike, *, preset: str, lens: str = 
     onnx_path = Path(onnx_path)
     onnx_path.parent.mkdir(parents=True, exist_ok=True)
     net = net.eval()
-    rf = measure_receptive_field(net, probe_px)
-    x = torch.zeros(1, INPUT_CHANNELS, 64, 64)
+    channels = INPUT_CHANNELS + extra_channels
+    names = (*OUTPUT_NAMES, SIGMA_OUTPUT_NAME) if extra_channels else OUTPUT_NAMES
+    if extra_channels:
+        if classical_config is None:
+            raise ValueError("a learned refinement needs the classical_config its channels are made with")
+        extra.update(decoder="learned", classical_config=classical_config)
+    rf = measure_receptive_field(net, probe_px, channels=channels)
+    x = torch.zeros(1, channels, 64, 64)
     tmp = onnx_path.with_name(f".{onnx_path.name}.tmp")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the legacy exporter's deprecation notice
-        torch.onnx.export(net, (x,), str(tmp), input_names=[INPUT_NAME], output_names=list(OUTPUT_NAMES),
+        torch.onnx.export(net, (x,), str(tmp), input_names=[INPUT_NAME], output_names=list(names),
                           dynamic_axes={INPUT_NAME: {2: "height", 3: "width"},
-                                        **{n: {2: "height", 3: "width"} for n in OUTPUT_NAMES}},
+                                        **{n: {2: "height", 3: "width"} for n in names}},
                           opset_version=17, dynamo=False)
     os.replace(tmp, onnx_path)
     key = extra.pop("psf_tensor_key", None) or TensorSpec().cache_key(get_lens(lens))
     write_manifest(onnx_path, preset=preset, receptive_field_px=rf, lens=lens, psf_tensor_key=key,
                    calibration_id=calibration_id, training=training, metrics=metrics,
-                   largest_psf_px=int(TensorSpec().kernel_px), **extra)
+                   largest_psf_px=int(TensorSpec().kernel_px), input_channels=channels, output_names=names, **extra)
     return onnx_path

@@ -94,9 +94,9 @@ def calibration_for(frame, calibration_path: str | os.PathLike, calibration_id: 
             "corrected_tensor_sha256": calib.doc["corrected_tensor"]["npz_sha256"]}
 
 
-DECODERS = ("cnn", "classical")
+DECODERS = ("cnn", "classical", "learned")
 DEFAULT_DECODER = "cnn"
-"""The end-to-end network stays the default until the classical decoder beats it on ``bmi eval``
+"""The end-to-end network stays the default until another decoder beats it on ``bmi eval``
 (docs/results.md, "Decoders")."""
 
 
@@ -104,9 +104,10 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = Fals
             input_path: str | os.PathLike | None = None, **options) -> tuple[InferenceResult, dict]:
     """Read (if a path), decode, write outputs and ``report.json`` into ``out_dir``; return (result, report).
 
-    ``decoder``: ``cnn`` (the shipped end-to-end network; ``options`` are ``_job_into``'s) or
+    ``decoder``: ``cnn`` (the shipped end-to-end network; ``options`` are ``_job_into``'s),
     ``classical`` (``runtime.classical``: the evidence of the camera's own kernels, no network,
-    writes the depth 1σ too; ``options`` are ``_classical_into``'s). The outputs are one set
+    writes the depth 1σ too; ``options`` are ``_classical_into``'s) or ``learned`` (the classical
+    stage, then the refinement network; ``options`` are ``_learned_into``'s). The outputs are one set
     (``OutputSet``): ``out_dir`` is checked before any work (writable; no earlier results
     unless ``overwrite``) and changes only once every file is written.
 
@@ -116,10 +117,10 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = Fals
     """
     if decoder not in DECODERS:
         raise ValueError(f"unknown decoder {decoder!r}; one of {DECODERS}")
-    job = _classical_into if decoder == "classical" else _job_into
+    job = {"cnn": _job_into, "classical": _classical_into, "learned": _learned_into}[decoder]
     with OutputSet(out_dir, overwrite=overwrite) as output_set:
         result, report = job(frame_or_path, output_set.staging, **options)
-        provider = report["model"]["execution_provider"] if decoder == "cnn" else None
+        provider = report["model"]["execution_provider"] if "model" in report else None
         source = input_path_of(frame_or_path) or (os.path.abspath(input_path) if input_path is not None else None)
         report.update(provenance(source, provider))
         report["files"] = {name: os.path.join(out_dir, name) for name in report["files"]}
@@ -211,5 +212,39 @@ def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibratio
     result = decode_frame(decoder, frame, camera, progress=progress)
     timings["decode_s"] = time.perf_counter() - t0
     head = {"decoder": "classical", "camera": camera.to_dict() | {"sha256": camera.sha256()},
+            "calibration_id": camera.calibration_id, "calibration_note": None, "calibration_file": calibration}
+    return result, _write_and_report(out_dir, result, frame, quality, timings, head, ply_step_px, depth_range_m)
+
+
+def _learned_into(frame_or_path, out_dir, *, model: Model | None = None, model_path=None, calibration_path=None,
+                  calibration_id: str | None = None, tile_px: int = 512, threads: int | None = None,
+                  overlap_px: int | None = None, ply_step_px: int = 1, progress: bool = False,
+                  allow_test_pattern: bool = False, providers=None,
+                  depth_range_m: tuple[float, float] | None = None, learned_decoder=None) -> tuple:
+    """The learned refinement's job, written into ``out_dir`` (``run_job``'s staging folder).
+
+    The classical stage reads the camera's own kernels (``calibration_path``: the calibrated camera,
+    after ``calibration_for``'s checks) with the knobs of the model's manifest; the network is the
+    packaged ``learned.onnx`` unless ``model``/``model_path`` is given. ``learned_decoder`` reuses a built
+    classical stage (its memoised kernels) across frames of one camera.
+    """
+    from .learned import decode_learned
+    from .learned import learned_decoder as build_decoder
+
+    if depth_range_m is not None:
+        check_depth_range(depth_range_m)  # before any work
+    frame, quality, timings = _read_checked(frame_or_path, allow_test_pattern)
+    camera, calibration = camera_for(frame, calibration_path, calibration_id)
+    if model is None:
+        if model_path is None:
+            model_path, _ = select_model(None, lens=camera.lens_name, decoder="learned")
+        model = Model(model_path, tile_px=tile_px, threads=threads, providers=providers)
+        timings["load_model_s"] = model.load_s
+        timings["warmup_s"] = model.warmup_s
+    t0 = time.perf_counter()
+    decoder = learned_decoder or build_decoder(model, camera, threads)
+    result = decode_learned(model, decoder, frame, camera, overlap_px=overlap_px, progress=progress)
+    timings["decode_s"] = time.perf_counter() - t0
+    head = {"decoder": "learned", "model": model.describe(), "camera": camera.to_dict() | {"sha256": camera.sha256()},
             "calibration_id": camera.calibration_id, "calibration_note": None, "calibration_file": calibration}
     return result, _write_and_report(out_dir, result, frame, quality, timings, head, ply_step_px, depth_range_m)

@@ -6,9 +6,10 @@ before onnxruntime sees them. Session options are explicit: intra-op threads
 full graph optimisation, memory pattern and arena on (or the caller's own
 ``SessionOptions``). The execution provider is the one asked for, else the best
 available (``choose_providers``: TensorRT, CUDA, CPU). The session is only ever
-fed ``1 × 6 × tile × tile`` (onnxruntime grows its arena for every new input
-shape), and a warm-up run at load time pays the first-run allocation and
-kernel selection outside the timed frame.
+fed ``1 × C × tile × tile`` (C = 6 for the end-to-end network, more for the
+learned refinement, as its manifest says; onnxruntime grows its arena for every
+new input shape), and a warm-up run at load time pays the first-run allocation
+and kernel selection outside the timed frame.
 """
 
 from __future__ import annotations
@@ -20,11 +21,12 @@ from pathlib import Path
 import numpy as np
 
 from ..memory_budget import check_fits
-from ..model_io import INPUT_CHANNELS, INPUT_NAME, OUTPUT_NAMES
-from ..model_manifest import ModelError, verify_model
+from ..model_io import INPUT_NAME
+from ..model_manifest import ModelError, model_decoder, verify_model
 
 MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 DEFAULT_MODEL = MODELS_DIR / "default.onnx"
+LEARNED_MODEL = MODELS_DIR / "learned.onnx"
 TILE_BYTES_PER_PX = 700  # onnxruntime's peak per tile pixel, packaged model: 754 B/px at 512, 670 at 1024 measured
 
 
@@ -118,12 +120,16 @@ class Model:
             raise ModelError(f"onnxruntime cannot load {self.path}: {exc}") from exc
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
         names_in, names_out = [i.name for i in inputs], [o.name for o in outputs]
-        if names_in != [INPUT_NAME] or sorted(names_out) != sorted(OUTPUT_NAMES):
+        self.output_names = tuple(self.manifest["output_names"])
+        self.input_channels = int(self.manifest["input_channels"])
+        self.decoder = model_decoder(self.manifest)
+        if names_in != [INPUT_NAME] or sorted(names_out) != sorted(self.output_names):
             raise ModelError(f"{self.path.name}: graph has inputs {names_in} and outputs {names_out}; "
-                             f"the contract is {INPUT_NAME!r} → {list(OUTPUT_NAMES)}")
+                             f"its manifest says {INPUT_NAME!r} → {list(self.output_names)}")
         shape = inputs[0].shape
-        if len(shape) != 4 or shape[1] != INPUT_CHANNELS:
-            raise ModelError(f"{self.path.name}: input {INPUT_NAME!r} has shape {shape}, expected N×{INPUT_CHANNELS}×H×W")
+        if len(shape) != 4 or shape[1] != self.input_channels:
+            raise ModelError(f"{self.path.name}: input {INPUT_NAME!r} has shape {shape}, "
+                             f"expected N×{self.input_channels}×H×W")
         fixed = [s for s in shape[2:] if isinstance(s, int)]
         multiple = int(self.manifest["size_multiple"])
         if fixed:
@@ -145,7 +151,7 @@ class Model:
         self.warmup_s = 0.0
         if warmup:
             t1 = time.perf_counter()
-            self.run(np.zeros((1, INPUT_CHANNELS, self.tile_px, self.tile_px), np.float32))
+            self.run(np.zeros((1, self.input_channels, self.tile_px, self.tile_px), np.float32))
             self.warmup_s = time.perf_counter() - t1
 
     @property
@@ -169,16 +175,16 @@ class Model:
 
         return int(TensorSpec().kernel_px)
 
-    def run(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``1 × 6 × tile × tile`` float32 → (aif ``1 × 3 × tile × tile``, depth_m ``1 × 1 × tile × tile``)."""
-        expected = (1, INPUT_CHANNELS, self.tile_px, self.tile_px)
+    def run(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``1 × C × tile × tile`` float32 → (aif ``1 × 3 × tile × tile``, depth_m ``1 × 1 × tile × tile``
+        [, depth_sigma_m ``1 × 1 × tile × tile`` for the learned refinement]), in the manifest's order."""
+        expected = (1, self.input_channels, self.tile_px, self.tile_px)
         if x.shape != expected or x.dtype != np.float32:
             raise ValueError(f"the session runs one tile shape {expected} float32, got {x.shape} {x.dtype}")
-        aif, depth = self.session.run(list(OUTPUT_NAMES), {INPUT_NAME: x})
-        return aif, depth
+        return tuple(self.session.run(list(self.output_names), {INPUT_NAME: x}))
 
     def describe(self) -> dict:
-        return {"path": str(self.path), "sha256": self.sha256, "preset": self.manifest["preset"],
+        return {"path": str(self.path), "sha256": self.sha256, "decoder": self.decoder, "preset": self.manifest["preset"],
                 "lens": self.manifest["lens"], "psf_tensor_key": self.manifest["psf_tensor_key"],
                 "calibration_id": self.manifest["calibration_id"], "receptive_field_px": self.receptive_field_px,
                 "tile_px": self.tile_px, "threads": self.threads, "execution_provider": self.provider, "graph_optimization": self.optimization,
@@ -186,10 +192,12 @@ class Model:
 
 
 def select_model(calibration_id: str | None = None, models_dir: str | os.PathLike = MODELS_DIR,
-                 preset: str | None = None, lens: str = "bmi_monocentric") -> tuple[Path, str | None]:
+                 preset: str | None = None, lens: str = "bmi_monocentric",
+                 decoder: str = "cnn") -> tuple[Path, str | None]:
     """Pick the model file for a camera's calibration: (path, note).
 
-    Among the manifests in ``models_dir`` trained for ``lens`` (a fisheye-baseline
+    Among the manifests in ``models_dir`` of ``decoder``'s kind (``cnn``: end-to-end; ``learned``: the
+    refinement of the classical decoder, ``learned.onnx``) trained for ``lens`` (a fisheye-baseline
     model, nominal too, must never decode a BMI frame): a model trained on the calibration's
     corrected PSF tensor (manifest ``calibration_id`` equal to the one asked
     for) wins; otherwise the nominal model (``calibration_id`` null), and the
@@ -206,10 +214,10 @@ def select_model(calibration_id: str | None = None, models_dir: str | os.PathLik
             m = read_manifest(onnx)
         except ModelError:
             continue
-        if m["lens"] == lens and (preset is None or m["preset"] == preset):
+        if m["lens"] == lens and model_decoder(m) == decoder and (preset is None or m["preset"] == preset):
             candidates.append((onnx, m))
     if not candidates:
-        raise ModelError(f"no model with a manifest in {models_dir} for lens {lens!r}"
+        raise ModelError(f"no {decoder} model with a manifest in {models_dir} for lens {lens!r}"
                          + (f" and preset {preset!r}" if preset else ""))
     if calibration_id is not None:
         for onnx, m in candidates:
@@ -218,7 +226,7 @@ def select_model(calibration_id: str | None = None, models_dir: str | os.PathLik
     nominal = [(o, m) for o, m in candidates if m["calibration_id"] is None]
     if not nominal:
         raise ModelError(f"no nominal (uncalibrated) model in {models_dir} and none for calibration {calibration_id!r}")
-    default = [o for o, _ in nominal if o.name == DEFAULT_MODEL.name]
+    default = [o for o, _ in nominal if o.name in (DEFAULT_MODEL.name, LEARNED_MODEL.name)]
     chosen = default[0] if default else nominal[0][0]
     note = None if calibration_id is None else \
         f"no model trained for calibration {calibration_id!r}; using the nominal-PSF model {chosen.name}"
@@ -237,7 +245,8 @@ def count_macs(onnx_path: str | os.PathLike, tile_px: int) -> int:
 
     m = onnx.load(str(onnx_path))
     dims = m.graph.input[0].type.tensor_type.shape.dim
-    for d, v in zip(dims, (1, INPUT_CHANNELS, tile_px, tile_px)):
+    channels = dims[1].dim_value  # the graph's own input channels (6, or more for the learned refinement)
+    for d, v in zip(dims, (1, channels, tile_px, tile_px)):
         d.Clear()
         d.dim_value = v
     m = shape_inference.infer_shapes(m)

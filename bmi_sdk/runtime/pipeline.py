@@ -9,7 +9,9 @@ this), append the field channels of the tile's *absolute* sensor position
 and add the weighted outputs into a band of ``tile_px`` rows. Rows no later
 tile can touch are normalised by the weight sum and moved into the output
 arrays, so the working memory is one band plus one tile whatever the frame
-size. Tiles whose kept pixels all lie outside the image circle are skipped;
+size. The learned refinement's extra input channels (``extra``: the classical
+decoder's per-pixel channels of the whole window, ``decode.features``) are cut
+per tile with the same reflection, and its depth 1σ is blended like the depth. Tiles whose kept pixels all lie outside the image circle are skipped;
 outside the circle the depth is NaN and the AiF image 0.
 """
 
@@ -21,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..geometry import SensorGeometry
-from ..model_io import field_channels, raw_to_rgb, reflect_indices, window_cfa
+from ..model_io import INPUT_CHANNELS, field_channels, raw_to_rgb, reflect_indices, window_cfa
 from .model import Model
 from .tiling import TilePlan
 
@@ -37,6 +39,7 @@ class InferenceResult:
     tiles_run: int
     tiles_skipped: int
     timings_s: dict = field(default_factory=dict)
+    depth_sigma_m: np.ndarray | None = None  # H × W float32 1σ of depth_m (learned refinement), NaN where invalid
 
     def summary(self) -> dict:
         return {"tiles_run": self.tiles_run, "tiles_skipped": self.tiles_skipped, "tiling": self.plan.to_dict(),
@@ -80,21 +83,31 @@ def infer_frame(model: Model, frame, *, overlap_px: int | None = None, progress:
 
 def infer_raw(model: Model, raw: np.ndarray, *, black_level_dn: float, white_level_dn: float, cfa: str = "RGGB",
               geometry: SensorGeometry, row0: int = 0, col0: int = 0, overlap_px: int | None = None,
-              progress: bool = False) -> InferenceResult:
-    """Decode an H × W Bayer window whose top-left pixel sits at (row0, col0) of the full sensor."""
+              progress: bool = False, extra: np.ndarray | None = None) -> InferenceResult:
+    """Decode an H × W Bayer window whose top-left pixel sits at (row0, col0) of the full sensor.
+
+    ``extra``: C × H × W float32 channels appended to every tile's input (a model with
+    ``input_channels`` = 6 + C, the learned refinement); None for the end-to-end network.
+    """
     if raw.ndim != 2:
         raise ValueError(f"a raw frame is H × W, got shape {raw.shape}")
     height, width = raw.shape
     if height % 2 or width % 2:
         raise ValueError(f"raw frame {height}×{width} is not whole RGGB cells (even sizes)")
+    n_extra = 0 if extra is None else extra.shape[0]
+    if model.input_channels != INPUT_CHANNELS + n_extra or (extra is not None and extra.shape[1:] != raw.shape):
+        raise ValueError(f"model {model.path.name} reads {model.input_channels} channels; the frame gives "
+                         f"{INPUT_CHANNELS} + {n_extra}" + ("" if extra is None else f" of shape {extra.shape[1:]}"))
+    with_sigma = len(model.output_names) == 3
     plan = TilePlan.for_model(height, width, model.tile_px, model.receptive_field_px, model.largest_psf_px,
                               step_px=model.size_multiple, overlap_px=overlap_px)
     tile = plan.tile_px
     timings = dict.fromkeys(("demosaic_s", "field_s", "network_s", "blend_s", "finalise_s"), 0.0)
     aif = np.zeros((height, width, 3), np.float32)
     depth = np.full((height, width), np.nan, np.float32)
+    depth_sigma = np.full((height, width), np.nan, np.float32) if with_sigma else None
     valid = np.zeros((height, width), bool)
-    band = np.zeros((tile, width, 5), np.float32)  # Σ w·rgb, Σ w·depth, Σ w over the band's rows
+    band = np.zeros((tile, width, 6), np.float32)  # Σ w·rgb, Σ w·depth, Σ w, Σ w·σ over the band's rows
     band_top = 0                                    # frame row of band[0]
 
     def finalise(stop_row: int) -> None:
@@ -109,6 +122,8 @@ def infer_raw(model: Model, raw: np.ndarray, *, black_level_dn: float, white_lev
         safe = np.where(ok, wsum, 1.0)
         aif[band_top:stop_row] = np.where(ok[..., None], acc[..., :3] / safe[..., None], 0.0)
         depth[band_top:stop_row] = np.where(ok, acc[..., 3] / safe, np.nan)
+        if depth_sigma is not None:
+            depth_sigma[band_top:stop_row] = np.where(ok, acc[..., 5] / safe, np.nan)
         valid[band_top:stop_row] = ok
         band[:tile - n] = band[n:].copy()
         band[tile - n:] = 0
@@ -140,16 +155,20 @@ def infer_raw(model: Model, raw: np.ndarray, *, black_level_dn: float, white_lev
             window = raw[np.ix_(reflect_indices(r - m, tile + 2 * m, height), reflect_indices(c - m, tile + 2 * m, width))]
             rgb = raw_to_rgb(window, black_level_dn, white_level_dn, window_cfa(cfa, r - m, c - m))[m:-m, m:-m]
             t1 = time.perf_counter()
-            fields = field_channels(geometry, row0 + r, col0 + c, tile, tile)
-            x = np.concatenate([rgb.transpose(2, 0, 1), fields])[None]
+            parts = [rgb.transpose(2, 0, 1), field_channels(geometry, row0 + r, col0 + c, tile, tile)]
+            if extra is not None:
+                parts.append(extra[:, reflect_indices(r, tile, height)][:, :, reflect_indices(c, tile, width)])
+            x = np.concatenate(parts)[None]
             t2 = time.perf_counter()
-            out_rgb, out_depth = model.run(np.ascontiguousarray(x, np.float32))
+            out_rgb, out_depth, *out_sigma = model.run(np.ascontiguousarray(x, np.float32))
             t3 = time.perf_counter()
             sl = (slice(fr0 - r, fr1 - r), slice(fc0 - c, fc1 - c))
             dst = band[fr0 - band_top:fr1 - band_top, fc0:fc1]
             dst[..., :3] += out_rgb[0][(slice(None), *sl)].transpose(1, 2, 0) * w[..., None]
             dst[..., 3] += out_depth[0, 0][sl] * w
             dst[..., 4] += w
+            if out_sigma:
+                dst[..., 5] += out_sigma[0][0, 0][sl] * w
             timings["demosaic_s"] += t1 - t0
             timings["field_s"] += t2 - t1
             timings["network_s"] += t3 - t2
@@ -159,4 +178,4 @@ def infer_raw(model: Model, raw: np.ndarray, *, black_level_dn: float, white_lev
     finally:
         if bar is not None:
             bar.close()
-    return InferenceResult(aif, depth, valid, plan, run, skipped, timings)
+    return InferenceResult(aif, depth, valid, plan, run, skipped, timings, depth_sigma)

@@ -1,0 +1,81 @@
+"""The learned refinement at run time: classical decode with the camera's own kernels, then a network.
+
+``--decoder learned`` runs the classical decoder (``runtime.classical``: the evidence of the built
+camera's kernels, nominal or calibrated) with the knobs the model was trained with (its manifest's
+``classical_config``), turns its result into per-pixel channels (``decode.features``) and runs the
+refinement network tile by tile (``pipeline.infer_raw`` with ``extra``), which returns depth, AiF and a
+depth 1σ. The calibration reaches the network through the evidence: the model is not retrained.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..built_camera import BuiltCamera
+from ..decode import ClassicalConfig, ClassicalDecoder
+from ..decode.features import extra_channels, refinement_features
+from ..model_io import INPUT_CHANNELS
+from .classical import classical_decoder, decode_frame
+from .model import Model
+from .pipeline import InferenceResult, infer_raw
+
+
+@dataclass
+class LearnedResult:
+    """A decoded frame (the fields ``write_outputs`` reads, with the depth 1σ) and both stages' statistics."""
+
+    aif: np.ndarray
+    depth_m: np.ndarray
+    depth_sigma_m: np.ndarray
+    valid: np.ndarray
+    network: InferenceResult
+    classical_stats: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        skipped = (self.classical_stats["candidate_evaluations_exhaustive"]
+                   - self.classical_stats["candidate_evaluations"])
+        return {"decoder": "learned", "valid_fraction": float(self.valid.mean()),
+                "tiles_run": self.network.tiles_run, "tiles_skipped": self.network.tiles_skipped,
+                "tiling": self.network.plan.to_dict(), "blocks_run": self.classical_stats["blocks_run"],
+                "blocks_skipped": self.classical_stats["blocks_skipped"],
+                "candidate_evaluations_skipped": int(skipped), "decoder_stats": self.classical_stats,
+                "timings_s": {"classical": self.classical_stats["timings_s"], "network": self.network.timings_s}}
+
+
+def model_classical_config(model: Model, threads: int | None = None) -> ClassicalConfig:
+    """The classical decoder's knobs a learned model was trained with (its manifest), on ``threads`` threads."""
+    if model.decoder != "learned":
+        raise ValueError(f"model {model.path.name} is a {model.decoder} model, not a learned refinement")
+    knobs = dict(model.manifest["classical_config"])
+    knobs["slopes"] = tuple(knobs.get("slopes", (2.0,)))
+    return replace(ClassicalConfig(**knobs), threads=threads)
+
+
+def learned_decoder(model: Model, camera: BuiltCamera, threads: int | None = None) -> ClassicalDecoder:
+    """The classical stage for ``model`` over ``camera``'s kernels, checked to give the channels it reads."""
+    decoder = classical_decoder(camera, model_classical_config(model, threads))
+    given = INPUT_CHANNELS + extra_channels(decoder)
+    if given != model.input_channels:
+        raise ValueError(f"model {model.path.name} reads {model.input_channels} channels; the classical decoder "
+                         f"over camera {camera.sha256()[:12]} gives {given} (another candidate grid)")
+    return decoder
+
+
+def decode_learned(model: Model, decoder: ClassicalDecoder, frame, camera: BuiltCamera,
+                   overlap_px: int | None = None, progress: bool = False) -> LearnedResult:
+    """Decode a ``devices.RawFrame`` taken by ``camera``: classical stage, then the refinement network."""
+    classical = decode_frame(decoder, frame, camera, progress=progress)
+    t0 = time.perf_counter()
+    stats = classical.stats
+    features = refinement_features(classical.decoded, decoder.config.stride_px)
+    stats["timings_s"] = dict(stats["timings_s"], features_s=time.perf_counter() - t0)
+    net = infer_raw(model, frame.data, black_level_dn=frame.black_level_dn, white_level_dn=frame.white_level_dn,
+                    cfa=frame.cfa, geometry=frame.geometry, row0=frame.roi.y_px, col0=frame.roi.x_px,
+                    overlap_px=overlap_px, progress=progress, extra=features)
+    valid = net.valid & classical.valid
+    sigma = np.where(valid, net.depth_sigma_m, np.nan).astype(np.float32)
+    depth = np.where(valid, net.depth_m, np.nan).astype(np.float32)
+    return LearnedResult(net.aif, depth, sigma, valid, net, stats)

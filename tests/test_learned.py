@@ -1,0 +1,165 @@
+"""The learned refinement (``--decoder learned``): its warm start reproduces the shipped network, the runtime
+feeds it the classical decoder's channels tile by tile exactly (an identity refinement must return the
+classical decoder's depth, 1σ and AiF), a training run goes from renders to a verified ONNX model, and the
+manifests keep the two kinds of model apart."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from bmi_sdk.decode import ClassicalConfig, ClassicalDecoder
+from bmi_sdk.decode.features import FEATURE_DEPTH_REF_M, extra_channels
+from bmi_sdk.lenses import lens_geometry, lens_tensor
+from bmi_sdk.model_manifest import ModelError, verify_model
+from bmi_sdk.render import PsfMap
+
+CONFIG = ClassicalConfig(candidates=12)
+
+
+def _channels(config: ClassicalConfig = CONFIG) -> int:
+    psf_map = PsfMap(lens_tensor("bmi_monocentric"), lens_geometry("bmi_monocentric"), mode="tensor")
+    return extra_channels(ClassicalDecoder.for_psf_map(psf_map, config))
+
+
+class IdentityRefinement(nn.Module):
+    """Returns what it is given: depth and 1σ from the classical channels, AiF = the classical AiF channels."""
+
+    def forward(self, x):
+        depth = FEATURE_DEPTH_REF_M * torch.exp(x[:, 6:7])
+        return x[:, -3:] * 1.0, depth, depth * torch.exp(x[:, 7:8])
+
+
+@pytest.fixture(scope="module")
+def identity_model(tmp_path_factory):
+    from bmi_sdk.runtime import export_model
+
+    return export_model(IdentityRefinement(), tmp_path_factory.mktemp("identity") / "identity.onnx",
+                        preset="test-identity", extra_channels=_channels(), classical_config=CONFIG.to_dict())
+
+
+def _bmi(*args):
+    run = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", *map(str, args)], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-3000:]
+    return run.stdout
+
+
+def test_a_warm_started_refinement_computes_the_shipped_network():
+    """New input channels and the σ output start at zero: the refinement's depth and AiF are the shipped
+    model's (run by onnxruntime), whatever the classical channels hold."""
+    import onnxruntime as ort
+
+    from bmi_sdk.nn.model import DualHeadMimoUNet, ModelConfig, preset_config
+    from bmi_sdk.nn.train import init_from_onnx
+    from bmi_sdk.runtime.model import DEFAULT_MODEL
+
+    config = ModelConfig(**{**preset_config("tiny").to_dict(), "extra_channels": 9, "sigma_head": True})
+    net = DualHeadMimoUNet(config).eval()
+    assert init_from_onnx(net, DEFAULT_MODEL) == 94
+    x = torch.rand(1, 15, 64, 96, generator=torch.Generator().manual_seed(1))
+    x[:, 6:] *= 5.0
+    with torch.no_grad():
+        aif, depth, sigma = net(x)
+    session = ort.InferenceSession(str(DEFAULT_MODEL), providers=["CPUExecutionProvider"])
+    ref_aif, ref_depth = session.run(None, {"coded": x[:, :6].numpy()})
+    np.testing.assert_allclose(aif[-1].numpy(), ref_aif, atol=1e-4)
+    np.testing.assert_allclose(depth.numpy(), ref_depth, rtol=1e-4)
+    np.testing.assert_allclose((sigma / depth).numpy(), 0.2, rtol=1e-5)
+
+
+def test_an_identity_refinement_returns_the_classical_decode_through_the_tiled_runtime(tmp_path, identity_model):
+    """Tiles of 64 px over a 128² frame, each fed its slice of the classical channels: the learned decoder's
+    depth, 1σ and AiF must be the classical decoder's (the channels' clips aside)."""
+    _bmi("simulate", "--procedural", 5, "--size", 128, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
+         "--out", tmp_path / "f.dng")
+    _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "c", "--decoder", "classical", "--candidates", 12,
+         "--quiet")
+    out = _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "l", "--decoder", "learned", "--model",
+               identity_model, "--tile-px", 64, "--quiet")
+    assert "learned refinement" in out
+    report = json.loads((tmp_path / "l" / "report.json").read_text())
+    assert report["decoder"] == "learned" and report["tiles_run"] > 1 and report["model"]["decoder"] == "learned"
+    assert report["decoder_stats"]["config"]["candidates"] == 12
+    depth_c, depth_l = np.load(tmp_path / "c" / "depth.npy"), np.load(tmp_path / "l" / "depth.npy")
+    assert np.array_equal(np.isnan(depth_c), np.isnan(depth_l)) and np.isfinite(depth_l).mean() > 0.9
+    np.testing.assert_allclose(depth_l, depth_c, rtol=1e-4)
+    sigma_c, sigma_l = np.load(tmp_path / "c" / "depth_sigma.npy"), np.load(tmp_path / "l" / "depth_sigma.npy")
+    np.testing.assert_allclose(sigma_l, sigma_c, rtol=1e-3)
+    aif_c, aif_l = np.load(tmp_path / "c" / "aif.npy"), np.load(tmp_path / "l" / "aif.npy")
+    np.testing.assert_allclose(aif_l, np.clip(aif_c, 0.0, 2.0), atol=1e-5)
+    assert b"property float sigma" in (tmp_path / "l" / "points.ply").read_bytes()[:400]
+
+
+def test_a_refinement_trains_from_renders_to_a_verified_model(tmp_path):
+    """Render two pairs, decode them, take two optimiser steps from the shipped weights, export: the model is
+    verified, says it is a learned refinement and runs in the runtime on its own classical channels."""
+    from bmi_sdk.nn.data import CacheSpec
+    from bmi_sdk.nn.export import export_with_manifest
+    from bmi_sdk.nn.refine_data import RefineSpec
+    from bmi_sdk.nn.train import TrainConfig, load_weights, train
+    from bmi_sdk.runtime.model import DEFAULT_MODEL, Model
+
+    refine = RefineSpec(decoder={"candidates": 12})
+    config = TrainConfig(steps=2, batch_size=2, cache=CacheSpec(samples=2, crop_px=48, jitter_px=4), refine=refine,
+                         init_from=str(DEFAULT_MODEL))
+    ckpt = train(config, tmp_path / "run", tmp_path / "cache", save_every=1, progress=False)
+    log = json.loads((tmp_path / "run" / "train_log.json").read_text())
+    assert log["sessions"][-1]["to_step"] == 2
+    net, saved = load_weights(ckpt)
+    assert saved == config and net.config.extra_channels == _channels() and net.config.sigma_head
+    manifest = export_with_manifest(net, tmp_path / "run" / "model.onnx", preset="tiny", lens="bmi_monocentric",
+                                    training={}, classical_config=refine.classical_config().to_dict())
+    m = verify_model(tmp_path / "run" / "model.onnx")
+    assert manifest.exists() and m["decoder"] == "learned" and m["input_channels"] == 6 + _channels()
+    assert m["output_names"] == ["aif", "depth_m", "depth_sigma_m"]
+    model = Model(tmp_path / "run" / "model.onnx", tile_px=64, warmup=False)
+    aif, depth, sigma = model.run(np.zeros((1, model.input_channels, 64, 64), np.float32))
+    assert np.isfinite(depth).all() and (sigma > 0).all()
+    # resuming a finished run trains nothing more and keeps the same checkpoint config
+    train(config, tmp_path / "run", tmp_path / "cache", progress=False)
+    assert json.loads((tmp_path / "run" / "train_log.json").read_text())["sessions"][-1]["from_step"] == 2
+
+
+def test_manifests_keep_the_two_kinds_of_model_apart(tmp_path, identity_model, passthrough_model):
+    from bmi_sdk.runtime.model import select_model
+
+    for src in (identity_model, passthrough_model):
+        shutil.copy(src, tmp_path / src.name)
+        shutil.copy(src.with_name(src.stem + ".manifest.json"), tmp_path / (src.stem + ".manifest.json"))
+    cnn, _ = select_model(models_dir=tmp_path)
+    learned, _ = select_model(models_dir=tmp_path, decoder="learned")
+    assert cnn.name == passthrough_model.name and learned.name == identity_model.name
+    manifest_file = tmp_path / "identity.manifest.json"
+    doc = json.loads(manifest_file.read_text())
+    del doc["classical_config"]
+    manifest_file.write_text(json.dumps(doc))
+    with pytest.raises(ModelError, match="classical_config"):
+        verify_model(tmp_path / "identity.onnx")
+    doc["decoder"] = "magic"
+    manifest_file.write_text(json.dumps(doc))
+    with pytest.raises(ModelError, match="unknown decoder 'magic'"):
+        verify_model(tmp_path / "identity.onnx")
+
+
+def test_a_learned_model_with_another_candidate_grid_is_refused(tmp_path, identity_model):
+    """The evidence channels depend on the decoder knobs; a manifest whose knobs give another channel count
+    than the graph reads is refused before decoding, naming both counts."""
+    from bmi_sdk.built_camera import BuiltCamera
+    from bmi_sdk.runtime.learned import learned_decoder
+    from bmi_sdk.runtime.model import Model
+
+    shutil.copy(identity_model, tmp_path / "m.onnx")
+    doc = json.loads(identity_model.with_name("identity.manifest.json").read_text())
+    doc["file"] = "m.onnx"
+    doc["classical_config"] = {**doc["classical_config"], "candidates": 48}
+    (tmp_path / "m.manifest.json").write_text(json.dumps(doc))
+    model = Model(tmp_path / "m.onnx", tile_px=64, warmup=False)
+    with pytest.raises(ValueError, match=f"reads {6 + _channels()} channels"):
+        learned_decoder(model, BuiltCamera(geometry=lens_geometry("bmi_monocentric")))
