@@ -300,10 +300,14 @@ def test_eval_exact_conditions_resolve_and_render_the_perturbed_lens(monkeypatch
     assert evaluate.EXACT["decenter_10um"].decenter_um == (10.0, 0.0)
     assert evaluate.EXACT["tilt_1arcmin"].tilt_arcmin == (1.0, 0.0)
 
-    def passthrough(_path, _threads):  # the sensor image as the all-in-focus guess, 2 m everywhere
-        return lambda x: (x[:, :3], np.full_like(x[:, :1], 2.0))
+    def passthrough(_path, _tile_px, _threads):  # the demosaiced raw as the all-in-focus guess, 2 m everywhere
+        def decode(raw, geometry, row0, col0):
+            seen = evaluate.raw_to_rgb(raw, evaluate.BLACK_LEVEL_DN, evaluate.WHITE_LEVEL_DN,
+                                       evaluate.window_cfa("RGGB", row0, col0))
+            return seen, np.full(raw.shape, 2.0, np.float32), None
+        return decode
 
-    monkeypatch.setattr(evaluate, "OnnxModel", passthrough)
+    monkeypatch.setattr(evaluate, "NetworkTiles", passthrough)
     monkeypatch.setattr(evaluate, "REGIONS", {"centre": evaluate.REGIONS["centre"]})  # one tile: ~7 s of traces
     bench = evaluate.Benchmark(tiles=1, tile_px=16)
     rows = evaluate.run_benchmark("unused.onnx", bench, ["nominal_exact", "decenter_10um"], progress=False)

@@ -41,8 +41,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from bmi_sdk.model_io import INPUT_NAME, network_input
-from bmi_sdk.model_io import raw_to_rgb, window_cfa
+from bmi_sdk.model_io import network_input, raw_to_rgb, window_cfa
 from bmi_sdk.nn.data import (BLACK_LEVEL_DN, SCENE_MARGIN_PX, STANDARD_SIGMA, WHITE_LEVEL_DN, lens_geometry,
                              lens_tensor, mirror_extend, render_margin_px, sample_window, simulate_raw)
 from bmi_sdk.nn.metrics import depth_metrics, image_metrics, mean_metrics
@@ -223,20 +222,37 @@ def _render_window(state: dict, window: tuple) -> dict:
             "rgb": rgb[m:-m, m:-m], "range_m": range_m[m:-m, m:-m]}
 
 
-class OnnxModel:
-    """A shipped model run with onnxruntime (CPU, ``threads`` intra-op threads)."""
+class NetworkTiles:
+    """A verified ONNX model (``runtime.Model``: manifest and SHA-256 checked) as a benchmark decoder:
+    raw tile in, AiF + depth (+ 1σ) out, one tile per session run.
 
-    def __init__(self, path: str | Path, threads: int = 2):
-        import onnxruntime as ort
+    An end-to-end model (decoder ``cnn``) reads the demosaiced tile and its field channels; a learned
+    refinement (decoder ``learned``) also the classical decoder's channels (``decode.features``), made with
+    its manifest's knobs over ``psf_map``'s kernels (the nominal camera's, or the built camera's own).
+    """
 
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = threads
-        opts.inter_op_num_threads = 1
-        self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    def __init__(self, path: str | Path, tile_px: int, threads: int = 2, psf_map=None, name: str | None = None):
+        from bmi_sdk.runtime.model import Model
 
-    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        aif, depth_m = self.session.run(None, {INPUT_NAME: x})
-        return aif, depth_m
+        self.model = Model(path, tile_px=tile_px, threads=threads)
+        self.name = name or self.model.decoder
+        self.stage = None
+        if self.model.decoder == "learned":
+            from bmi_sdk.decode import ClassicalDecoder
+            from bmi_sdk.runtime.learned import model_classical_config
+
+            self.stage = ClassicalDecoder.for_psf_map(psf_map, model_classical_config(self.model, threads))
+
+    def __call__(self, raw: np.ndarray, geometry, row0: int, col0: int):
+        seen = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, window_cfa(CFA_PATTERN, row0, col0))
+        x = network_input(seen, geometry, row0, col0)
+        if self.stage is not None:
+            from bmi_sdk.decode.features import refinement_features
+
+            decoded = self.stage.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0)
+            x = np.concatenate([x, refinement_features(decoded, self.stage.config.stride_px)[None]], axis=1)
+        aif, depth, *sigma = self.model.run(np.ascontiguousarray(x, np.float32))
+        return aif[0].transpose(1, 2, 0), depth[0, 0], (sigma[0][0, 0] if sigma else None)
 
 
 class ClassicalTiles:
@@ -263,15 +279,14 @@ def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition:
           stray: float = 0.0) -> list[dict]:
     """Rows {condition, decoder, region, metrics…} for one condition over pre-rendered tiles.
 
-    ``model``: an ``OnnxModel`` (decoder ``cnn``: demosaiced network input) or a ``ClassicalTiles``
-    (raw tile in; its rows add ``sigma_z_rms`` and ``sigma_z_std``, the RMS and the standard deviation
-    of z = (depth error / reported 1σ) over all valid pixels of the region: 1 for an honest σ).
+    ``model``: a ``NetworkTiles`` or a ``ClassicalTiles`` (raw tile in). Decoders that report a depth 1σ
+    (classical, learned) add ``sigma_z_rms`` and ``sigma_z_std`` to their rows: the RMS and the standard
+    deviation of z = (depth error / reported 1σ) over all valid pixels of the region (1 for an honest σ).
     """
     geometry = lens_geometry(bench.lens)
     m, t = bench.margin_px, bench.tile_px
     per_region: dict[str, list] = {}
     z_sums: dict[str, list] = {}
-    classical = isinstance(model, ClassicalTiles)
     for k, item in enumerate(renders):
         optical = item["optical_full"]
         if stray:
@@ -280,15 +295,11 @@ def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition:
         rng = np.random.default_rng([bench.seed, 99, k, int(round(sigma * 1e6))])
         raw = simulate_raw(optical, sigma, rng, item["row0"], item["col0"])
         valid = geometry.valid_mask(item["row0"], item["col0"], t, t) & np.isfinite(item["range_m"])
-        if classical:
-            aif_hwc, depth_m, depth_sigma_m = model(raw, geometry, item["row0"], item["col0"])
-            valid &= np.isfinite(depth_m)
+        aif_hwc, depth_m, depth_sigma_m = model(raw, geometry, item["row0"], item["col0"])
+        valid &= np.isfinite(depth_m)
+        if depth_sigma_m is not None:
             z = (depth_m[valid] - item["range_m"][valid]) / depth_sigma_m[valid]
             z_sums.setdefault(item["region"], []).append((float(np.sum(z)), float(np.sum(z ** 2)), int(z.size)))
-        else:
-            seen = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, window_cfa(CFA_PATTERN, item["row0"], item["col0"]))
-            aif, depth = model(network_input(seen, geometry, item["row0"], item["col0"]))
-            aif_hwc, depth_m = aif[0].transpose(1, 2, 0), depth[0, 0]
         row = depth_metrics(depth_m, item["range_m"], valid)
         row.update(image_metrics(aif_hwc, item["rgb"], valid))
         per_region.setdefault(item["region"], []).append(row)
@@ -305,7 +316,7 @@ def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition:
     return rows
 
 
-DECODERS = ("cnn", "classical")
+DECODERS = ("cnn", "classical", "learned")
 
 
 def classical_window_px(lens_name: str, base_px: int) -> int:
@@ -315,28 +326,33 @@ def classical_window_px(lens_name: str, base_px: int) -> int:
     return max(base_px, -(-LENS_KERNEL_PX[lens_name] // 4) * 4)
 
 
-def _decoders(decoders, model_path, psf_map, config, threads: int) -> list:
-    """The benchmark decoders of one optical system: its ONNX model (``cnn``) and/or the classical decoder
-    over its nominal kernels."""
+def _decoders(decoders, model_path, psf_map, config, threads: int, tile_px: int, learned_path=None) -> list:
+    """The benchmark decoders of one optical system: its ONNX model (``cnn``), the classical decoder over its
+    nominal kernels, and the learned refinement over them (``learned_path``; none for a lens without one)."""
     out = []
     if "cnn" in decoders:
         if model_path is None:
             raise ValueError("the cnn decoder needs a model (for fisheye_standard: --fisheye-model)")
-        out.append(OnnxModel(model_path, threads))
+        out.append(NetworkTiles(model_path, tile_px, threads))
     if "classical" in decoders:
         out.append(ClassicalTiles(psf_map, config))
+    if "learned" in decoders and learned_path is not None:
+        out.append(NetworkTiles(learned_path, tile_px, threads, psf_map))
     return out
 
 
 def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(), conditions: list[str] | None = None,
                   fisheye_model: str | Path | None = None, progress: bool = True,
-                  decoders: tuple[str, ...] = ("cnn",), classical_config=None) -> list[dict]:
+                  decoders: tuple[str, ...] = ("cnn",), classical_config=None,
+                  learned_model: str | Path | None = None) -> list[dict]:
     """Every requested condition (default: noise sweep, hardware errors (``HARDWARE``, ``EXACT``), + fisheye
     when its model is given, or always for the classical decoder) for every requested decoder.
 
     The classical decoder reads the nominal camera's kernels (decoder ``classical``); on a hardware
     condition whose kernels a camera model can represent it also reads the built camera's own kernels
-    (decoder ``classical_calibrated``: decoding with a perfect calibration). The stray-light rows
+    (decoder ``classical_calibrated``: decoding with a perfect calibration). The learned refinement
+    (``learned_model``, default the shipped ``learned.onnx``) does the same through its classical stage
+    (``learned`` and ``learned_calibrated``); there is no fisheye refinement, so no fisheye learned row. The stray-light rows
     have no calibrated twin: their veil is an image-level operation here, not a kernel.
     """
     from bmi_sdk.decode import ClassicalConfig
@@ -355,10 +371,18 @@ def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(),
     geometry = lens_geometry(bench.lens)
     nominal = lens_tensor(bench.lens)
     config = classical_config or ClassicalConfig()
-    models = _decoders(decoders, model_path, PsfMap(nominal, geometry, mode="tensor"), config, bench.threads)
+    if "learned" in decoders and learned_model is None:
+        from bmi_sdk.runtime.model import LEARNED_MODEL
+
+        learned_model = LEARNED_MODEL
+    models = _decoders(decoders, model_path, PsfMap(nominal, geometry, mode="tensor"), config, bench.threads,
+                       bench.tile_px, learned_model)
 
     def calibrated(psf_map):
-        return [ClassicalTiles(psf_map, config, "classical_calibrated")] if "classical" in decoders else []
+        out = [ClassicalTiles(psf_map, config, "classical_calibrated")] if "classical" in decoders else []
+        if "learned" in decoders:
+            out.append(NetworkTiles(learned_model, bench.tile_px, bench.threads, psf_map, "learned_calibrated"))
+        return out
 
     rows: list[dict] = []
     renders = None
@@ -388,7 +412,7 @@ def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(),
         fisheye_models = _decoders(decoders, fisheye_model,
                                    PsfMap(fisheye_tensor, lens_geometry("fisheye"), mode="tensor"),
                                    replace(config, window_px=classical_window_px("fisheye", config.window_px)),
-                                   bench.threads)
+                                   bench.threads, bench.tile_px)
         fisheye_renders = fb.renders(fisheye_tensor, progress)
         for model in fisheye_models:
             rows += score(model, fisheye_renders, fb, STANDARD_SIGMA, "fisheye_standard")
