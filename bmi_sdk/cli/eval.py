@@ -18,14 +18,16 @@ def register(subparsers) -> None:
                     "procedural tiles at the field centre (0–20°) and edge (50–60°).")
     p.add_argument("--model", default=str(DEFAULT_MODEL), help="ONNX model (default: the shipped default)")
     p.add_argument("--fisheye-model", default=None, help="fisheye-baseline ONNX model (adds fisheye_standard)")
+    p.add_argument("--learned-model", default=None,
+                   help="learned refinement ONNX model for --decoder learned (default: the shipped learned.onnx)")
     p.add_argument("--conditions", default=None, help="comma list (default: all that apply)")
     p.add_argument("--tiles", type=int, default=12, help="tiles per field region")
     p.add_argument("--tile-px", type=int, default=192)
     p.add_argument("--seed", type=int, default=20260)
     p.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
     p.add_argument("--decoder", default="cnn",
-                   help="comma list of decoders: cnn (the ONNX model), classical (bmi_sdk.decode, no network); "
-                        "e.g. cnn,classical")
+                   help="comma list of decoders: cnn (the ONNX model), classical (bmi_sdk.decode, no network), "
+                        "learned (the classical evidence refined by --learned-model); e.g. cnn,classical,learned")
     p.add_argument("--window-px", type=int, default=64, help="classical: evidence window (default 64)")
     p.add_argument("--stride-px", type=int, default=16, help="classical: window stride (default 16)")
     p.add_argument("--candidates", type=int, default=48, help="classical: depth candidates (default 48)")
@@ -46,6 +48,13 @@ def _run(args) -> int:
         verify_model(args.model)
     if args.fisheye_model:
         verify_model(args.fisheye_model)
+    if "learned" in decoders:
+        from bmi_sdk.model_manifest import model_decoder
+        from bmi_sdk.runtime.model import LEARNED_MODEL
+
+        args.learned_model = args.learned_model or str(LEARNED_MODEL)
+        if model_decoder(verify_model(args.learned_model)) != "learned":
+            raise ValueError(f"--learned-model {args.learned_model} is not a learned refinement model")
     if args.tile_px % 4:
         raise ValueError(f"--tile-px must be a multiple of 4, got {args.tile_px}")
     bench = Benchmark(tiles=args.tiles, tile_px=args.tile_px, seed=args.seed, threads=args.threads)
@@ -55,7 +64,8 @@ def _run(args) -> int:
     config = ClassicalConfig(window_px=args.window_px, stride_px=args.stride_px, candidates=args.candidates)
     with scheduler_address(args.scheduler, announce=not args.json) as scheduler:  # benchmark tiles render there
         rows = run_benchmark(args.model, replace(bench, scheduler=scheduler), conditions, args.fisheye_model,
-                             progress=not args.json, decoders=decoders, classical_config=config)
+                             progress=not args.json, decoders=decoders, classical_config=config,
+                             learned_model=args.learned_model)
     if args.json:
         for row in rows:
             print(json.dumps({k: row[k] for k in ("condition", "decoder", "region", *KEYS, "sigma_z_rms", "sigma_z_std")
