@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import parse_qs, urlsplit
 
-from firmware_sim.endpoint import tcp_uri
+from bmi_sdk.protocol.wire import MAX_TOKEN_BYTES, MODEL_NAME, tcp_uri
 
 from .camera import STRATEGIES, StreamCamera
 from .camera_protocol import Camera
@@ -132,8 +132,6 @@ def parse_tcp_address(netloc: str, uri: str) -> tuple[str, int]:
 
 
 def _tcp_token(query: dict, uri: str) -> bytes | None:
-    from firmware_sim.wire import MAX_TOKEN_BYTES
-
     unknown = set(query) - {"token", "token_file"}
     if unknown:
         raise ConfigurationError(f"tcp:// takes token or token_file (the server chooses scene and faults), "
@@ -186,8 +184,6 @@ def list_devices(tcp_ports: tuple[int, ...] = (), host: str = "127.0.0.1", timeo
         -> list[DeviceInfo]:
     """Cameras this host can open: the in-process simulated ones (``sim://`` always) and any
     device answering on the given TCP ports of ``host``."""
-    from firmware_sim.device import MODEL_NAME
-
     found = []
     with _SIM_LOCK:
         sims = dict(_SIM_DEVICES)
