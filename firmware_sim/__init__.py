@@ -13,7 +13,9 @@ Public API (the rest is private):
   ``register_source`` / ``make_source`` registry the forward simulator plugs into.
 
 The register map and the wire format it speaks are the protocol's
-(``bmi_sdk.protocol``, docs/protocol.md), shared with the host.
+(``bmi_sdk.protocol``, docs/protocol.md), shared with the host. Importing this
+package loads neither the renderer nor the optics: the optical sources import
+them when a scene is built, ``FirmwareDevice`` when it looks up its lens.
 """
 
 from .device import FirmwareDevice, lens_identity
