@@ -9,7 +9,8 @@
 URIs:
 
 * ``sim://[NAME][?scene=SPEC&seed=N&faults=SPEC&serial=N]`` — a simulated camera
-  in this process (``firmware_sim``), served over an in-process socket pair with
+  in this process (``firmware_sim``, imported only when a ``sim://`` camera is
+  opened: ``devices.sim``), served over an in-process socket pair with
   the same protocol as TCP. A named device lives as long as the process, like a
   plugged-in camera (its scene, frame counter and fault ledger persist between
   opens; the registers a host writes return to defaults when it closes, see
@@ -23,18 +24,21 @@ URIs:
   the shared secret of ``serve --token-file``; ``token_file`` reads it from a
   file, which keeps it out of command lines that ``ps`` shows.
 * ``replay://FOLDER[?loop=1]`` — a folder of DNGs written by ``RawFrame.save_dng``.
+
+The wire format and register map come from ``bmi_sdk.protocol``, which the
+device side shares; importing this package loads neither the simulator nor the
+optics or the renderer.
 """
 
 from __future__ import annotations
 
 import ipaddress
 import socket
-import threading
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import parse_qs, urlsplit
 
-from firmware_sim.endpoint import tcp_uri
+from bmi_sdk.protocol.wire import MAX_TOKEN_BYTES, MODEL_NAME, tcp_uri
 
 from .camera import STRATEGIES, StreamCamera
 from .camera_protocol import Camera
@@ -44,6 +48,8 @@ from .errors import (AccessDeniedError, CameraError, ConfigurationError, DeviceB
                      RawFileError)
 from .frame import FrameStatus, RawFrame, Roi
 from .replay import ReplayCamera
+from .sim import DEFAULT_NAME as _SIM_DEFAULT_NAME
+from .sim import open_sim, sim_devices
 
 __all__ = [
     "Camera",
@@ -53,9 +59,6 @@ __all__ = [
     "GrabTimeoutError", "IncompleteFrameError", "ProtocolError", "RawFileError",
 ]
 
-_SIM_DEVICES: dict = {}
-_SIM_LOCK = threading.Lock()
-
 
 @dataclass(frozen=True)
 class DeviceInfo:
@@ -63,39 +66,6 @@ class DeviceInfo:
     model: str
     serial: str
     busy: bool
-
-
-def _sim_device(name: str, query: dict):
-    from firmware_sim import FaultPlan, FirmwareDevice, make_source
-
-    unknown = set(query) - {"scene", "seed", "faults", "serial"}
-    if unknown:
-        raise ConfigurationError(f"sim:// takes scene, seed, faults, serial; not {', '.join(sorted(unknown))}")
-    try:
-        with _SIM_LOCK:
-            dev = _SIM_DEVICES.get(name)
-            if dev is None or {"seed", "faults", "serial"} & set(query):
-                if dev is not None and not dev.claim():
-                    raise DeviceBusyError(f"sim://{name} is open elsewhere; close it before rebuilding it")
-                if dev is not None:
-                    dev.release()
-                dev = FirmwareDevice(seed=int(query.get("seed", 0)), serial=int(query.get("serial", 1)),
-                                     faults=FaultPlan.parse(query["faults"]) if "faults" in query else None)
-                _SIM_DEVICES[name] = dev
-            if "scene" in query:
-                dev.load_source(make_source(query["scene"]))
-    except ValueError as exc:
-        raise ConfigurationError(f"sim://{name}: {exc}") from exc
-    return dev
-
-
-def _connector_in_process(device):
-    from firmware_sim import InProcessLink
-
-    def connect():
-        link = InProcessLink(device)
-        return link.sock, link.close
-    return connect
 
 
 def _connector_tcp(host: str, port: int, timeout_s: float):
@@ -132,8 +102,6 @@ def parse_tcp_address(netloc: str, uri: str) -> tuple[str, int]:
 
 
 def _tcp_token(query: dict, uri: str) -> bytes | None:
-    from firmware_sim.wire import MAX_TOKEN_BYTES
-
     unknown = set(query) - {"token", "token_file"}
     if unknown:
         raise ConfigurationError(f"tcp:// takes token or token_file (the server chooses scene and faults), "
@@ -164,10 +132,8 @@ def open_camera(uri: str = "sim://", *, device=None, on_frame=None, on_disconnec
     parts = urlsplit(uri)
     query = {k: v[-1] for k, v in parse_qs(parts.query).items()}
     if parts.scheme == "sim":
-        name = parts.netloc or "sim0"
-        dev = device if device is not None else _sim_device(name, query)
-        return StreamCamera(uri, _connector_in_process(dev), on_frame, on_disconnect, io_timeout_s=timeout_s,
-                            on_progress=on_progress)
+        return open_sim(uri, parts.netloc or _SIM_DEFAULT_NAME, query, device, on_frame=on_frame,
+                        on_disconnect=on_disconnect, io_timeout_s=timeout_s, on_progress=on_progress)
     if device is not None:
         raise ConfigurationError("device= only applies to sim:// URIs")
     if parts.scheme == "tcp":
@@ -186,16 +152,13 @@ def list_devices(tcp_ports: tuple[int, ...] = (), host: str = "127.0.0.1", timeo
         -> list[DeviceInfo]:
     """Cameras this host can open: the in-process simulated ones (``sim://`` always) and any
     device answering on the given TCP ports of ``host``."""
-    from firmware_sim.device import MODEL_NAME
-
     found = []
-    with _SIM_LOCK:
-        sims = dict(_SIM_DEVICES)
-    if "sim0" not in sims:
+    sims = sim_devices()
+    if _SIM_DEFAULT_NAME not in sims:
         found.append(DeviceInfo("sim://", MODEL_NAME, "BMI-00000001", False))
     for name, dev in sims.items():
         busy = dev.claimed  # a look, not a claim: release() would reset the registers
-        found.append(DeviceInfo("sim://" if name == "sim0" else f"sim://{name}", MODEL_NAME,
+        found.append(DeviceInfo("sim://" if name == _SIM_DEFAULT_NAME else f"sim://{name}", MODEL_NAME,
                                 dev.describe()["serial"], busy))
     for port in tcp_ports:
         uri = tcp_uri(host, port)

@@ -27,8 +27,8 @@ from typing import Callable
 import numpy as np
 
 from bmi_sdk.geometry import SensorGeometry
-from firmware_sim.registers import BY_NAME, RegError
-from firmware_sim.wire import FLAG_TEST_PATTERN, FrameHeader
+from bmi_sdk.protocol.registers import BY_NAME, ROI_REGISTERS, RegError
+from bmi_sdk.protocol.wire import FLAG_TEST_PATTERN, FrameHeader
 
 from .errors import CameraError, ConfigurationError, DeviceFaultError, DeviceRemovedError, GrabTimeoutError
 from .frame import BufferPool, FrameStatus, RawFrame, Roi
@@ -37,7 +37,6 @@ from .settings import Settings, refused, specs_from_register_map
 
 STRATEGIES = ("oldest_first", "latest_only")
 MAX_BUFFER_BYTES = 4 << 30
-_ROI_REGS = ("ROI_X_PX", "ROI_Y_PX", "ROI_WIDTH_PX", "ROI_HEIGHT_PX")
 _STAT_KEYS = ("delivered", "complete", "incomplete", "corrupt", "lost", "discarded", "replaced", "disconnects")
 
 
@@ -104,7 +103,7 @@ class StreamCamera:
         self._drop_link()
         self._open_link()
         applied = dict(self._applied)
-        roi_values = [applied.pop(n, None) for n in _ROI_REGS]
+        roi_values = [applied.pop(n, None) for n in ROI_REGISTERS]
         for name, value in applied.items():
             self._write_reg(name, value)
         if any(v is not None for v in roi_values):
@@ -171,7 +170,7 @@ class StreamCamera:
         self._check_link().ping()
 
     def read_register(self, name: str) -> int:
-        """Raw register read by name (see firmware_sim.registers), e.g. ``FRAME_COUNTER``."""
+        """Raw register read by name (see ``bmi_sdk.protocol.registers``), e.g. ``FRAME_COUNTER``."""
         if name not in BY_NAME:
             raise ConfigurationError(f"no register {name!r}")
         return self._read_reg(name)

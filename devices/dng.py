@@ -26,7 +26,7 @@ import numpy as np
 from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
 from bmi_sdk.io_atomic import atomic_path, write_json
 from bmi_sdk.json_files import read_json_object
-from firmware_sim.device import MODEL_NAME
+from bmi_sdk.protocol.wire import MODEL_NAME
 
 from .errors import RawFileError
 from .frame import SIDECAR_SCHEMA, FrameStatus, RawFrame, Roi

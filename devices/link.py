@@ -9,7 +9,7 @@ ends or goes silent mid-message as a disconnect. PROGRESS heartbeats (a
 readout in progress) go to ``FrameSink.progress``; an ERROR answers the request
 it names or, unsolicited, goes to ``FrameSink.device_error``. Nothing blocks
 forever: socket reads poll a stop flag, requests and partial messages have
-timeouts (``wire.REPLY_TIMEOUT_S``, which the device honours while it reads out).
+timeouts (``bmi_sdk.protocol.wire.REPLY_TIMEOUT_S``, which the device honours while it reads out).
 """
 
 from __future__ import annotations
@@ -23,9 +23,9 @@ from typing import Protocol
 
 import numpy as np
 
-from firmware_sim.registers import RegError
-from firmware_sim.wire import (ACK, CRC, ENVELOPE, HEADER, PROGRESS, REG_ACCESS, REG_REPLY, REPLY_TIMEOUT_S, U32,
-                               FrameHeader, Msg, WireError, envelope, parse_envelope, unpack12)
+from bmi_sdk.protocol.registers import RegError
+from bmi_sdk.protocol.wire import (ACK, CRC, ENVELOPE, HEADER, PROGRESS, REG_ACCESS, REG_REPLY, REPLY_TIMEOUT_S,
+                                   U32, FrameHeader, Msg, WireError, envelope, parse_envelope, unpack12)
 
 from .errors import AccessDeniedError, CameraError, DeviceBusyError, DeviceRemovedError, ProtocolError
 from .frame import FrameStatus

@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass
 from typing import Callable
 
-from firmware_sim.registers import RegError
+from bmi_sdk.protocol.registers import ROI_REGISTERS, RegError
 
 from .errors import ConfigurationError
 from .frame import Roi
@@ -101,7 +101,7 @@ class Settings:
 
     @property
     def roi(self) -> Roi:
-        return Roi(*(self._read(n) for n in ("ROI_X_PX", "ROI_Y_PX", "ROI_WIDTH_PX", "ROI_HEIGHT_PX")))
+        return Roi(*(self._read(n) for n in ROI_REGISTERS))
 
     def check_roi(self, roi) -> Roi:
         if not isinstance(roi, Roi):
@@ -124,12 +124,13 @@ class Settings:
     def set_roi(self, roi) -> None:
         """Set the readout window (offset first to 0 so every intermediate state is valid)."""
         roi = self.check_roi(roi)
-        self._write("ROI_X_PX", 0)
-        self._write("ROI_Y_PX", 0)
-        self._write("ROI_WIDTH_PX", roi.width_px)
-        self._write("ROI_HEIGHT_PX", roi.height_px)
-        self._write("ROI_X_PX", roi.x_px)
-        self._write("ROI_Y_PX", roi.y_px)
+        x_reg, y_reg, width_reg, height_reg = ROI_REGISTERS
+        self._write(x_reg, 0)
+        self._write(y_reg, 0)
+        self._write(width_reg, roi.width_px)
+        self._write(height_reg, roi.height_px)
+        self._write(x_reg, roi.x_px)
+        self._write(y_reg, roi.y_px)
 
 
 def refused(register: str, value: int, err: RegError) -> ConfigurationError:

@@ -10,13 +10,15 @@ Public API (the rest is private):
   through the lens by the forward simulator (``optical``);
 * irradiance sources (``IrradianceSource`` protocol, ``FlatField``,
   ``DarkFrame``, ``PolarChart``, ``InFocusImageStandIn``) and the
-  ``register_source`` / ``make_source`` registry the forward simulator plugs into;
-* ``registers`` and ``wire`` — the register map and the wire format
-  (docs/protocol.md).
+  ``register_source`` / ``make_source`` registry the forward simulator plugs into.
+
+The register map and the wire format it speaks are the protocol's
+(``bmi_sdk.protocol``, docs/protocol.md), shared with the host. Importing this
+package loads neither the renderer nor the optics: the optical sources import
+them when a scene is built, ``FirmwareDevice`` when it looks up its lens.
 """
 
-from . import registers, wire
-from .device import MODEL_NAME, FirmwareDevice, lens_identity
+from .device import FirmwareDevice, lens_identity
 from .endpoint import FirmwareServer, InProcessLink
 from .faults import Fault, FaultPlan
 from .optical import ProceduralOpticalSource, RenderedScene
@@ -24,7 +26,7 @@ from .sources import (DarkFrame, FlatField, InFocusImageStandIn, IrradianceSourc
                       register_source, source_names)
 
 __all__ = [
-    "registers", "wire", "MODEL_NAME", "FirmwareDevice", "lens_identity", "FirmwareServer", "InProcessLink",
+    "FirmwareDevice", "lens_identity", "FirmwareServer", "InProcessLink",
     "Fault", "FaultPlan", "DarkFrame", "FlatField", "InFocusImageStandIn", "IrradianceSource", "PolarChart",
     "make_source", "register_source", "source_names", "RenderedScene", "ProceduralOpticalSource",
 ]

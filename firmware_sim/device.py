@@ -18,15 +18,14 @@ from typing import Callable
 import numpy as np
 
 from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
+from bmi_sdk.protocol import registers as R
+from bmi_sdk.protocol.wire import FLAG_TEST_PATTERN, HEARTBEAT_S, MODEL_NAME, FrameHeader, packed_size, pack12
 from bmi_sdk.sensor import CFA_PATTERN, SensorModel
 
-from . import registers as R
 from .faults import FaultInjector, FaultPlan
 from .readout import Readout
+from .register_file import RegisterFile
 from .sources import IrradianceSource, PolarChart
-from .wire import FLAG_TEST_PATTERN, HEARTBEAT_S, FrameHeader, packed_size, pack12
-
-MODEL_NAME = "BMI-SIM"
 
 
 def lens_identity(name: str = "bmi_monocentric") -> dict:
@@ -57,7 +56,7 @@ class FirmwareDevice:
             raise ValueError(f"heartbeat_s must be in (0, {HEARTBEAT_S:g}] s (hosts rely on that bound), "
                              f"got {heartbeat_s}")
         self.heartbeat_s = float(heartbeat_s)
-        self.regs = R.RegisterFile(serial)
+        self.regs = RegisterFile(serial)
         self.seed = int(seed)
         self.geometry = geometry
         self.model = model

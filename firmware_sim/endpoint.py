@@ -31,11 +31,13 @@ import time
 import weakref
 import zlib
 
+from bmi_sdk.protocol.registers import RegError
+from bmi_sdk.protocol.wire import (ACK, CRC, DEFAULT_IDLE_TIMEOUT_S, ENVELOPE, HEADER, HOST_BODY_BYTES, PROGRESS,
+                                   REG_ACCESS, REG_REPLY, U32, Msg, WireError, check_host_body, envelope, error_body,
+                                   json_body, parse_envelope, tcp_uri)
+
 from .device import FirmwareDevice
 from .faults import Fault
-from .registers import RegError
-from .wire import (ACK, CRC, DEFAULT_IDLE_TIMEOUT_S, ENVELOPE, HEADER, HOST_BODY_BYTES, PROGRESS, REG_ACCESS,
-                   REG_REPLY, U32, Msg, WireError, check_host_body, envelope, error_body, json_body, parse_envelope)
 
 SEND_TIMEOUT_S = 10.0
 POLL_S = 0.05
@@ -363,11 +365,6 @@ def _check_loopback(host: str) -> None:
         ok = False
     if not ok:
         raise ValueError(f"the simulator serves on loopback only (127.0.0.1, ::1, localhost), not {host!r}")
-
-
-def tcp_uri(host: str, port: int) -> str:
-    """``tcp://HOST:PORT``, an IPv6 literal in brackets (``tcp://[::1]:PORT``) as URIs write it."""
-    return f"tcp://[{host}]:{port}" if ":" in host else f"tcp://{host}:{port}"
 
 
 class FirmwareServer:

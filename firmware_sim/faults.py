@@ -10,8 +10,8 @@ compares with what the host reported.
 * INCOMPLETE: the FRAME message ends part-way through the payload (as when a
   readout is aborted); framing stays intact, the host sees fewer bytes.
 * STALL: the frame is sent intact after a pause of ``stall_s`` (at most
-  ``wire.MAX_STALL_S``); the device still answers commands meanwhile, and a
-  STOP discards the held frame.
+  ``bmi_sdk.protocol.wire.MAX_STALL_S``); the device still answers commands
+  meanwhile, and a STOP discards the held frame.
 * DISCONNECT: part of the frame is sent, then the device drops the link.
 """
 
@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .wire import MAX_STALL_S
+from bmi_sdk.protocol.wire import MAX_STALL_S
 
 
 class Fault(enum.Enum):

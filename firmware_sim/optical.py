@@ -5,6 +5,11 @@
 * ``procedural:SEED`` — the embedded default: a full-sensor procedural scene
   (``bmi_sdk.scenes.generate_scene``) seen through the lens.
 
+The renderer and the optics are imported where a scene is built and rendered,
+not with this module: ``firmware_sim`` imports it to register ``procedural``,
+and a process that never builds a scene seen through the lens never loads
+them.
+
 The readout asks for strips of any window. A source renders fixed blocks of
 ``block_px`` (aligned to the sensor grid) with one kernel width of scene
 margin and caches them, so every window it is asked for is identical to the
@@ -20,7 +25,6 @@ from functools import lru_cache
 import numpy as np
 
 from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
-from bmi_sdk.render import DEFAULT_ZONE_PX
 
 from .sources import register_source
 
@@ -39,9 +43,10 @@ class RenderedScene:
 
     def __init__(self, rgb: np.ndarray, range_m: np.ndarray, row0: int = 0, col0: int = 0,
                  lens: str = "bmi_monocentric", geometry: SensorGeometry = BMI_SENSOR, name: str = "scene",
-                 psf_mode: str = "exact", zone_px: int = DEFAULT_ZONE_PX, block_px: int = BLOCK_PX, label: str = "",
+                 psf_mode: str = "exact", zone_px: int | None = None, block_px: int = BLOCK_PX, label: str = "",
                  tensor=None, perturbation=None):
-        """``tensor`` (a PsfTensor) overrides the lens's default one; ``perturbation``
+        """``zone_px``: the renderer's zone size (None: its ``DEFAULT_ZONE_PX``). ``tensor`` (a PsfTensor)
+        overrides the lens's default one; ``perturbation``
         (``optics.perturb.Perturbation``, ``exact`` mode only) makes the camera a built one with those
         hardware errors: every zone's kernels are traced through the perturbed lens, and the image
         lands where the built camera puts it (the decenter's whole-image shift included)."""
@@ -55,6 +60,10 @@ class RenderedScene:
         self.geometry = geometry
         self.name = name
         self.psf_mode = psf_mode
+        if zone_px is None:
+            from bmi_sdk.render import DEFAULT_ZONE_PX
+
+            zone_px = DEFAULT_ZONE_PX
         self.zone_px = zone_px
         self.block_px = block_px
         self.label = label

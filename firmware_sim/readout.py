@@ -15,9 +15,9 @@ from typing import Callable
 import numpy as np
 
 from bmi_sdk.geometry import SensorGeometry
+from bmi_sdk.protocol.registers import TestPattern
 from bmi_sdk.sensor import SensorModel, bayer_mosaic, relative_illumination
 
-from .registers import TestPattern
 from .sources import IrradianceSource
 
 STRIP_ROWS = 256

@@ -14,12 +14,12 @@ import time
 import numpy as np
 import pytest
 
+from bmi_sdk.protocol.registers import BY_NAME
+from bmi_sdk.protocol.wire import ENVELOPE, REG_REPLY, U32, Msg, envelope, parse_envelope
 from devices import (AccessDeniedError, ConfigurationError, DeviceBusyError, DeviceFaultError, GrabTimeoutError,
                      ProtocolError, Roi, open_camera, parse_tcp_address)
 from firmware_sim import FaultPlan, FirmwareDevice, FirmwareServer, FlatField
 from firmware_sim.faults import Fault
-from firmware_sim.registers import BY_NAME
-from firmware_sim.wire import ENVELOPE, REG_REPLY, U32, Msg, envelope, parse_envelope
 
 SMALL = Roi(2968, 2226, 64, 48)
 BOUND_S = 60  # generous upper bound for anything that should happen "soon" on a loaded machine

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import rawpy
 
+from bmi_sdk.protocol.wire import HEADER, FrameHeader, Msg, envelope, json_body, packed_size
 from devices import (ConfigurationError, DeviceBusyError, DeviceNotFoundError, DeviceRemovedError, FrameStatus,
                      GrabTimeoutError, IncompleteFrameError, ProtocolError, RawFileError, Roi, list_devices, load_raw, open_camera)
 from firmware_sim import FirmwareDevice, FirmwareServer, FlatField
-from firmware_sim.wire import HEADER, FrameHeader, Msg, envelope, json_body, packed_size
 
 SMALL = Roi(2968, 2226, 64, 48)
 
@@ -214,8 +214,8 @@ def test_tcp_capture_and_reconnect_after_disconnect():
 def _fake_device(script):
     """A loopback server that answers HELLO, register reads and START like a device (a 64×48
     window), then sends ``script`` bytes and closes."""
-    from firmware_sim.registers import BY_ADDRESS
-    from firmware_sim.wire import ACK, REG_REPLY, U32, parse_envelope
+    from bmi_sdk.protocol.registers import BY_ADDRESS
+    from bmi_sdk.protocol.wire import ACK, REG_REPLY, U32, parse_envelope
 
     listener = socket.socket()
     listener.bind(("127.0.0.1", 0))

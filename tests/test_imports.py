@@ -22,6 +22,10 @@ def _loaded_after(statement: str, modules: tuple[str, ...]) -> dict:
     ("import bmi_sdk.nn.metrics", ("torch",)),
     ("import bmi_sdk.nn.data", ("torch",)),
     ("import bmi_sdk.runtime", ("torch", "jax", "bmi_sdk.nn", "bmi_sdk.bench", "bmi_sdk.cli")),
+    # a host talking to a real camera needs neither the simulator nor the optics behind its scenes
+    ("import devices", ("firmware_sim", "bmi_sdk.optics", "bmi_sdk.render", "scipy", "cv2")),
+    ("import firmware_sim", ("bmi_sdk.optics", "bmi_sdk.render", "scipy", "cv2")),
+    ("import bmi_sdk.protocol.wire", ("bmi_sdk.geometry", "devices", "firmware_sim", "scipy", "cv2")),
 ])
 def test_import_loads_only_what_it_needs(statement, absent):
     assert _loaded_after(statement, absent) == dict.fromkeys(absent, False)

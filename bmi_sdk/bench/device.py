@@ -34,9 +34,9 @@ def _serve():
 
 
 def _run(args) -> int:
+    from bmi_sdk.protocol.wire import pack12, unpack12
     from devices import open_camera
     from firmware_sim import FirmwareDevice, make_source
-    from firmware_sim.wire import pack12, unpack12
 
     proc, uri = _serve()
     try:

@@ -111,7 +111,7 @@ def _read_token(path: str) -> bytes:
     import os
     from pathlib import Path
 
-    from firmware_sim.wire import MAX_TOKEN_BYTES
+    from bmi_sdk.protocol.wire import MAX_TOKEN_BYTES
 
     token = Path(path).read_bytes().strip()
     if not token:
@@ -124,8 +124,8 @@ def _read_token(path: str) -> bytes:
 
 
 def _serve(args) -> int:
+    from bmi_sdk.protocol.wire import DEFAULT_IDLE_TIMEOUT_S
     from firmware_sim import FaultPlan, FirmwareDevice, FirmwareServer, make_source
-    from firmware_sim.wire import DEFAULT_IDLE_TIMEOUT_S
 
     token = _read_token(args.token_file) if args.token_file else None
     device = FirmwareDevice(source=make_source(args.scene), seed=args.seed, serial=args.serial,

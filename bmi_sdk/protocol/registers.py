@@ -1,11 +1,13 @@
-"""Register map of the simulated BMI camera: addresses, units, ranges, access.
+"""Register map of the BMI camera: addresses, units, ranges, access, and the result codes of an access.
 
 Every register is a 32-bit word at a 4-byte-aligned address (signed only where
 noted). A write outside a register's range is *refused* with an error code and
 the register keeps its value; nothing is ever clamped. The last refusal's code
-is latched in ``LAST_ERROR`` and flagged in ``STATUS``. The host reads this map
-from the device (``describe()``, sent in the HELLO reply) so its typed settings
-show the same ranges.
+is latched in ``LAST_ERROR`` and flagged in ``STATUS``. The device sends this
+map to the host (``describe()``, in the HELLO reply) so the host's typed
+settings show the same ranges. Both ends import it from here: the simulated
+firmware enforces it (``firmware_sim.register_file``), the host reads its names
+and codes (``devices``).
 """
 
 from __future__ import annotations
@@ -91,80 +93,7 @@ REGISTERS: tuple[Register, ...] = (
 
 BY_NAME = {r.name: r for r in REGISTERS}
 BY_ADDRESS = {r.address: r for r in REGISTERS}
-_ROI = ("ROI_X_PX", "ROI_Y_PX", "ROI_WIDTH_PX", "ROI_HEIGHT_PX")
-
-
-class RegisterFile:
-    """The device's register values with the refusal rules of the map."""
-
-    def __init__(self, serial: int = 0):
-        self._values = {r.address: r.default for r in REGISTERS}
-        self._values[BY_NAME["SERIAL"].address] = int(serial) & U32_MAX
-
-    # -- firmware-side access (no checks: the firmware owns read-only registers)
-    def get(self, name: str) -> int:
-        return self._values[BY_NAME[name].address]
-
-    def set_internal(self, name: str, value: int) -> None:
-        self._values[BY_NAME[name].address] = int(value)
-
-    def set_status(self, flag: Status, on: bool) -> None:
-        status = Status(self.get("STATUS"))
-        self.set_internal("STATUS", int(status | flag if on else status & ~flag))
-
-    # -- host-side access, as it arrives over the link -----------------------
-    def read(self, address: int) -> tuple[RegError, int]:
-        reg = BY_ADDRESS.get(address)
-        if reg is None:
-            return self._refuse(RegError.UNKNOWN_ADDRESS), 0
-        value = self._values[address]
-        if reg.name == "LAST_ERROR":
-            self._values[address] = 0
-            self.set_status(Status.ERROR_LATCHED, False)
-        return RegError.OK, value
-
-    def write(self, address: int, value: int) -> RegError:
-        reg = BY_ADDRESS.get(address)
-        if reg is None:
-            return self._refuse(RegError.UNKNOWN_ADDRESS)
-        if not reg.writable:
-            return self._refuse(RegError.READ_ONLY)
-        if not reg.minimum <= value <= reg.maximum:
-            return self._refuse(RegError.OUT_OF_RANGE)
-        if reg.even and value % 2:
-            return self._refuse(RegError.MISALIGNED)
-        if reg.name in _ROI:
-            if self.get("STATUS") & Status.ACQUIRING:
-                return self._refuse(RegError.BUSY)
-            roi = {n: self.get(n) for n in _ROI} | {reg.name: value}
-            if (roi["ROI_X_PX"] + roi["ROI_WIDTH_PX"] > SENSOR_WIDTH_PX
-                    or roi["ROI_Y_PX"] + roi["ROI_HEIGHT_PX"] > SENSOR_HEIGHT_PX):
-                return self._refuse(RegError.CONFLICT)
-        self._values[address] = int(value)
-        if reg.name == "TEST_PATTERN":
-            self.set_status(Status.TEST_PATTERN, value != TestPattern.OFF)
-        return RegError.OK
-
-    def _refuse(self, code: RegError) -> RegError:
-        self._values[BY_NAME["LAST_ERROR"].address] = int(code)
-        self.set_status(Status.ERROR_LATCHED, True)
-        return code
-
-    def reset_session(self) -> None:
-        """A host let go: every writable register back to its default, LAST_ERROR and STATUS cleared.
-
-        Nothing one host wrote (test pattern, exposure, black level, window) reaches the next one;
-        the serial, frame counter and temperature are the device's own and stay.
-        """
-        for reg in REGISTERS:
-            if reg.writable:
-                self._values[reg.address] = reg.default
-        self.set_internal("LAST_ERROR", 0)
-        self.set_internal("STATUS", 0)
-
-    def roi(self) -> tuple[int, int, int, int]:
-        """(x, y, width, height) of the readout window on the full sensor."""
-        return tuple(self.get(n) for n in _ROI)
+ROI_REGISTERS = ("ROI_X_PX", "ROI_Y_PX", "ROI_WIDTH_PX", "ROI_HEIGHT_PX")  # the readout window, (x, y, w, h) order
 
 
 def describe() -> list[dict]:

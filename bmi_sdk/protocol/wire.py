@@ -1,5 +1,9 @@
 """Wire format of the BMI camera (specified in docs/protocol.md): messages, frame header, RAW12 payload, CRC32.
 
+The device (``firmware_sim``, or hardware) writes it and the host
+(``devices``) reads it; both import it from here, so neither depends on the
+other.
+
 Everything on the link is a *message*: a 12-byte envelope (magic ``BMIP``,
 type, body length) and a body. A FRAME message's body is a frame header, the
 packed 12-bit payload and a CRC32 of the payload. All integers little-endian.
@@ -10,7 +14,8 @@ width × height is refused with ``WireError``, so a hostile or broken length
 field cannot exhaust memory.
 
 The timing both ends rely on (reply deadline, heartbeat period, longest stall,
-idle timeout) is defined here once and read by the device and the host.
+idle timeout), the model name a device reports and the form of a TCP camera's
+URI are defined here once and read by the device and the host.
 """
 
 from __future__ import annotations
@@ -63,11 +68,18 @@ MAX_TOKEN_BYTES = 256
 HOST_BODY_BYTES = {Msg.HELLO: 0, Msg.READ_REG: U32.size, Msg.WRITE_REG: REG_ACCESS.size, Msg.START: U32.size,
                    Msg.STOP: 0, Msg.PING: 0}
 
+MODEL_NAME = "BMI-SIM"  # HELLO's "model"; a DNG carries it as its Model and is recognised as a BMI capture by it
+
 # -- timing: the one place both ends read (docs/protocol.md, "Timing") ----------
 REPLY_TIMEOUT_S = 5.0          # a device answers every request within this, also while it reads out or stalls
 HEARTBEAT_S = 1.0              # a readout in progress sends PROGRESS at least this often
 MAX_STALL_S = 10.0             # the longest a device may hold a finished frame back
 DEFAULT_IDLE_TIMEOUT_S = 60.0  # a TCP device drops a host that sent no whole message for this long (not streaming)
+
+
+def tcp_uri(host: str, port: int) -> str:
+    """``tcp://HOST:PORT``, an IPv6 literal in brackets (``tcp://[::1]:PORT``) as URIs write it."""
+    return f"tcp://[{host}]:{port}" if ":" in host else f"tcp://{host}:{port}"
 
 
 # -- frames -------------------------------------------------------------------
