@@ -17,7 +17,7 @@ def _load_rgb(path: str):
     import cv2
     import numpy as np
 
-    from bmi_sdk.scenes.color import srgb_uint_to_linear
+    from bmi_sdk.color import srgb_uint_to_linear
 
     p = Path(path)
     if not p.exists():
@@ -61,10 +61,10 @@ def _write_preview(path: Path, linear_rgb) -> None:
     import cv2
     import numpy as np
 
+    from bmi_sdk.color import linear_to_srgb
     from bmi_sdk.io_atomic import atomic_path
 
-    x = np.clip(linear_rgb, 0, 1)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    srgb = linear_to_srgb(linear_rgb)
     with atomic_path(path, suffix=".png") as tmp:
         if not cv2.imwrite(str(tmp), cv2.cvtColor((srgb * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR)):
             raise OSError(f"could not write {path}")
