@@ -94,18 +94,16 @@ def _show(bar, done: int, total: int) -> None:
 def _run(args) -> int:
     from tqdm import tqdm
 
-    from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
-    from bmi_sdk.optics import PsfTensor, TensorSpec, get_lens
+    from bmi_sdk.lenses import lens_geometry, lens_tensor
     from bmi_sdk.sensor import SensorModel
     from devices import Roi, open_camera
     from firmware_sim import FirmwareDevice, RenderedScene
 
     t0 = time.perf_counter()
     lens_name = "fisheye" if args.lens == "fisheye" else "bmi_monocentric"
-    lens = get_lens(lens_name)
-    # The fisheye needs a plane sensor with its own chief-ray mapping and wider kernels (≥ 99 % energy).
-    geometry = SensorGeometry.for_lens(lens) if lens_name == "fisheye" else BMI_SENSOR
-    tensor = PsfTensor(lens, TensorSpec(kernel_px=161 if lens_name == "fisheye" else 41))
+    # The lens profile: the fisheye images on a plane sensor with its own chief-ray mapping, with wider kernels.
+    geometry = lens_geometry(lens_name)
+    tensor = lens_tensor(lens_name)
     if args.procedural is not None:
         from bmi_sdk.scenes import generate_scene
 

@@ -46,7 +46,8 @@ import numpy as np
 
 from bmi_sdk.geometry import SensorGeometry
 from bmi_sdk.io_atomic import write_json
-from bmi_sdk.lenses import LENS_KERNEL_PX, lens_geometry, lens_tensor  # noqa: F401  (re-exported)
+# lens_geometry and lens_tensor live in bmi_sdk.lenses; nn.export and nn.evaluate still import them from here
+from bmi_sdk.lenses import LENS_KERNEL_PX, lens_geometry, lens_tensor  # noqa: F401
 from bmi_sdk.model_io import field_channels, raw_to_rgb, window_cfa
 from bmi_sdk.sensor import CFA_PATTERN, add_gaussian_noise, bayer_mosaic, relative_illumination
 
