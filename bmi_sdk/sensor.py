@@ -1,8 +1,8 @@
 """The sensor model of the SDK: noise, relative illumination, Bayer mosaic, ADC.
 
-One module, used by training (``add_gaussian_noise`` with the paper's σ values)
-and by the simulated camera (``firmware_sim`` reads out frames through
-``SensorModel``); nothing else in the SDK re-implements these steps.
+One module, used by training (``add_gaussian_noise`` with the paper's σ values,
+``adc_dn``) and by the simulated camera (``firmware_sim`` reads out frames
+through ``SensorModel``); nothing else in the SDK re-implements these steps.
 
 Two noise models, for two jobs:
 
@@ -12,8 +12,8 @@ Two noise models, for two jobs:
   Irradiance in relative units [0, 1] at the sensor becomes a mean electron
   count ``irradiance × electrons_per_us × exposure_us``; photo-electrons are
   Poisson (shot noise) and clip at the full well; read noise is Gaussian in
-  electrons; the ADC multiplies by ``conversion_gain_dn_per_e × analog_gain``,
-  adds the black level, rounds and saturates at ``2**adc_bits − 1``.
+  electrons; the ADC (``adc_dn``) multiplies by ``conversion_gain_dn_per_e ×
+  analog_gain``, adds the black level, rounds and saturates at ``2**adc_bits − 1``.
 
 So, for an unsaturated pixel with mean electron count μ, read noise σ_r and
 total gain g = conversion_gain_dn_per_e × analog_gain (before rounding):
@@ -35,6 +35,13 @@ from bmi_sdk.geometry import SensorGeometry
 PAPER_NOISE_SIGMAS = (0.0, 0.005, 0.01, 0.02, 0.05)
 """Additive Gaussian noise levels of the paper (on linear signals in [0, 1])."""
 
+ADC_BITS = 12
+"""Resolution of the simulated sensor's ADC."""
+BLACK_LEVEL_DN = 256
+"""Default black level: the offset the ADC adds so that dark noise below the mean is not clipped at 0."""
+WHITE_LEVEL_DN = (1 << ADC_BITS) - 1
+"""Saturation of the ADC at ``ADC_BITS`` (4095)."""
+
 CFA_PATTERN = "RGGB"
 # channel index (0 R, 1 G, 2 B) at (row % 2, col % 2) of the full sensor
 _RGGB_CHANNEL = np.array([[0, 1], [1, 2]], dtype=np.intp)
@@ -49,6 +56,24 @@ def add_gaussian_noise(signal: np.ndarray, sigma: float, rng: np.random.Generato
     x = np.asarray(signal, dtype=np.float32)
     out = x + rng.standard_normal(x.shape, dtype=np.float32) * np.float32(sigma) if sigma > 0 else x.copy()
     return np.clip(out, 0.0, 1.0, out=out) if clip else out
+
+
+def adc_dn(signal: np.ndarray, dn_per_unit: float, black_level_dn: int, white_level_dn: int) -> np.ndarray:
+    """The ADC: ``signal × dn_per_unit + black_level_dn`` rounded to the nearest DN (ties to even) and clipped
+    to [0, white_level_dn], as uint16.
+
+    float32 arithmetic throughout. The simulated camera feeds it electrons
+    (``dn_per_unit`` = conversion gain × analog gain, ``SensorModel.adc``);
+    training feeds it a [0, 1] signal that spans black to white
+    (``dn_per_unit`` = white − black, ``nn.data.simulate_raw``).
+    """
+    if not 0 <= black_level_dn < white_level_dn:
+        raise ValueError(f"black_level_dn must be in [0, {white_level_dn}), got {black_level_dn}")
+    dn = np.asarray(signal, dtype=np.float32) * np.float32(dn_per_unit)
+    dn += np.float32(black_level_dn)
+    np.rint(dn, out=dn)
+    np.clip(dn, 0, white_level_dn, out=dn)
+    return dn.astype(np.uint16)
 
 
 def bayer_mosaic(rgb: np.ndarray, row0: int = 0, col0: int = 0) -> np.ndarray:
@@ -115,7 +140,7 @@ class SensorModel:
     read_noise_e: float = 2.0
     conversion_gain_dn_per_e: float = 0.64
     electrons_per_us: float = 0.6
-    adc_bits: int = 12
+    adc_bits: int = ADC_BITS
     poisson_exact_below_e: float = 100.0
     additive_sigma: float | None = None  # the paper's model: N(0, σ²) on the [0, 1] signal instead of shot + read noise
 
@@ -166,16 +191,10 @@ class SensorModel:
         return out
 
     def adc(self, electrons: np.ndarray, analog_gain: float, black_level_dn: int) -> np.ndarray:
-        """Electrons → uint16 DN: gain, black-level offset, rounding, clip to [0, white level]."""
+        """Electrons → uint16 DN through ``adc_dn`` at this sensor's conversion gain × ``analog_gain``."""
         if not analog_gain > 0:
             raise ValueError(f"analog_gain must be > 0, got {analog_gain}")
-        if not 0 <= black_level_dn < self.white_level_dn:
-            raise ValueError(f"black_level_dn must be in [0, {self.white_level_dn}), got {black_level_dn}")
-        dn = np.asarray(electrons, dtype=np.float32) * np.float32(self.conversion_gain_dn_per_e * analog_gain)
-        dn += np.float32(black_level_dn)
-        np.rint(dn, out=dn)
-        np.clip(dn, 0, self.white_level_dn, out=dn)
-        return dn.astype(np.uint16)
+        return adc_dn(electrons, self.conversion_gain_dn_per_e * analog_gain, black_level_dn, self.white_level_dn)
 
     def expose_mosaic(self, mosaic_irradiance: np.ndarray, exposure_us: float, analog_gain: float,
                       black_level_dn: int, rng: np.random.Generator) -> np.ndarray:

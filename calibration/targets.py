@@ -33,6 +33,7 @@ import numpy as np
 from bmi_sdk.geometry import BMI_SENSOR
 from bmi_sdk.io_atomic import write_json
 from bmi_sdk.json_files import read_json_object
+from bmi_sdk.lenses import LENS_KERNEL_PX
 from bmi_sdk.optics import get_lens
 from bmi_sdk.optics.perturb import Perturbation, spot_kernels, trace_spots
 
@@ -114,7 +115,7 @@ class CapturePlan:
     exposures_us: tuple = (2500, 10000)
     n_repeats: int = 4
     n_dark: int = 4
-    kernel_px: int = 41  # PSF patch side (the tensor's kernel size)
+    kernel_px: int = LENS_KERNEL_PX["bmi_monocentric"]  # PSF patch side: the design lens's kernel size
     roi_margin_px: int = 16  # room around the design position for the spot to move
     analog_gain: float = 1.0
     one_lamp_at_a_time: bool = True  # False: every lamp lit in every frame (spots may overlap)

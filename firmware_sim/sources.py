@@ -33,6 +33,7 @@ from typing import Callable, Protocol, runtime_checkable
 
 import numpy as np
 
+from bmi_sdk.color import srgb_uint_to_linear
 from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
 
 
@@ -137,9 +138,7 @@ class InFocusImageStandIn:
         bgr = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
         if bgr is None:
             raise FileNotFoundError(f"cannot read an image from {path}")
-        x = bgr[..., ::-1].astype(np.float32) / np.float32(np.iinfo(bgr.dtype).max)
-        linear = np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
-        return cls(linear, geometry, label=str(path))
+        return cls(srgb_uint_to_linear(bgr[..., ::-1]), geometry, label=str(path))
 
     def irradiance(self, row0, col0, height, width):
         ih, iw, _ = self.image.shape

@@ -19,7 +19,11 @@ def _loaded_after(statement: str, modules: tuple[str, ...]) -> dict:
 
 
 @pytest.mark.parametrize("statement, absent", [
-    ("import bmi_sdk.nn.metrics", ("torch",)),
+    ("import bmi_sdk.metrics", ("torch", "bmi_sdk.nn")),
+    # bmi demo's error against the ground truth uses the metrics without the training package
+    ("import numpy as np; from bmi_sdk.cli.demo import errors_against_truth; "
+     "errors_against_truth(np.ones((2, 2, 3)), np.ones((2, 2)), np.ones((2, 2), bool), "
+     "type('Scene', (), {'rgb': np.ones((2, 2, 3)), 'range_m': np.ones((2, 2))}))", ("torch", "bmi_sdk.nn")),
     ("import bmi_sdk.nn.data", ("torch",)),
     ("import bmi_sdk.runtime", ("torch", "jax", "bmi_sdk.nn", "bmi_sdk.bench", "bmi_sdk.cli")),
     # a host talking to a real camera needs neither the simulator nor the optics behind its scenes
@@ -33,7 +37,7 @@ def test_import_loads_only_what_it_needs(statement, absent):
 
 def test_nn_public_names_resolve_lazily():
     # a submodule is reachable as an attribute too, imported on first use
-    assert _loaded_after("import bmi_sdk.nn as nn; nn.metrics", ("bmi_sdk.nn.metrics",)) == {"bmi_sdk.nn.metrics": True}
+    assert _loaded_after("import bmi_sdk.nn as nn; nn.data", ("bmi_sdk.nn.data",)) == {"bmi_sdk.nn.data": True}
     import bmi_sdk.nn as nn
 
     for name in nn.__all__:

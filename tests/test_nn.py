@@ -1,4 +1,4 @@
-"""Network, losses, metrics, export, training resume and data augmentation (bmi_sdk.nn), on small inputs."""
+"""Network, losses, export, training resume and data augmentation (bmi_sdk.nn), on small inputs."""
 
 import json
 import math
@@ -11,7 +11,6 @@ from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
 from bmi_sdk.model_io import field_channels
 from bmi_sdk.nn.data import CACHE_SCHEMA, SHARD_SAMPLES, CacheSpec, dihedral, dihedral_field, simulate_sensor
 from bmi_sdk.nn.losses import content_loss, fft_loss, silog_loss
-from bmi_sdk.nn.metrics import SSIM_K1, SSIM_K2, depth_metrics, psnr_db, ssim
 from bmi_sdk.nn.model import DualHeadMimoUNet, parameter_count, preset_config
 
 
@@ -99,34 +98,6 @@ def test_silog_hand_computed_two_pixels_and_mask():
     mask = torch.tensor([[[[1.0, 1.0, 0.0]]]])
     # g = (1, 0): mean g² = 0.5, mean g = 0.5 → 0.5 − 0.85·0.25
     assert float(silog_loss(pred, target, mask)) == pytest.approx(0.5 - 0.85 * 0.25, abs=1e-6)
-
-
-# -- metrics -------------------------------------------------------------------------------------------
-
-def test_depth_metrics_hand_computed():
-    true = np.array([1.0, 2.0, 4.0, 5.0, 1.0])
-    pred = np.array([1.2, 2.0, 2.0, 10.0, 7.0])
-    valid = np.array([True, True, True, True, False])
-    m = depth_metrics(pred, true, valid)
-    # ratios 1.2, 1, 2, 2 → δ1 = 2/4, δ2 (<1.5625) = 2/4, δ3 (<1.953) = 2/4
-    assert m["delta1"] == 0.5 and m["delta2"] == 0.5 and m["delta3"] == 0.5
-    assert m["rmse_m"] == pytest.approx(math.sqrt((0.04 + 0 + 4 + 25) / 4))
-    assert m["absrel"] == pytest.approx((0.2 + 0 + 0.5 + 1.0) / 4)
-
-
-def test_psnr_and_ssim_hand_computed():
-    a = np.full((32, 32, 3), 0.5)
-    assert psnr_db(a + 0.1, a) == pytest.approx(20.0)
-    assert ssim(a, a) == pytest.approx(1.0)
-    # constant images: σ terms vanish, SSIM = (2ab + C1) / (a² + b² + C1)
-    c1 = SSIM_K1 ** 2
-    assert ssim(np.full((32, 32, 3), 0.3), a) == pytest.approx((2 * 0.15 + c1) / (0.09 + 0.25 + c1))
-    assert SSIM_K2 == 0.03
-    valid = np.zeros((32, 32), bool)
-    valid[:, :16] = True
-    b = a.copy()
-    b[:, 16:] = 0.0
-    assert psnr_db(b, a, valid) == math.inf
 
 
 # -- export ---------------------------------------------------------------------------------------------

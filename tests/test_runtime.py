@@ -269,3 +269,39 @@ def test_packaged_models_match_their_manifests_and_serve_their_own_lens():
     assert shipped["default.onnx"]["lens"] == "bmi_monocentric" and shipped["fisheye.onnx"]["lens"] == "fisheye"
     assert select_model(None) == (MODELS_DIR / "default.onnx", None)
     assert select_model(None, lens="fisheye") == (MODELS_DIR / "fisheye.onnx", None)
+
+
+def test_a_manifest_without_largest_psf_px_gets_its_lens_profiles_kernel(tmp_path):
+    """The shipped manifests do not record largest_psf_px: the tile overlap then comes from the kernel of the
+    manifest's lens (bmi_sdk.lenses), so the fisheye model is tiled for its 161-px PSFs, not the
+    monocentric's 41 px; a lens that is no profile is refused rather than guessed."""
+    import shutil
+
+    from bmi_sdk.runtime import MODELS_DIR
+
+    def copy_without_psf_size(name, **changes):
+        onnx = tmp_path / name
+        shutil.copyfile(MODELS_DIR / name, onnx)
+        manifest = {k: v for k, v in read_manifest(MODELS_DIR / name).items() if k != "largest_psf_px"}
+        manifest_path(onnx).write_text(json.dumps({**manifest, **changes}))
+        return Model(onnx, tile_px=64, warmup=False)
+
+    assert copy_without_psf_size("fisheye.onnx").largest_psf_px == 161
+    assert copy_without_psf_size("default.onnx").largest_psf_px == 41
+    with pytest.raises(ModelError, match="no largest_psf_px.*'my_lens'"):
+        copy_without_psf_size("default.onnx", lens="my_lens").largest_psf_px  # noqa: B018
+
+
+def test_export_records_the_lens_profiles_tensor_key_and_kernel(tmp_path):
+    """A fisheye export records the fisheye's nominal tensor (161-px kernels) and 161 px as its largest PSF,
+    not the monocentric defaults."""
+    from bmi_sdk.lenses import lens_tensor
+
+    class PassThrough(nn.Module):
+        def forward(self, x):
+            return x[:, :3] * 1.0, 1.0 + x[:, 3:4]
+
+    manifest = read_manifest(export_model(PassThrough(), tmp_path / "fish.onnx", preset="test", lens="fisheye"))
+    fisheye = lens_tensor("fisheye")
+    assert manifest["largest_psf_px"] == 161
+    assert manifest["psf_tensor_key"] == fisheye.spec.cache_key(fisheye.lens)

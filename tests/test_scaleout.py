@@ -75,7 +75,7 @@ def psf_cache(tmp_path_factory):
     (Gaussian blur growing with defocus from 2 m, a little with θ): these tests are about who renders
     which sample, not about optics, and the real tensor takes minutes to build. Set before the cluster
     starts, so its workers (and the CLI's) inherit it; the session's own cache is restored after."""
-    from bmi_sdk.nn.data import lens_tensor
+    from bmi_sdk.lenses import lens_tensor
 
     saved = os.environ.get("BMI_CACHE_DIR")
     root = tmp_path_factory.mktemp("synthetic_psf")
@@ -350,7 +350,7 @@ def test_cli_train_renders_its_cache_on_local_2_as_the_serial_cache(psf_cache, t
 def test_eval_benchmark_tiles_rendered_on_a_cluster_equal_the_in_process_renders(cluster):
     from dataclasses import replace
 
-    from bmi_sdk.nn.data import lens_tensor
+    from bmi_sdk.lenses import lens_tensor
     from bmi_sdk.nn.evaluate import Benchmark
 
     bench = Benchmark(tiles=2, tile_px=32, seed=4)

@@ -8,25 +8,14 @@ import numpy as np
 import pytest
 import scipy.io
 
+from bmi_sdk.color import srgb_to_linear
 from bmi_sdk.scenes import (FlyingThings3D, Middlebury2014, NYU_RGB_INTRINSICS, NyuDepthV2, disparity_to_z_m,
-                            load_middlebury_scene, read_nyu_split, srgb_to_linear, srgb_uint_to_linear, write_pfm)
+                            load_middlebury_scene, read_nyu_split, write_pfm)
 
 
 def ray_factor(fx, fy, cx, cy, row, col):
     """range / z for one pixel of a pinhole camera, written out independently of the SDK."""
     return math.sqrt(1 + ((col - cx) / fx) ** 2 + ((row - cy) / fy) ** 2)
-
-
-def test_srgb_decode_known_values():
-    # IEC 61966-2-1: 0.5 encoded → 0.21404 linear; the two branches meet at 0.04045
-    np.testing.assert_allclose(srgb_to_linear(np.array([0.0, 0.5, 1.0])), [0.0, 0.214041, 1.0], atol=1e-6)
-    assert srgb_to_linear(np.float32(0.04045)) == pytest.approx(0.04045 / 12.92, rel=1e-6)
-    assert srgb_to_linear(np.float32(0.04046)) == pytest.approx(0.04045 / 12.92, rel=1e-3)
-    lut = srgb_uint_to_linear(np.arange(256, dtype=np.uint8))
-    assert lut.dtype == np.float32 and np.all(np.diff(lut) > 0)
-    assert srgb_uint_to_linear(np.array([65535], dtype=np.uint16))[0] == pytest.approx(1.0)
-    with pytest.raises(ValueError, match="uint8 or uint16"):
-        srgb_uint_to_linear(np.zeros(3, dtype=np.float32))
 
 
 # -- NYU Depth V2 -------------------------------------------------------------

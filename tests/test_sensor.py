@@ -5,8 +5,11 @@ import pytest
 
 from bmi_sdk.geometry import BMI_SENSOR, IDEAL_BMI_SENSOR
 from bmi_sdk.sensor import (
+    BLACK_LEVEL_DN,
     PAPER_NOISE_SIGMAS,
+    WHITE_LEVEL_DN,
     SensorModel,
+    adc_dn,
     add_gaussian_noise,
     bayer_mosaic,
     cfa_channel_map,
@@ -63,6 +66,32 @@ def test_saturation_and_black_frame():
 def test_adc_refuses_bad_black_level():
     with pytest.raises(ValueError, match="black_level_dn"):
         SensorModel().adc(np.zeros(2), 1.0, 5000)
+    with pytest.raises(ValueError, match="black_level_dn"):
+        adc_dn(np.zeros(2), 1.0, 4095, 4095)
+
+
+def test_adc_adds_the_black_level_rounds_to_even_and_clips_at_zero_and_white():
+    assert (BLACK_LEVEL_DN, WHITE_LEVEL_DN) == (256, 4095)  # 12 bits
+    dn = adc_dn(np.array([0.0, 0.4, 0.6, 1.5, 2.5, -10.0, -300.0, 5000.0]), 1.0, 256, 4095)
+    assert dn.dtype == np.uint16
+    assert dn.tolist() == [256, 256, 257, 258, 258, 246, 0, 4095]  # 257.5 → 258, 258.5 → 258 (ties to even)
+    # a [0, 1] signal spanning black to white, as training digitises it
+    assert adc_dn(np.array([0.0, 0.5, 1.0, 1.2]), 4095 - 256, 256, 4095).tolist() == [256, 2176, 4095, 4095]
+
+
+@pytest.mark.parametrize("sigma, row0, col0", [(0.0, 0, 0), (0.02, 0, 0), (0.02, 1, 3)])
+def test_training_raw_frames_are_the_noisy_mosaic_through_the_12_bit_adc(sigma, row0, col0):
+    """nn.data.simulate_raw, bit for bit: noise, RGGB mosaic at the window's phase, then DN = black +
+    signal × (white − black) in float32, rounded and clipped to [0, 4095] (written out here, not through
+    the SDK's ADC)."""
+    from bmi_sdk.nn.data import simulate_raw
+
+    optical = np.random.default_rng(2).uniform(-0.05, 1.05, (24, 36, 3)).astype(np.float32)
+    raw = simulate_raw(optical, sigma, np.random.default_rng(5), row0, col0)
+    mosaic = bayer_mosaic(add_gaussian_noise(optical, sigma, np.random.default_rng(5)), row0, col0)
+    expected = np.clip(np.rint(np.float32(256) + mosaic * np.float32(4095 - 256)), 0, 4095).astype(np.uint16)
+    assert raw.dtype == np.uint16
+    np.testing.assert_array_equal(raw, expected)
 
 
 def test_bayer_mosaic_rggb_phase_follows_window_offset():

@@ -21,6 +21,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from bmi_sdk.sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN
+
 from . import cpu_seconds, markdown_table, peak_rss_mb, register_target
 
 TILES = 4
@@ -74,7 +76,7 @@ def plane_absrel(nominal, geometry, decoder, field_deg: float, depth_m: float, s
     optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
     m = 24
     raw = simulate_raw(optical[m:-m, m:-m], STANDARD_SIGMA, np.random.default_rng(seed), row0 + m, col0 + m)
-    out = decoder.decode(raw, 256, 4095, geometry, row0 + m, col0 + m)
+    out = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0 + m, col0 + m)
     ok = out.valid
     return float(np.mean(np.abs(out.depth_m[ok] - depth_m) / depth_m))
 
@@ -103,7 +105,7 @@ def fit_sigma_model(nominal_map, seed: int = FIT_SEED, tiles: int = FIT_TILES) -
     for k, item in enumerate(bench.renders(nominal_map.tensor)):
         rng = np.random.default_rng([seed, 99, k])
         raw = simulate_raw(item["optical_full"][m:m + t, m:m + t], STANDARD_SIGMA, rng, item["row0"], item["col0"])
-        out = decoder.decode(raw, 256, 4095, geometry, item["row0"], item["col0"])
+        out = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, item["row0"], item["col0"])
         stride = decoder.config.stride_px
         ok = out.valid & np.isfinite(item["range_m"])
         ok[np.arange(t) % 4 != 0] = False
@@ -152,7 +154,7 @@ def _full_frame(nominal, geometry) -> str:
     rows = []
     for run in ("first (kernels computed)", "second (kernels memoised)"):
         wall, cpu = time.perf_counter(), cpu_seconds()
-        out = decoder.decode(raw, 256, 4095, geometry)
+        out = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry)
         t = out.stats["timings_s"]
         rows.append([run, time.perf_counter() - wall, cpu_seconds() - cpu, t["evidence_s"], t["kernels_s"], t["aif_s"],
                      out.stats["blocks_skipped"], peak_rss_mb()])

@@ -93,7 +93,7 @@ def _calibration_tiles(n: int = 8) -> list[np.ndarray]:
 
     bench = Benchmark(tiles=n // 2, tile_px=128, seed=777)
     out = []
-    from bmi_sdk.nn.data import lens_geometry, lens_tensor
+    from bmi_sdk.lenses import lens_geometry, lens_tensor
 
     geometry = lens_geometry(bench.lens)
     m, t = bench.margin_px, bench.tile_px

@@ -116,7 +116,7 @@ def _infer_row(args, work: Path, frames: list[Path], scheduler: str | None) -> l
 
 def _run(args) -> int:
     from bmi_sdk.bench import markdown_table, update_section
-    from bmi_sdk.nn.data import lens_tensor
+    from bmi_sdk.lenses import lens_tensor
     from bmi_sdk.scaleout import parse_scheduler
 
     schedulers = args.scheduler or ["local:1", "local:2"]

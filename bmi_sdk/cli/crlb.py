@@ -7,11 +7,11 @@ import math
 import sys
 import time
 
-LENSES = ("monocentric", "fisheye")
+LENS_PROFILES = {"monocentric": "bmi_monocentric", "fisheye": "fisheye"}
+"""--lenses name → the lens profile (bmi_sdk.lenses) it stands for."""
+LENSES = tuple(LENS_PROFILES)
 DEFAULT_DEPTHS_M = (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0)
 DEFAULT_FIELDS_DEG = (0.0, 30.0, 45.0, 60.0)
-# Kernel sizes holding ≥ 99 % of the energy at 1–10 m over 0–60° (docs/crlb.md).
-DEFAULT_KERNEL_PX = {"monocentric": 41, "fisheye": 161}
 
 
 def _number_list(text: str, what: str, allow_inf: bool = False) -> list[float]:
@@ -48,10 +48,9 @@ def _lenses(text: str) -> list[str]:
 
 
 def _lens(name: str):
-    from bmi_sdk.optics.baseline import matched_fisheye
-    from bmi_sdk.optics.prescription import load_lens
+    from bmi_sdk.optics import get_lens
 
-    return load_lens() if name == "monocentric" else matched_fisheye()
+    return get_lens(LENS_PROFILES[name])
 
 
 def _plot(rows: list[dict], path: str, conventions: str) -> None:
@@ -132,6 +131,8 @@ def _run(args) -> int:
 
 
 def register(subparsers) -> None:
+    from bmi_sdk.lenses import LENS_KERNEL_PX
+
     p = subparsers.add_parser(
         "crlb", help="Cramér–Rao bound on depth (paper §3.2) for the monocentric lens and the fisheye",
         description="σ_d ≥ I(d)^-1/2 with I = (1/σ²)(1/N²) Σ_c Σ_uv |S|² |T(θ) ∂OTF_c/∂d|² from exact traced "
@@ -144,8 +145,10 @@ def register(subparsers) -> None:
                    help="comma list of ranges in metres ('inf' allowed; default 1,1.5,2,3,4,5,6,8,10: ≈ 40 s on 2 cores)")
     p.add_argument("--fields-deg", type=_fields, default=list(DEFAULT_FIELDS_DEG),
                    help="comma list of field angles in degrees (default 0,30,45,60)")
-    p.add_argument("--kernel-px-monocentric", type=int, default=DEFAULT_KERNEL_PX["monocentric"])
-    p.add_argument("--kernel-px-fisheye", type=int, default=DEFAULT_KERNEL_PX["fisheye"])
+    # default: each lens's kernel, holding ≥ 99 % of the energy at 1–10 m over 0–60° (docs/crlb.md)
+    for name, profile in LENS_PROFILES.items():
+        p.add_argument(f"--kernel-px-{name}", type=int, default=LENS_KERNEL_PX[profile],
+                       help=f"PSF kernel side in pixels (default {LENS_KERNEL_PX[profile]}, the lens profile's)")
     p.add_argument("--patch-px", type=int, default=256, help="scene patch side N in pixels (I ∝ N²)")
     p.add_argument("--spectrum-exponent", type=float, default=0.8, help="α of the 1/f^α scene spectrum")
     p.add_argument("--spectrum-kind", choices=("amplitude", "power"), default="amplitude",

@@ -66,17 +66,19 @@ def _model(out: Path, explicit: str | None):
 
 
 def errors_against_truth(aif: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, scene) -> dict:
-    """AiF MAE / PSNR (linear RGB) and depth MAE, AbsRel, δ<1.25 over valid pixels with known range."""
-    ok = valid & np.isfinite(scene.range_m) & np.isfinite(depth_m)
+    """AiF MAE / PSNR (linear RGB) and depth MAE, AbsRel, δ<1.25 over the valid pixels where both ranges are
+    finite and > 0. PSNR, AbsRel and δ are ``bmi eval``'s, from ``bmi_sdk.metrics``; the MAEs only the demo reports."""
+    from bmi_sdk.metrics import depth_metrics, psnr_db
+
+    ok = valid & np.isfinite(scene.range_m) & np.isfinite(depth_m) & (scene.range_m > 0) & (depth_m > 0)
     if not ok.any():
         raise ValueError("no pixel has both a valid prediction and a known ground-truth range")
-    diff = np.abs(aif[ok] - np.clip(scene.rgb[ok], 0, 1))
-    mse = float(np.mean(diff ** 2))
+    aif_ok, truth_ok = aif[ok], scene.rgb[ok]  # N×3: the metric's float64 copies hold these pixels, not the frame
+    depth = depth_metrics(depth_m, scene.range_m, ok)
     d, g = depth_m[ok].astype(np.float64), scene.range_m[ok].astype(np.float64)
-    ratio = np.maximum(d / g, g / np.maximum(d, 1e-9))
-    return {"aif_mae": float(diff.mean()), "aif_psnr_db": float(10 * np.log10(1 / max(mse, 1e-12))),
-            "depth_mae_m": float(np.abs(d - g).mean()), "depth_abs_rel": float(np.mean(np.abs(d - g) / g)),
-            "depth_delta_1.25": float(np.mean(ratio < 1.25)), "pixels": int(ok.sum())}
+    return {"aif_mae": float(np.abs(aif_ok - np.clip(truth_ok, 0, 1)).mean()), "aif_psnr_db": psnr_db(aif_ok, truth_ok),
+            "depth_mae_m": float(np.abs(d - g).mean()), "depth_abs_rel": depth["absrel"],
+            "depth_delta_1.25": depth["delta1"], "pixels": int(ok.sum())}
 
 
 def _run(args) -> int:

@@ -17,7 +17,7 @@ def _load_rgb(path: str):
     import cv2
     import numpy as np
 
-    from bmi_sdk.scenes.color import srgb_uint_to_linear
+    from bmi_sdk.color import srgb_uint_to_linear
 
     p = Path(path)
     if not p.exists():
@@ -61,10 +61,10 @@ def _write_preview(path: Path, linear_rgb) -> None:
     import cv2
     import numpy as np
 
+    from bmi_sdk.color import linear_to_srgb
     from bmi_sdk.io_atomic import atomic_path
 
-    x = np.clip(linear_rgb, 0, 1)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    srgb = linear_to_srgb(linear_rgb)
     with atomic_path(path, suffix=".png") as tmp:
         if not cv2.imwrite(str(tmp), cv2.cvtColor((srgb * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR)):
             raise OSError(f"could not write {path}")
@@ -94,18 +94,16 @@ def _show(bar, done: int, total: int) -> None:
 def _run(args) -> int:
     from tqdm import tqdm
 
-    from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
-    from bmi_sdk.optics import PsfTensor, TensorSpec, get_lens
+    from bmi_sdk.lenses import lens_geometry, lens_tensor
     from bmi_sdk.sensor import SensorModel
     from devices import Roi, open_camera
     from firmware_sim import FirmwareDevice, RenderedScene
 
     t0 = time.perf_counter()
     lens_name = "fisheye" if args.lens == "fisheye" else "bmi_monocentric"
-    lens = get_lens(lens_name)
-    # The fisheye needs a plane sensor with its own chief-ray mapping and wider kernels (≥ 99 % energy).
-    geometry = SensorGeometry.for_lens(lens) if lens_name == "fisheye" else BMI_SENSOR
-    tensor = PsfTensor(lens, TensorSpec(kernel_px=161 if lens_name == "fisheye" else 41))
+    # The lens profile: the fisheye images on a plane sensor with its own chief-ray mapping, with wider kernels.
+    geometry = lens_geometry(lens_name)
+    tensor = lens_tensor(lens_name)
     if args.procedural is not None:
         from bmi_sdk.scenes import generate_scene
 

@@ -7,10 +7,10 @@ Public API:
 * ``CacheSpec``, ``build_cache``, ``PairCache``, ``simulate_sensor`` — training pairs (``data``);
 * ``TrainConfig``, ``load_weights`` and the training loop ``train.train`` (``train``);
   ``export_with_manifest`` (``export``);
-* ``depth_metrics``, ``image_metrics`` (``metrics``); ``Benchmark``, ``run_benchmark`` (``evaluate``).
+* ``Benchmark``, ``run_benchmark`` (``evaluate``; the metrics themselves are ``bmi_sdk.metrics``).
 
 The names resolve lazily (PEP 562): ``bmi_sdk.nn.X`` imports only the
-submodule that defines X. So ``import bmi_sdk.nn.metrics`` (numpy only) does
+submodule that defines X. So ``import bmi_sdk.nn.data`` (numpy only) does
 not load torch (4 s); ``model``, ``losses``, ``train`` and ``export`` do.
 ``bmi_sdk.nn.train`` is therefore always the submodule (importing a submodule
 binds its name on the package); the function is ``bmi_sdk.nn.train.train``.
@@ -25,7 +25,6 @@ _HOME = {
     "Benchmark": "evaluate", "run_benchmark": "evaluate",
     "export_with_manifest": "export",
     "content_loss": "losses", "fft_loss": "losses", "silog_loss": "losses", "total_loss": "losses",
-    "depth_metrics": "metrics", "image_metrics": "metrics",
     "PRESETS": "model", "DualHeadMimoUNet": "model", "ModelConfig": "model", "preset_config": "model",
     "TrainConfig": "train", "load_weights": "train",
 }

@@ -46,12 +46,12 @@ import numpy as np
 
 from bmi_sdk.geometry import SensorGeometry
 from bmi_sdk.io_atomic import write_json
-from bmi_sdk.lenses import LENS_KERNEL_PX, lens_geometry, lens_tensor  # noqa: F401  (re-exported)
+# lens_geometry and lens_tensor live in bmi_sdk.lenses; nn.export and nn.evaluate still import them from here
+from bmi_sdk.lenses import LENS_KERNEL_PX, lens_geometry, lens_tensor  # noqa: F401
 from bmi_sdk.model_io import field_channels, raw_to_rgb, window_cfa
-from bmi_sdk.sensor import CFA_PATTERN, add_gaussian_noise, bayer_mosaic, relative_illumination
+from bmi_sdk.sensor import (BLACK_LEVEL_DN, CFA_PATTERN, WHITE_LEVEL_DN, adc_dn, add_gaussian_noise, bayer_mosaic,
+                            relative_illumination)
 
-BLACK_LEVEL_DN = 256
-WHITE_LEVEL_DN = 4095
 STANDARD_SIGMA = 0.005
 SHARD_SAMPLES = 32
 CACHE_SCHEMA = "bmi-train-cache/1"
@@ -90,12 +90,11 @@ def simulate_raw(optical: np.ndarray, sigma: float, rng: np.random.Generator, ro
     """Optical image at the sensor (H×W×3, relative illumination applied) → the raw H×W uint16 frame.
 
     Gaussian noise σ (the paper's model) → RGGB mosaic at the window's phase →
-    ADC (black level, 12-bit rounding and clipping).
+    ADC (``sensor.adc_dn``: black level, rounding to 12-bit DN, clipping at 0 and white).
     """
     noisy = add_gaussian_noise(optical, sigma, rng)
     mosaic = bayer_mosaic(noisy, row0, col0)
-    dn = np.rint(np.float32(black_level_dn) + mosaic * np.float32(white_level_dn - black_level_dn))
-    return np.clip(dn, 0, white_level_dn).astype(np.uint16)
+    return adc_dn(mosaic, white_level_dn - black_level_dn, black_level_dn, white_level_dn)
 
 
 def simulate_sensor(optical: np.ndarray, sigma: float, rng: np.random.Generator, row0: int = 0, col0: int = 0,

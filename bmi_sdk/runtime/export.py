@@ -51,14 +51,15 @@ def export_model(net, onnx_path: str | os.PathLike, *, preset: str, lens: str = 
                  **extra) -> Path:
     """Export ``net`` (``coded`` → ``aif``, ``depth_m``) with dynamic H, W and write its manifest; return the .onnx path.
 
-    ``psf_tensor_key`` is the nominal PSF tensor's cache key for ``lens``
-    unless ``extra`` names another one (a calibrated tensor's). With ``extra_channels`` > 0 the network
+    ``lens`` names a lens profile (``bmi_sdk.lenses``): ``psf_tensor_key`` is its
+    nominal PSF tensor's cache key unless ``extra`` names another one (a
+    calibrated tensor's), and ``largest_psf_px`` its kernel size. With ``extra_channels`` > 0 the network
     is a learned refinement (6 + extra_channels inputs → ``aif``, ``depth_m``, ``depth_sigma_m``) whose
     classical channels are made with ``classical_config`` (required then).
     """
     import torch
 
-    from ..optics import TensorSpec, get_lens
+    from ..lenses import LENS_KERNEL_PX, lens_tensor
 
     onnx_path = Path(onnx_path)
     onnx_path.parent.mkdir(parents=True, exist_ok=True)
@@ -79,8 +80,9 @@ def export_model(net, onnx_path: str | os.PathLike, *, preset: str, lens: str = 
                                         **{n: {2: "height", 3: "width"} for n in names}},
                           opset_version=17, dynamo=False)
     os.replace(tmp, onnx_path)
-    key = extra.pop("psf_tensor_key", None) or TensorSpec().cache_key(get_lens(lens))
+    nominal = lens_tensor(lens)
+    key = extra.pop("psf_tensor_key", None) or nominal.spec.cache_key(nominal.lens)
     write_manifest(onnx_path, preset=preset, receptive_field_px=rf, lens=lens, psf_tensor_key=key,
                    calibration_id=calibration_id, training=training, metrics=metrics,
-                   largest_psf_px=int(TensorSpec().kernel_px), input_channels=channels, output_names=names, **extra)
+                   largest_psf_px=LENS_KERNEL_PX[lens], input_channels=channels, output_names=names, **extra)
     return onnx_path

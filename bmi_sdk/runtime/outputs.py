@@ -22,14 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..color import linear_to_srgb
 from ..geometry import SensorGeometry
 from ..io_atomic import atomic_path, save_npy, write_json
-
-
-def linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 transfer curve on values clipped to [0, 1]."""
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
 
 
 def _imwrite(path: Path, image: np.ndarray) -> None:

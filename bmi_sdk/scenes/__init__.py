@@ -6,7 +6,6 @@ whose pinhole images are placed on the curved sensor by :mod:`placement`.
 Conventions and metric-depth rules: ``docs/scenes.md``.
 """
 
-from bmi_sdk.scenes.color import srgb_to_linear, srgb_uint_to_linear
 from bmi_sdk.scenes.flyingthings import FlyingThings3D, disparity_to_z_m, flyingthings_intrinsics
 from bmi_sdk.scenes.middlebury import Middlebury2014, load_middlebury_scene, read_middlebury_calib
 from bmi_sdk.scenes.nyu import NYU_RGB_INTRINSICS, NyuDepthV2, read_nyu_split
@@ -23,5 +22,5 @@ __all__ = [
     "Middlebury2014", "load_middlebury_scene", "read_middlebury_calib",
     "place_patch", "place_wide", "PatchMapping", "PlacedScene", "resample_to_sensor", "corner_phi_deg",
     "tan_vs_angle_relative_error",
-    "read_pfm", "write_pfm", "PfmError", "srgb_to_linear", "srgb_uint_to_linear",
+    "read_pfm", "write_pfm", "PfmError",
 ]

@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from bmi_sdk.scenes.color import srgb_uint_to_linear
+from bmi_sdk.color import srgb_uint_to_linear
 
 
 def read_srgb_png_linear(path: Path) -> np.ndarray:

@@ -22,7 +22,7 @@ import h5py
 import numpy as np
 import scipy.io
 
-from bmi_sdk.scenes.color import srgb_uint_to_linear
+from bmi_sdk.color import srgb_uint_to_linear
 from bmi_sdk.scenes.scene import PinholeIntrinsics, Scene
 
 NYU_RGB_INTRINSICS = PinholeIntrinsics(
