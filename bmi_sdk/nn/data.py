@@ -46,8 +46,7 @@ import numpy as np
 
 from bmi_sdk.geometry import SensorGeometry
 from bmi_sdk.io_atomic import write_json
-# lens_geometry and lens_tensor live in bmi_sdk.lenses; nn.export and nn.evaluate still import them from here
-from bmi_sdk.lenses import LENS_KERNEL_PX, lens_geometry, lens_tensor  # noqa: F401
+from bmi_sdk.lenses import LENS_KERNEL_PX, lens_geometry, lens_tensor
 from bmi_sdk.model_io import field_channels, raw_to_rgb, window_cfa
 from bmi_sdk.sensor import (BLACK_LEVEL_DN, CFA_PATTERN, WHITE_LEVEL_DN, adc_dn, add_gaussian_noise, bayer_mosaic,
                             relative_illumination)

@@ -42,11 +42,11 @@ import numpy as np
 from scipy import ndimage
 
 from bmi_sdk.model_io import network_input, raw_to_rgb, window_cfa
-from bmi_sdk.nn.data import (BLACK_LEVEL_DN, SCENE_MARGIN_PX, STANDARD_SIGMA, WHITE_LEVEL_DN, lens_geometry,
-                             lens_tensor, mirror_extend, render_margin_px, sample_window, simulate_raw)
-from bmi_sdk.nn.metrics import depth_metrics, image_metrics, mean_metrics
+from bmi_sdk.lenses import lens_geometry, lens_tensor
+from bmi_sdk.metrics import depth_metrics, image_metrics, mean_metrics
+from bmi_sdk.nn.data import SCENE_MARGIN_PX, STANDARD_SIGMA, mirror_extend, render_margin_px, sample_window, simulate_raw
 from bmi_sdk.optics.perturb import Perturbation
-from bmi_sdk.sensor import CFA_PATTERN, PAPER_NOISE_SIGMAS, relative_illumination
+from bmi_sdk.sensor import BLACK_LEVEL_DN, CFA_PATTERN, PAPER_NOISE_SIGMAS, WHITE_LEVEL_DN, relative_illumination
 
 REGIONS = {"centre": (0.0, 20.0), "edge": (52.0, 58.0)}
 STRAY_SIGMA_PX = 100.0

@@ -90,7 +90,7 @@ def export_with_manifest(net: DualHeadMimoUNet, path: str | Path, *, preset: str
     A refinement (``net.config.extra_channels`` > 0) needs ``classical_config``, the decoder knobs its
     channels were made with; the manifest then says ``decoder: "learned"``."""
     from bmi_sdk.model_manifest import write_manifest
-    from bmi_sdk.nn.data import lens_tensor
+    from bmi_sdk.lenses import lens_tensor
 
     max_diff = export_onnx(net, path)
     tensor = lens_tensor(lens)

@@ -25,9 +25,9 @@ import numpy as np
 
 from bmi_sdk.io_atomic import write_json
 from bmi_sdk.model_io import field_channels, raw_to_rgb, window_cfa
-from bmi_sdk.nn.data import (BLACK_LEVEL_DN, WHITE_LEVEL_DN, PairCache, dihedral, dihedral_field, lens_geometry,
-                             lens_tensor, simulate_raw)
-from bmi_sdk.sensor import CFA_PATTERN
+from bmi_sdk.lenses import lens_geometry, lens_tensor
+from bmi_sdk.nn.data import PairCache, dihedral, dihedral_field, simulate_raw
+from bmi_sdk.sensor import BLACK_LEVEL_DN, CFA_PATTERN, WHITE_LEVEL_DN
 
 REFINE_SCHEMA = "bmi-refine-cache/1"
 
