@@ -28,6 +28,8 @@ def register(subparsers) -> None:
     p.add_argument("--init-from", default=None,
                    help="ONNX model whose weights start the run (default for --decoder learned: the shipped "
                         "default.onnx; its new input channels and σ output start at zero)")
+    p.add_argument("--warmup-steps", type=int, default=None,
+                   help="linear learning-rate warm-up (default 0; 200 with --decoder learned)")
     p.add_argument("--refine-sigma", type=float, nargs=2, default=(0.003, 0.012), metavar=("MIN", "MAX"),
                    help="--decoder learned: noise σ range of the decoded training frames (log-uniform)")
     p.add_argument("--seed", type=int, default=0)
@@ -67,8 +69,10 @@ def _run(args) -> int:
 
         refine = RefineSpec(sigma_min=args.refine_sigma[0], sigma_max=args.refine_sigma[1], seed=args.seed)
         init_from = init_from or str(DEFAULT_MODEL)
+    warmup = args.warmup_steps if args.warmup_steps is not None else (200 if args.decoder == "learned" else 0)
     config = TrainConfig(preset=args.preset, steps=args.steps, batch_size=args.batch, lr=args.lr, sigma=sigma,
-                         sigma_max=args.sigma_max, seed=args.seed, cache=spec, refine=refine, init_from=init_from)
+                         sigma_max=args.sigma_max, seed=args.seed, cache=spec, refine=refine, init_from=init_from,
+                         warmup_steps=warmup)
     cache = Path(args.cache or f".bmi_cache/train/{args.lens}-{args.samples}-{args.crop}-s{args.seed}")
     t0 = time.perf_counter()
     build_cache(cache, spec, workers=args.render_workers, scheduler=args.scheduler)
@@ -93,7 +97,7 @@ def _argv(args) -> list[str]:
     if args.lens != "bmi_monocentric":
         out.append(f"--lens {args.lens}")
     for name, default in (("samples", 768), ("crop", 128), ("batch", 8), ("lr", 5e-4), ("decoder", "cnn"),
-                          ("init_from", None), ("seed", 0), ("sigma", None), ("sigma_max", None)):
+                          ("init_from", None), ("warmup_steps", None), ("seed", 0), ("sigma", None), ("sigma_max", None)):
         if getattr(args, name) != default:
             out.append(f"--{name.replace('_', '-')} {getattr(args, name)}")
     if args.decoder == "learned" and tuple(args.refine_sigma) != (0.003, 0.012):

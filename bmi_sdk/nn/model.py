@@ -26,10 +26,15 @@ Departures from MIMO-UNet, each for a reason:
 
 The learned refinement (``--decoder learned``, docs/decoder.md) is this network
 with ``extra_channels`` > 0: the classical decoder's per-pixel channels
-(``decode.features``) are appended to the input and read by the full-resolution
-head only (the coarse SCM branches keep the 6 contract channels), and with
-``sigma_head``: the depth head has a second output, log(σ_d / d), trained with
-a Gaussian likelihood (``losses.sigma_nll_loss``), so it returns a depth 1σ.
+(``decode.features``) are appended to the input, standardised by fixed per-channel
+statistics of the training data (buffers ``extra_mean``, ``extra_std``, exported
+with the weights: the evidence channels sit around 5–8 and would otherwise swamp
+the head's pretrained inputs), and read by the full-resolution head only (the
+coarse SCM branches keep the 6 contract channels), and with
+``sigma_head``: a small head on the depth decoder's features returns log(σ_d / d),
+trained with a Gaussian likelihood (``losses.sigma_nll_loss``). It reads those
+features detached: the likelihood's gradient is large while σ is wrong and would
+otherwise reshape the features the depth output is made from.
 
 With width 32 and 8 residual blocks per stage (``PRESETS["paper"]``) the
 network has 10.08 M parameters, the paper's count.
@@ -199,6 +204,9 @@ class DualHeadMimoUNet(nn.Module):
         w, n = config.width, config.res_blocks
         c_in = INPUT_CHANNELS if config.field_input else RGB_CHANNELS
         self.head = BasicConv(c_in + config.extra_channels, w, 3)
+        if config.extra_channels:
+            self.register_buffer("extra_mean", torch.zeros(1, config.extra_channels, 1, 1))
+            self.register_buffer("extra_std", torch.ones(1, config.extra_channels, 1, 1))
         self.down = nn.ModuleList([BasicConv(w, 2 * w, 3, stride=2), BasicConv(2 * w, 4 * w, 3, stride=2)])
         self.encoder = nn.ModuleList([_res_stack(w, n), _res_stack(2 * w, n), _res_stack(4 * w, n)])
         if config.multi_scale_input:
@@ -210,13 +218,18 @@ class DualHeadMimoUNet(nn.Module):
                                         BasicConv(2 * w, RGB_CHANNELS, 3, relu=False),
                                         BasicConv(w, RGB_CHANNELS, 3, relu=False)])
         self.depth_decoder = Decoder(w, n)
-        self.depth_out = BasicConv(w, 2 if config.sigma_head else 1, 3, relu=False)
+        self.depth_out = BasicConv(w, 1, 3, relu=False)
+        if config.sigma_head:
+            self.sigma_out = nn.Sequential(BasicConv(w, w, 3), BasicConv(w, 1, 3, relu=False))
 
     def forward(self, coded: torch.Tensor):
         x = coded[:, :INPUT_CHANNELS] if self.config.field_input else coded[:, :RGB_CHANNELS]
         x2 = _half(x)
         x4 = _half(x2)
-        head_in = torch.cat([x, coded[:, INPUT_CHANNELS:]], dim=1) if self.config.extra_channels else x
+        if self.config.extra_channels:
+            head_in = torch.cat([x, (coded[:, INPUT_CHANNELS:] - self.extra_mean) / self.extra_std], dim=1)
+        else:
+            head_in = x
         e1 = self.encoder[0](self.head(head_in))
         z = self.down[0](e1)
         if self.config.multi_scale_input:
@@ -233,10 +246,10 @@ class DualHeadMimoUNet(nn.Module):
         aif = [self.image_out[0](f4) + x4[:, :RGB_CHANNELS], self.image_out[1](f2) + x2[:, :RGB_CHANNELS],
                self.image_out[2](f1) + x[:, :RGB_CHANNELS]]
         _, _, g1 = self.depth_decoder(e3, skip2, skip1)
-        out = self.depth_out(g1)
-        depth_m = DEPTH_REF_M * torch.exp(out[:, :1])
+        depth_m = DEPTH_REF_M * torch.exp(self.depth_out(g1))
         if self.config.sigma_head:
-            return aif, depth_m, depth_m * torch.exp(out[:, 1:].clamp(LOG_SIGMA_MIN, LOG_SIGMA_MAX))
+            log_rel_sigma = self.sigma_out(g1.detach()).clamp(LOG_SIGMA_MIN, LOG_SIGMA_MAX)
+            return aif, depth_m, depth_m * torch.exp(log_rel_sigma)
         return aif, depth_m
 
 

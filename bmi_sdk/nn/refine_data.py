@@ -178,6 +178,15 @@ class RefinePairs:
     def __len__(self) -> int:
         return len(self.renders)
 
+    def feature_stats(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-channel mean and standard deviation (float32, std ≥ 1e-3) of the stored classical channels, the
+        fixed standardisation the refinement network applies to them."""
+        feats = self.arrays["features"]
+        mean = np.array([feats[:, c].mean(dtype=np.float64) for c in range(feats.shape[1])])
+        sq = np.array([np.square(feats[:, c], dtype=np.float64).mean() for c in range(feats.shape[1])])
+        std = np.sqrt(np.maximum(sq - mean ** 2, 1e-6))
+        return mean.astype(np.float32), std.astype(np.float32)
+
     def pair(self, index: int, rng: np.random.Generator, augment: bool = True):
         """(input (6 + C)×S×S, AiF 3×S×S, range 1×S×S, valid 1×S×S) float32 of one decoded pair."""
         spec, r = self.spec, self.renders.arrays

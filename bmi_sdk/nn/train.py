@@ -54,6 +54,7 @@ class TrainConfig:
     cache: CacheSpec = field(default_factory=CacheSpec)
     refine: RefineSpec | None = None  # set: the learned refinement (classical channels in, σ out)
     init_from: str | None = None      # an ONNX model whose weights start the run (``init_from_onnx``)
+    warmup_steps: int = 0             # linear learning-rate warm-up (a warm-started refinement needs one)
 
     def __post_init__(self):
         check_noise_range(self.sigma, self.sigma_max)
@@ -78,9 +79,12 @@ def default_device() -> torch.device:
 
 
 def learning_rate(config: TrainConfig, step: int) -> float:
-    """Cosine decay from ``config.lr`` at step 0 to ``LR_FINAL`` at the last step."""
+    """Cosine decay from ``config.lr`` at step 0 to ``LR_FINAL`` at the last step, scaled up linearly over the
+    first ``warmup_steps`` (Adam's first steps move every weight by ~lr whatever its gradient: on a warm-started
+    network that undoes what it had learnt)."""
     t = step / max(config.steps - 1, 1)
-    return LR_FINAL + 0.5 * (config.lr - LR_FINAL) * (1 + math.cos(math.pi * min(t, 1.0)))
+    lr = LR_FINAL + 0.5 * (config.lr - LR_FINAL) * (1 + math.cos(math.pi * min(t, 1.0)))
+    return lr * min(1.0, (step + 1) / config.warmup_steps) if config.warmup_steps else lr
 
 
 def network_config(config: TrainConfig, extra_channels: int = 0) -> ModelConfig:
@@ -93,8 +97,8 @@ def network_config(config: TrainConfig, extra_channels: int = 0) -> ModelConfig:
 
 def init_from_onnx(net: DualHeadMimoUNet, onnx_path: str | Path) -> int:
     """Copy the weights of an exported model (initializers ``net.<parameter>``) into ``net``; returns how many
-    tensors were copied. Where ``net`` is wider, the extra input channels of the head and the σ output of
-    the depth head start at zero (the σ bias at log 0.2), so ``net`` computes what the exported model does."""
+    tensors were copied. Where ``net`` is wider, the extra input channels of the head start at zero and the
+    σ head's output at log 0.2, so ``net`` computes what the exported model does."""
     import onnx
     from onnx import numpy_helper
 
@@ -102,7 +106,9 @@ def init_from_onnx(net: DualHeadMimoUNet, onnx_path: str | Path) -> int:
     state = net.state_dict()
     # the exported graph keeps only the full-resolution AiF output: the coarse outputs' convolutions are
     # not in it and keep their seeded initialisation (they feed only the multi-scale training loss)
-    missing = [k for k in state if k not in weights and not k.startswith(("image_out.0.", "image_out.1."))]
+    # the refinement's input statistics are set from its own training data (``Trainer``), not copied
+    missing = [k for k in state if k not in weights
+               and not k.startswith(("image_out.0.", "image_out.1.", "extra_mean", "extra_std", "sigma_out."))]
     if missing:
         raise ValueError(f"{onnx_path} lacks {len(missing)} of the network's tensors (e.g. {missing[0]}): "
                          "another architecture")
@@ -118,14 +124,13 @@ def init_from_onnx(net: DualHeadMimoUNet, onnx_path: str | Path) -> int:
             elif name == "head.0.weight" and src.shape[1] < target.shape[1] and src.shape[0] == target.shape[0]:
                 target.zero_()
                 target[:, :src.shape[1]] = src
-            elif name.startswith("depth_out.0.") and src.shape[0] == 1 and target.shape[0] == 2:
-                target.zero_()
-                target[:1] = src
-                if name.endswith("bias"):
-                    target[1] = math.log(0.2)
             else:
                 raise ValueError(f"{onnx_path}: tensor {name} has shape {tuple(src.shape)}, "
                                  f"the network {tuple(target.shape)}")
+    if "sigma_out.1.0.weight" in state:
+        with torch.no_grad():
+            state["sigma_out.1.0.weight"].zero_()
+            state["sigma_out.1.0.bias"].fill_(math.log(0.2))
     return copied
 
 
@@ -143,6 +148,10 @@ class Trainer:
         self.net = DualHeadMimoUNet(network_config(config, extra))
         if config.init_from is not None:
             init_from_onnx(self.net, config.init_from)
+        if extra:
+            mean, std = self.data.feature_stats()
+            self.net.extra_mean.copy_(torch.from_numpy(mean).reshape(1, -1, 1, 1))
+            self.net.extra_std.copy_(torch.from_numpy(std).reshape(1, -1, 1, 1))
         self.net.to(self.device)
         self.opt = torch.optim.Adam(self.net.parameters(), lr=config.lr, betas=config.betas)
         self.step_index = 0
