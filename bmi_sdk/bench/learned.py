@@ -1,0 +1,116 @@
+"""`bmi bench learned`: the learned refinement against its own classical stage on textured planes, and its cost.
+
+* Planes: the textured fronto-parallel planes of ``bmi bench decoder`` (1–8 m, θ 0° and 50°, σ 0.005,
+  the nominal tensor kernels render and decode), decoded by the classical decoder with the learned
+  model's knobs and by the learned refinement on top of it: depth AbsRel per distance.
+* Cost: CPU and wall seconds per 192² tile of each stage (classical, network), median of the plane runs.
+* ``--full``: a 6000×4500 procedural frame through ``bmi infer --decoder learned``'s runtime path
+  (classical stage over the whole frame, then the network tile by tile): wall and CPU time per stage.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from . import cpu_seconds, markdown_table, peak_rss_mb, register_target
+from .decoder import PLANE_DEPTHS_M, PLANE_FIELDS_DEG, classical_depth, plane_absrel
+
+
+def _learned_depth(tiles, geometry, costs: dict):
+    """``plane_absrel``'s ``decode`` for a ``nn.evaluate.NetworkTiles`` refinement, timing its two stages."""
+    from bmi_sdk.decode.features import refinement_features
+    from bmi_sdk.model_io import network_input, raw_to_rgb, window_cfa
+    from bmi_sdk.sensor import BLACK_LEVEL_DN, CFA_PATTERN, WHITE_LEVEL_DN
+
+    def decode(raw, row0, col0):
+        w0, c0 = time.perf_counter(), cpu_seconds()
+        decoded = tiles.stage.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0)
+        w1, c1 = time.perf_counter(), cpu_seconds()
+        seen = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, window_cfa(CFA_PATTERN, row0, col0))
+        x = np.concatenate([network_input(seen, geometry, row0, col0),
+                            refinement_features(decoded, tiles.stage.config.stride_px)[None]], axis=1)
+        _, depth, _ = tiles.model.run(np.ascontiguousarray(x, np.float32))
+        costs.setdefault("classical", []).append((w1 - w0, c1 - c0))
+        costs.setdefault("network", []).append((time.perf_counter() - w1, cpu_seconds() - c1))
+        return depth[0, 0], decoded.valid
+
+    return decode
+
+
+def _full_frame(model_path, nominal, geometry) -> str:
+    from bmi_sdk.built_camera import BuiltCamera
+    from bmi_sdk.nn.data import STANDARD_SIGMA, simulate_raw
+    from bmi_sdk.render import PsfMap, render_coded
+    from bmi_sdk.runtime.learned import learned_decoder
+    from bmi_sdk.runtime.model import Model
+    from bmi_sdk.runtime.pipeline import infer_raw
+    from bmi_sdk.decode.features import refinement_features
+    from bmi_sdk.scenes import generate_scene
+    from bmi_sdk.sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, relative_illumination
+
+    h, w = geometry.height_px, geometry.width_px
+    scene = generate_scene(h, w, np.random.default_rng(7))
+    optical = render_coded(scene.rgb, scene.range_m, nominal, geometry, 0, 0,
+                           psf_map=PsfMap(nominal, geometry, mode="tensor"))
+    optical *= relative_illumination(geometry, 0, 0, h, w)[..., None]
+    raw = simulate_raw(optical, STANDARD_SIGMA, np.random.default_rng(7))
+    del optical
+    model = Model(model_path)
+    decoder = learned_decoder(model, BuiltCamera(geometry=geometry))
+    w0, c0 = time.perf_counter(), cpu_seconds()
+    decoded = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry)
+    features = refinement_features(decoded, decoder.config.stride_px)
+    w1, c1 = time.perf_counter(), cpu_seconds()
+    result = infer_raw(model, raw, black_level_dn=BLACK_LEVEL_DN, white_level_dn=WHITE_LEVEL_DN, geometry=geometry,
+                       extra=features)
+    w2, c2 = time.perf_counter(), cpu_seconds()
+    ok = result.valid & np.isfinite(scene.range_m)
+    absrel = float(np.mean(np.abs(result.depth_m[ok] - scene.range_m[ok]) / scene.range_m[ok]))
+    rows = [["classical stage + channels", f"{w1 - w0:.1f}", f"{c1 - c0:.1f}"],
+            ["network (tiles)", f"{w2 - w1:.1f}", f"{c2 - c1:.1f}"], ["total", f"{w2 - w0:.1f}", f"{c2 - c0:.1f}"]]
+    return "\n".join([f"Full 6000×4500 procedural frame (seed 7, tensor-mode render), learned decoder "
+                      f"{model_path.name}; peak RSS {peak_rss_mb():.0f} MB (render included); depth AbsRel over "
+                      f"{int(ok.sum())} valid pixels {absrel:.3f}.", "",
+                      markdown_table(["stage", "wall s", "CPU s"], rows)])
+
+
+def run(full: bool = False) -> str:
+    from bmi_sdk.decode import ClassicalDecoder
+    from bmi_sdk.lenses import lens_geometry, lens_tensor
+    from bmi_sdk.nn.evaluate import NetworkTiles
+    from bmi_sdk.render import PsfMap
+    from bmi_sdk.runtime.learned import model_classical_config
+    from bmi_sdk.runtime.model import LEARNED_MODEL
+
+    nominal = lens_tensor("bmi_monocentric")
+    geometry = lens_geometry("bmi_monocentric")
+    psf_map = PsfMap(nominal, geometry, mode="tensor")
+    tiles = NetworkTiles(LEARNED_MODEL, 192, 2, psf_map)
+    classical = ClassicalDecoder.for_psf_map(psf_map, model_classical_config(tiles.model))
+    costs: dict = {}
+    learned = _learned_depth(tiles, geometry, costs)
+    rows = []
+    for depth_m in PLANE_DEPTHS_M:
+        row = [f"{depth_m:g} m"]
+        for field_deg in PLANE_FIELDS_DEG:
+            row += [plane_absrel(nominal, geometry, classical_depth(classical, geometry), field_deg, depth_m),
+                    plane_absrel(nominal, geometry, learned, field_deg, depth_m)]
+        rows.append(row)
+    head = ["range"] + [f"θ {f:g}° {d}" for f in PLANE_FIELDS_DEG for d in ("classical", "learned")]
+    out = [f"Textured fronto-parallel planes (192² window, φ 30°, σ 0.005, nominal tensor kernels render and "
+           f"decode), {LEARNED_MODEL.name} against its classical stage: depth AbsRel", "",
+           markdown_table(head, rows), ""]
+    cost_rows = [[stage, f"{np.median([w for w, _ in v]):.2f}", f"{np.median([c for _, c in v]):.2f}"]
+                 for stage, v in costs.items()]
+    out += ["Cost per 192² tile (median over the plane runs):", "", markdown_table(["stage", "wall s", "CPU s"],
+                                                                                   cost_rows)]
+    if full:
+        out += ["", _full_frame(LEARNED_MODEL, nominal, geometry)]
+    return "\n".join(out)
+
+
+def register(subparsers) -> None:
+    register_target(subparsers, "learned", "learned refinement: planes against its classical stage, cost, full frame",
+                    __doc__, "Learned refinement", run)
