@@ -163,3 +163,13 @@ def test_a_learned_model_with_another_candidate_grid_is_refused(tmp_path, identi
     model = Model(tmp_path / "m.onnx", tile_px=64, warmup=False)
     with pytest.raises(ValueError, match=f"reads {6 + _channels()} channels"):
         learned_decoder(model, BuiltCamera(geometry=lens_geometry("bmi_monocentric")))
+
+
+def test_a_job_without_a_decoder_runs_the_kind_of_model_it_is_given(identity_model, passthrough_model):
+    from bmi_sdk.runtime.job import DEFAULT_DECODER, decoder_for
+
+    assert decoder_for(None, model_path=identity_model) == "learned"
+    assert decoder_for(None, model_path=passthrough_model) == "cnn"
+    assert decoder_for(None) == DEFAULT_DECODER and decoder_for("classical", model_path=identity_model) == "classical"
+    with pytest.raises(ValueError, match="unknown decoder 'nope'"):
+        decoder_for("nope")

@@ -20,9 +20,11 @@ def _run(args) -> int:
     from bmi_sdk.cli._infer_many import infer_many, wants_batch
     from bmi_sdk.cli._logging import command_logger
     from bmi_sdk.runtime import run_job
+    from bmi_sdk.runtime.job import decoder_for
 
     if args.depth_range is not None:
         args.depth_range = depth_range(args.depth_range)
+    args.decoder = decoder_for(args.decoder, model_path=args.model)
     if args.provider is not None:  # an unavailable provider fails here, naming the available ones, before any work
         from bmi_sdk.runtime.model import choose_providers
 
@@ -113,11 +115,11 @@ def register(subparsers) -> None:
                    help="fixed range (metres) of depth_preview.png's colours, e.g. 0.7,10, so that frames compare "
                         "(default: each frame's 1st-99th percentile)")
     p.add_argument("--ply-step", type=int, default=1, help="one point per N×N pixels in points.ply (default 1)")
-    p.add_argument("--decoder", choices=("cnn", "classical", "learned"), default=DEFAULT_DECODER,
+    p.add_argument("--decoder", choices=("cnn", "classical", "learned"), default=None,
                    help=f"cnn: the shipped end-to-end network; classical: depth evidence from the camera's own "
                         f"(calibrated) kernels, no network, writes the depth 1σ; learned: the classical evidence "
-                        f"refined by a network (learned.onnx), with a depth 1σ (default {DEFAULT_DECODER}; "
-                        f"docs/decoder.md)")
+                        f"refined by a network (learned.onnx), with a depth 1σ (default: the kind of --model, "
+                        f"else {DEFAULT_DECODER}; docs/decoder.md)")
     p.add_argument("--window-px", type=int, default=64, help="classical: evidence window (default 64)")
     p.add_argument("--stride-px", type=int, default=16, help="classical: window stride (default 16)")
     p.add_argument("--candidates", type=int, default=48,

@@ -100,14 +100,30 @@ DEFAULT_DECODER = "cnn"
 (docs/results.md, "Decoders")."""
 
 
-def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = False, decoder: str = DEFAULT_DECODER,
+def decoder_for(decoder: str | None, model=None, model_path=None) -> str:
+    """The decoder a job runs: ``decoder`` if named; else the kind of the model given (its manifest's
+    ``decoder``: a refinement model implies ``learned``, an end-to-end one ``cnn``); else ``DEFAULT_DECODER``."""
+    if decoder is not None:
+        if decoder not in DECODERS:
+            raise ValueError(f"unknown decoder {decoder!r}; one of {DECODERS}")
+        return decoder
+    if model is not None:
+        return model.decoder
+    if model_path is not None:
+        from ..model_manifest import model_decoder, read_manifest
+
+        return model_decoder(read_manifest(model_path))
+    return DEFAULT_DECODER
+
+
+def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = False, decoder: str | None = None,
             input_path: str | os.PathLike | None = None, **options) -> tuple[InferenceResult, dict]:
     """Read (if a path), decode, write outputs and ``report.json`` into ``out_dir``; return (result, report).
 
     ``decoder``: ``cnn`` (the shipped end-to-end network; ``options`` are ``_job_into``'s),
     ``classical`` (``runtime.classical``: the evidence of the camera's own kernels, no network,
     writes the depth 1σ too; ``options`` are ``_classical_into``'s) or ``learned`` (the classical
-    stage, then the refinement network; ``options`` are ``_learned_into``'s). The outputs are one set
+    stage, then the refinement network; ``options`` are ``_learned_into``'s); None: ``decoder_for``. The outputs are one set
     (``OutputSet``): ``out_dir`` is checked before any work (writable; no earlier results
     unless ``overwrite``) and changes only once every file is written.
 
@@ -115,8 +131,7 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = Fals
     the input path: ``frame_or_path`` when it is a path, else ``input_path`` (the file a caller
     read the frame from), else None.
     """
-    if decoder not in DECODERS:
-        raise ValueError(f"unknown decoder {decoder!r}; one of {DECODERS}")
+    decoder = decoder_for(decoder, options.get("model"), options.get("model_path"))
     job = {"cnn": _job_into, "classical": _classical_into, "learned": _learned_into}[decoder]
     with OutputSet(out_dir, overwrite=overwrite) as output_set:
         result, report = job(frame_or_path, output_set.staging, **options)
