@@ -173,3 +173,20 @@ def test_a_job_without_a_decoder_runs_the_kind_of_model_it_is_given(identity_mod
     assert decoder_for(None) == DEFAULT_DECODER and decoder_for("classical", model_path=identity_model) == "classical"
     with pytest.raises(ValueError, match="unknown decoder 'nope'"):
         decoder_for("nope")
+
+
+def test_the_shipped_refinement_is_the_default_decoder(tmp_path):
+    """`bmi infer` with no decoder named decodes with the packaged learned.onnx: verified, its classical knobs
+    give the channels its graph reads, and it writes depth with a positive 1σ inside the image circle."""
+    from bmi_sdk.runtime.model import LEARNED_MODEL
+
+    manifest = verify_model(LEARNED_MODEL)
+    assert manifest["decoder"] == "learned" and manifest["calibration_id"] is None
+    _bmi("simulate", "--procedural", 5, "--size", 96, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
+         "--out", tmp_path / "f.dng")
+    _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--quiet")
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert report["decoder"] == "learned" and report["model"]["sha256"] == manifest["sha256"]
+    depth, sigma = np.load(tmp_path / "o" / "depth.npy"), np.load(tmp_path / "o" / "depth_sigma.npy")
+    ok = np.isfinite(depth)
+    assert ok.mean() > 0.9 and np.all((depth[ok] > 0.1) & (depth[ok] < 100)) and np.all(sigma[ok] > 0)
