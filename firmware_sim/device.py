@@ -5,6 +5,13 @@ sockets: ``firmware_sim.endpoint`` serves it over a stream (TCP or an
 in-process socket pair). One host at a time may hold the device (``claim``),
 as with a real camera; when it lets go (``release``), the registers it could
 write return to their defaults, so one host's settings never reach the next.
+
+The device knows nothing of sockets, but a holder (the endpoint's session) may
+say whether its host has hung up (``Holder.host_gone``): a session notices
+that on its own thread, which a loaded machine may run late, and until then
+the camera would refuse the next host (the same host, reopening) with BUSY.
+``claim`` therefore ends such a session on the spot, and ``held_by`` fences
+it: a session that lost the camera cannot touch it any more.
 """
 
 from __future__ import annotations
@@ -13,7 +20,8 @@ import math
 import threading
 import time
 from dataclasses import dataclass
-from typing import Callable
+from contextlib import contextmanager
+from typing import Callable, Iterator, Protocol
 
 import numpy as np
 
@@ -23,7 +31,7 @@ from bmi_sdk.protocol.wire import FLAG_TEST_PATTERN, HEARTBEAT_S, MODEL_NAME, Fr
 from bmi_sdk.sensor import CFA_PATTERN, SensorModel
 
 from .faults import FaultInjector, FaultPlan
-from .readout import Readout
+from .readout import Readout, ReadoutCancelled
 from .register_file import RegisterFile
 from .sources import IrradianceSource, PolarChart
 
@@ -34,6 +42,25 @@ def lens_identity(name: str = "bmi_monocentric") -> dict:
 
     lens = get_lens(name)  # "fisheye" is the baseline matched to the monocentric lens
     return {"name": lens.name, "sha256": lens.sha256()}
+
+
+class NotHeld(RuntimeError):
+    """A session acted on the device after it lost it (its host hung up and another host took the camera)."""
+
+
+class Holder(Protocol):
+    """A host's session as the device sees it; both methods are optional (an object without them is a holder
+    whose host is never taken for gone)."""
+
+    def host_gone(self) -> bool:
+        """Whether the host has hung up, though the session may not have noticed yet. Called under the
+        device's lock: it must not block."""
+
+    def revoke(self) -> None:
+        """The camera went to another host: abandon the work in flight. Called under the device's lock."""
+
+
+_ANONYMOUS = object()  # the holder of ``claim()`` without one
 
 
 @dataclass
@@ -65,27 +92,58 @@ class FirmwareDevice:
         self._readout = Readout(geometry, model)
         self._source = source if source is not None else PolarChart(geometry)
         self._lock = threading.RLock()
-        self._claimed = False
+        self._readout_lock = threading.Lock()  # one readout at a time, also while a revoked one winds down
+        self._holder: object | None = None
         self._boot_ns = time.monotonic_ns()
 
     # -- ownership ------------------------------------------------------------
-    def claim(self) -> bool:
+    def claim(self, holder: Holder | None = None) -> bool:
+        """Take the device for ``holder`` (a host's session); False while another live session holds it.
+
+        A current holder whose ``host_gone()`` says its host has hung up is released first, as if its
+        session had ended (registers reset), and revoked: a host that closes and reopens at once, or comes
+        back after a crash, is not refused BUSY by its own dead session. A live host keeps the camera.
+        """
         with self._lock:
-            if self._claimed:
-                return False
-            self._claimed = True
+            current = self._holder
+            if current is not None:
+                gone = getattr(current, "host_gone", None)
+                if gone is None or not gone():
+                    return False
+                self._end_session()
+                revoke = getattr(current, "revoke", None)
+                if revoke is not None:
+                    revoke()
+            self._holder = _ANONYMOUS if holder is None else holder
             return True
 
     @property
     def claimed(self) -> bool:
         """Whether a host holds the device now."""
-        return self._claimed
+        return self._holder is not None
 
-    def release(self) -> None:
-        """The host let go (closed or lost the link): the session registers return to their defaults."""
+    def release(self, holder: Holder | None = None) -> bool:
+        """``holder`` lets go (its host closed or lost the link): the session registers return to their
+        defaults. A holder that no longer holds the device (another host took it after this one hung up)
+        releases nothing; False then."""
         with self._lock:
-            self._claimed = False
-            self.regs.reset_session()
+            if self._holder is None or self._holder is not (_ANONYMOUS if holder is None else holder):
+                return False
+            self._end_session()
+            return True
+
+    def _end_session(self) -> None:
+        self._holder = None
+        self.regs.reset_session()
+
+    @contextmanager
+    def held_by(self, holder: Holder) -> Iterator[None]:
+        """Hold the device's lock while ``holder`` holds the device; ``NotHeld`` if it does not (any more).
+        A session acts on the device inside this, so it cannot reach the next host's session."""
+        with self._lock:
+            if self._holder is not holder:
+                raise NotHeld("the camera went to another host after this session's host hung up")
+            yield
 
     # -- world ----------------------------------------------------------------
     def load_source(self, source: IrradianceSource) -> None:
@@ -139,8 +197,15 @@ class FirmwareDevice:
         """Expose and read one frame with the current registers; FRAME_COUNTER advances when it is done.
 
         ``cancel`` abandons the readout between strips (``ReadoutCancelled``; the frame id is not used
-        up); ``progress(frame_id, rows_done, rows_total)`` is called between strips.
+        up); ``progress(frame_id, rows_done, rows_total)`` is called between strips. Readouts run one at
+        a time (a session revoked mid-readout winds down before the next host's readout starts).
         """
+        with self._readout_lock:
+            if cancel is not None and cancel.is_set():  # cancelled while another readout ran
+                raise ReadoutCancelled("readout cancelled before it started")
+            return self._read_out(cancel, progress)
+
+    def _read_out(self, cancel, progress) -> ReadoutResult:
         with self._lock:
             regs = self.regs
             frame_id = regs.get("FRAME_COUNTER")

@@ -17,6 +17,16 @@ saying why, so one idle or trickling client cannot lock the camera; with a
 token, nothing but AUTH is accepted before the token matches, and an
 unauthenticated connection never holds the camera. Every blocking call has a
 timeout and every loop checks a stop event, so nothing can hang.
+
+A session notices that its host hung up on its own thread, which a loaded
+machine may run late; a host that reconnects at once must not get BUSY from its
+own dead session. So when a connection finds the camera held, the device asks
+the holding session whether its host is still there (``host_gone``: the
+socket has seen end of stream or a reset, polled without reading) and, if not,
+ends that session on the spot. BUSY is kept for a host that is still connected.
+The session that lost the camera acts on the device only through
+``FirmwareDevice.held_by``, so a command its host left behind, a readout or a
+late teardown never reaches the next host's session.
 """
 
 from __future__ import annotations
@@ -36,11 +46,14 @@ from bmi_sdk.protocol.wire import (ACK, CRC, DEFAULT_IDLE_TIMEOUT_S, ENVELOPE, H
                                    REG_ACCESS, REG_REPLY, U32, Msg, WireError, check_host_body, envelope, error_body,
                                    json_body, parse_envelope, tcp_uri)
 
-from .device import FirmwareDevice
+from .device import FirmwareDevice, NotHeld
 from .faults import Fault
 
 SEND_TIMEOUT_S = 10.0
 POLL_S = 0.05
+# The peer shut its sending side (Linux); elsewhere only a full hang-up (POLLHUP) or a reset counts.
+_POLLRDHUP = getattr(select, "POLLRDHUP", 0)
+_HUNG_UP = select.POLLHUP | select.POLLERR | select.POLLNVAL | _POLLRDHUP
 
 
 # -- readouts off the connection thread ---------------------------------------------
@@ -139,9 +152,8 @@ class _Connection:
         self.remaining = 0  # frames still to send; -1: until STOP
         self._rx = bytearray()
         self._authed = token is None
-        self._claimed = False
         self._job: _ReadoutJob | None = None
-        self._held: tuple | None = None  # (send at, header, payload, crc): a frame a STALL fault holds back
+        self._held: tuple | None = None  # (send at, FRAME message chunks): a frame a STALL fault holds back
         self._quiet_since = time.monotonic()
         self._last_beat = 0.0
         self._wake_r, self._wake_w = socket.socketpair()
@@ -164,17 +176,35 @@ class _Connection:
                     self._commands()
                 self._check_idle()
                 self._acquire()
-        except (OSError, ConnectionError, WireError, _Drop):
-            pass  # host gone, or the device dropped it (after saying why)
+        except (OSError, ConnectionError, WireError, _Drop, NotHeld):
+            pass  # host gone, the device dropped it (after saying why), or the camera went to the next host
         finally:
             self._end_readout()
-            if self._claimed:
-                self.device.release()
+            self.device.release(self)  # nothing, if it never held the camera or the next host took it
             self._close()
 
+    # -- the device asks these (under its lock) when another host wants the camera --------
+    def host_gone(self) -> bool:
+        """Whether the host has hung up (end of stream or a reset), though this session's thread may not
+        have noticed yet. Polls the socket without reading or waiting."""
+        try:
+            fd = self.sock.fileno()
+            if fd < 0:
+                return True
+            poller = select.poll()
+            poller.register(fd, select.POLLIN | _POLLRDHUP)
+            return any(events & _HUNG_UP for _, events in poller.poll(0))
+        except (OSError, ValueError):
+            return True
+
+    def revoke(self) -> None:
+        """The camera went to another host: abandon the readout in flight (this thread ends at its next look)."""
+        job = self._job
+        if job is not None:
+            job.cancel.set()
+
     def _claim(self) -> bool:
-        if self.device.claim():
-            self._claimed = True
+        if self.device.claim(self):
             return True
         self._reply(Msg.BUSY, json_body({"reason": f"device {self.device.describe()['serial']} is held by "
                                                    f"another host"}))
@@ -245,33 +275,40 @@ class _Connection:
         if not self._authed:
             self._error("auth_required", f"this camera needs a token: send AUTH before {msg.name}", msg)
             raise _Drop
+        with self.device.held_by(self):  # NotHeld: the host hung up and the camera went to the next one
+            reply = self._answer(msg, body)
+        self._reply(*reply)
+
+    def _answer(self, msg: Msg, body: bytes) -> tuple[Msg, bytes]:
+        """Carry out a command on the device (under its lock) and return the reply to send."""
         dev = self.device
         if msg == Msg.HELLO:
             link = {"idle_timeout_s": self.idle_timeout_s, "token_required": self.token is not None}
-            self._reply(Msg.HELLO, json_body(dev.describe() | {"link": link}))
-        elif msg == Msg.PING:
-            self._reply(Msg.ACK, ACK.pack(Msg.PING, 0))
-        elif msg == Msg.READ_REG:
+            return Msg.HELLO, json_body(dev.describe() | {"link": link})
+        if msg == Msg.PING:
+            return Msg.ACK, ACK.pack(Msg.PING, 0)
+        if msg == Msg.READ_REG:
             (address,) = U32.unpack(body)
             err, value = dev.read_register(address)
-            self._reply(Msg.REG_REPLY, REG_REPLY.pack(address, err, value))
-        elif msg == Msg.WRITE_REG:
+            return Msg.REG_REPLY, REG_REPLY.pack(address, err, value)
+        if msg == Msg.WRITE_REG:
             address, value = REG_ACCESS.unpack(body)
             err = dev.write_register(address, value)
             current = dev.read_register(address)[1] if err != RegError.UNKNOWN_ADDRESS else 0
-            self._reply(Msg.REG_REPLY, REG_REPLY.pack(address, err, current))
-        elif msg == Msg.START:
+            return Msg.REG_REPLY, REG_REPLY.pack(address, err, current)
+        if msg == Msg.START:
             (count,) = U32.unpack(body)
             self.remaining = count if count else -1
             dev.set_acquiring(True)
-            self._reply(Msg.ACK, ACK.pack(Msg.START, 0))
-        elif msg == Msg.STOP:
+            return Msg.ACK, ACK.pack(Msg.START, 0)
+        if msg == Msg.STOP:
             self.remaining = 0
             self._held = None  # a frame held back is discarded: nothing follows the ACK of STOP
             if self._job is not None:
                 self._job.cancel.set()
             dev.set_acquiring(False)
-            self._reply(Msg.ACK, ACK.pack(Msg.STOP, 0))
+            return Msg.ACK, ACK.pack(Msg.STOP, 0)
+        raise AssertionError(f"{msg.name} passed check_host_body but has no handler")
 
     def _authenticate(self, token: bytes) -> None:
         if self._authed:
@@ -294,42 +331,48 @@ class _Connection:
             if not job.cancel.is_set():
                 self._finished(job)
         if self._held is not None and now >= self._held[0]:
-            _, header, payload, crc = self._held
+            _, chunks = self._held
             self._held = None
-            self._send(header, payload, crc, Fault.NONE)
+            self._send(chunks)
         if self.remaining and self._job is None and self._held is None:
-            job = _ReadoutJob(self.device, self._wake_w)
-            if not job.start():
-                raise _Drop  # the process is exiting
-            self._job, self._last_beat = job, job.started_s
+            with self.device.held_by(self):  # a readout reads the registers and uses up a frame id
+                job = _ReadoutJob(self.device, self._wake_w)
+                if not job.start():
+                    raise _Drop  # the process is exiting
+                self._job, self._last_beat = job, job.started_s
         elif (self._job is not None and not self._job.cancel.is_set()
               and now - self._last_beat >= self.device.heartbeat_s):
             self._reply(Msg.PROGRESS, PROGRESS.pack(self._job.frame_id, *self._job.work()))
             self._last_beat = now
 
     def _finished(self, job: _ReadoutJob) -> None:
-        if job.error is not None:
-            self.remaining = 0
-            self.device.set_acquiring(False)
-            self._error("readout_failed", f"readout of frame {job.frame_id} failed: "
-                                          f"{type(job.error).__name__}: {job.error}")
-            return
-        header, payload, crc = job.result
-        if self.remaining > 0:
-            self.remaining -= 1
-            if self.remaining == 0:
+        with self.device.held_by(self):  # the acquiring flag and the fault draws are the device's
+            if job.error is not None:
+                self.remaining = 0
                 self.device.set_acquiring(False)
-        injector = self.device.injector
-        fault = injector.draw(header.frame_id)
-        if fault == Fault.DROP:
+                failure = f"readout of frame {job.frame_id} failed: {type(job.error).__name__}: {job.error}"
+            else:
+                failure = None
+                header, payload, crc = job.result
+                if self.remaining > 0:
+                    self.remaining -= 1
+                    if self.remaining == 0:
+                        self.device.set_acquiring(False)
+                fault = self.device.injector.draw(header.frame_id)
+                if fault == Fault.DROP:
+                    return
+                if fault == Fault.STALL:
+                    chunks = self._frame_chunks(header, payload, crc, Fault.NONE)
+                    self._held = (time.monotonic() + self.device.injector.plan.stall_s, chunks)
+                    return
+                chunks = self._frame_chunks(header, payload, crc, fault)
+        if failure is not None:
+            self._error("readout_failed", failure)
             return
-        if fault == Fault.STALL:
-            self._held = (time.monotonic() + injector.plan.stall_s, header, payload, crc)
-            return
-        self._send(header, payload, crc, fault)
+        self._send(chunks, hang_up=fault == Fault.DISCONNECT)
 
-    def _send(self, header, payload: bytes, crc: int, fault: Fault) -> None:
-        """Send one frame with its fault applied; a DISCONNECT fault ends the session."""
+    def _frame_chunks(self, header, payload: bytes, crc: int, fault: Fault) -> list:
+        """The bytes of one FRAME message with its fault applied (the damage is the injector's draw)."""
         injector = self.device.injector
         full_len = HEADER.size + len(payload) + CRC.size
         if fault == Fault.CORRUPT:
@@ -339,16 +382,16 @@ class _Connection:
         elif fault in (Fault.INCOMPLETE, Fault.DISCONNECT):
             cut = int(len(payload) * injector.cut_fraction())
             length = full_len if fault == Fault.DISCONNECT else HEADER.size + cut
-            self.sock.sendall(envelope(Msg.FRAME, length=length))
-            self.sock.sendall(header.pack())
-            self.sock.sendall(memoryview(payload)[:cut])
-            if fault == Fault.DISCONNECT:
-                raise _Drop
-            return
-        self.sock.sendall(envelope(Msg.FRAME, length=full_len))
-        self.sock.sendall(header.pack())
-        self.sock.sendall(payload)
-        self.sock.sendall(CRC.pack(crc))
+            return [envelope(Msg.FRAME, length=length), header.pack(), memoryview(payload)[:cut]]
+        return [envelope(Msg.FRAME, length=full_len), header.pack(), payload, CRC.pack(crc)]
+
+    def _send(self, chunks: list, hang_up: bool = False) -> None:
+        """Send one frame (outside the device's lock: a slow host must not hold the camera up);
+        ``hang_up``: a DISCONNECT fault, which ends the session."""
+        for chunk in chunks:
+            self.sock.sendall(chunk)
+        if hang_up:
+            raise _Drop
 
     def _end_readout(self) -> None:
         """Abandon a readout in progress and wait for it (it stops at its next strip)."""

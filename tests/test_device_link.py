@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from bmi_sdk.protocol.registers import BY_NAME
-from bmi_sdk.protocol.wire import ENVELOPE, REG_REPLY, U32, Msg, envelope, parse_envelope
+from bmi_sdk.protocol.wire import ENVELOPE, REG_ACCESS, REG_REPLY, U32, Msg, envelope, parse_envelope
 from devices import (AccessDeniedError, ConfigurationError, DeviceBusyError, DeviceFaultError, GrabTimeoutError,
                      ProtocolError, Roi, open_camera, parse_tcp_address)
 from firmware_sim import FaultPlan, FirmwareDevice, FirmwareServer, FlatField
@@ -157,6 +157,140 @@ def test_session_registers_reset_when_a_host_disconnects():
             assert [cam.read_register(n) for n in ("TEST_PATTERN", "EXPOSURE_US", "BLACK_LEVEL_DN")] == [0, 10_000, 256]
             assert cam.read_register("STATUS") == 0 and cam.read_register("LAST_ERROR") == 0
             assert cam.read_register("FRAME_COUNTER") == 1  # the device's own registers stay
+
+
+def _record_session_ends(monkeypatch):
+    """The list of sessions (server connections) whose thread has finished, appended as each finishes."""
+    from firmware_sim import endpoint
+
+    ended, run = [], endpoint._Connection.run
+
+    def counted_run(conn):
+        try:
+            run(conn)
+        finally:
+            ended.append(conn)
+
+    monkeypatch.setattr(endpoint._Connection, "run", counted_run)
+    return ended
+
+
+class _HeldTeardowns:
+    """Every session's teardown waits for ``gate`` before it lets go of the camera: the worst schedule a
+    loaded machine can give the thread that notices a host hung up. ``ended``: sessions whose thread is done."""
+
+    def __init__(self, monkeypatch):
+        from firmware_sim import endpoint
+
+        self.gate = threading.Event()
+        self.ended = _record_session_ends(monkeypatch)
+        end_readout = endpoint._Connection._end_readout
+
+        def held_end_readout(conn):  # the first step of a session's teardown, before the release
+            self.gate.wait(BOUND_S)
+            end_readout(conn)
+
+        monkeypatch.setattr(endpoint._Connection, "_end_readout", held_end_readout)
+
+
+def _leave_by_close(server):
+    with open_camera(server.uri) as cam:
+        cam.settings.test_pattern = 1
+        cam.settings.exposure_us = 5000
+
+
+def _leave_by_crash(server):  # a host process that dies: the kernel closes its socket, nobody says goodbye
+    sock = socket.create_connection(("127.0.0.1", server.port))
+    sock.sendall(envelope(Msg.HELLO))
+    assert _recv_message(sock)[0] == Msg.HELLO
+    sock.close()
+
+
+def _leave_with_replies_unread(server):  # closed with unread bytes: the kernel sends RST, not FIN
+    sock = socket.create_connection(("127.0.0.1", server.port))
+    sock.sendall(envelope(Msg.HELLO))
+    _wait_for(lambda: len(sock.recv(1 << 16, socket.MSG_PEEK)) > ENVELOPE.size, "the HELLO reply")
+    sock.close()
+
+
+@pytest.mark.parametrize("leave", [_leave_by_close, _leave_by_crash, _leave_with_replies_unread])
+def test_a_host_that_leaves_and_reopens_at_once_gets_the_camera(monkeypatch, leave):
+    """The server notices a hang-up on the session's own thread, which a loaded machine may run late; a host
+    that reopens at once used to get BUSY from its own dead session (`bmi acquire` twice in a row). Here
+    that thread is held until the new host has the camera, so the test fails every time without the fix."""
+    held = _HeldTeardowns(monkeypatch)
+    dev = FirmwareDevice(source=FlatField())
+    with FirmwareServer(dev) as server:
+        try:
+            leave(server)
+            assert dev.claimed and not held.ended  # the old session has not let go, and cannot yet
+            with open_camera(server.uri) as cam:
+                assert [cam.read_register(n) for n in ("TEST_PATTERN", "EXPOSURE_US")] == [0, 10_000]
+                cam.settings.exposure_us = 7000
+                cam.settings.roi = SMALL
+                held.gate.set()  # the old session's teardown runs now: it must not let go of this host's claim
+                _wait_for(lambda: held.ended, "the end of the old session")
+                with pytest.raises(DeviceBusyError):
+                    open_camera(server.uri)  # this host is alive: another still gets BUSY
+                assert cam.read_register("EXPOSURE_US") == 7000 and cam.capture().complete
+        finally:
+            held.gate.set()
+
+
+def test_a_live_idle_host_still_makes_another_host_busy():
+    dev = FirmwareDevice(source=FlatField())
+    with FirmwareServer(dev) as server:
+        with open_camera(server.uri) as cam:  # open, sending nothing
+            with pytest.raises(DeviceBusyError):
+                open_camera(server.uri)
+            cam.settings.exposure_us = 7000
+        quiet = socket.create_connection(("127.0.0.1", server.port))
+        try:
+            quiet.sendall(envelope(Msg.HELLO))
+            assert _recv_message(quiet)[0] == Msg.HELLO  # it holds the camera and goes quiet
+            for _ in range(3):
+                with pytest.raises(DeviceBusyError):
+                    open_camera(server.uri)
+            address = BY_NAME["EXPOSURE_US"].address
+            quiet.sendall(envelope(Msg.READ_REG, U32.pack(address)) + U32.pack(address))
+            msg, body = _recv_message(quiet)  # still its session, the registers reset when the first host left
+            assert msg == Msg.REG_REPLY and REG_REPLY.unpack(body) == (address, 0, 10_000)
+        finally:
+            quiet.close()
+
+
+def test_a_command_the_departed_host_left_behind_does_not_reach_the_next_host(monkeypatch):
+    """A host writes a register and hangs up at once; its session reaches the command only after the next
+    host has the camera. The write must not land in the new host's session."""
+    from firmware_sim import endpoint
+
+    gate, calls = threading.Event(), []
+    commands = endpoint._Connection._commands
+
+    def held_commands(conn):
+        calls.append(conn)
+        if calls.count(conn) == 2:  # the first host's second message: the WRITE_REG it left behind
+            gate.wait(BOUND_S)
+        commands(conn)
+
+    monkeypatch.setattr(endpoint._Connection, "_commands", held_commands)
+    ended = _record_session_ends(monkeypatch)
+    dev = FirmwareDevice(source=FlatField())
+    with FirmwareServer(dev) as server:
+        try:
+            sock = socket.create_connection(("127.0.0.1", server.port))
+            sock.sendall(envelope(Msg.HELLO))
+            assert _recv_message(sock)[0] == Msg.HELLO
+            write = REG_ACCESS.pack(BY_NAME["EXPOSURE_US"].address, 5000)
+            sock.sendall(envelope(Msg.WRITE_REG, write) + write)
+            _wait_for(lambda: len(calls) == 2, "the session reading the WRITE_REG")
+            sock.close()
+            with open_camera(server.uri) as cam:
+                gate.set()
+                _wait_for(lambda: calls[0] in ended, "the end of the old session")
+                assert cam.read_register("EXPOSURE_US") == 10_000
+        finally:
+            gate.set()
 
 
 # -- 3. STOP is answered while the device holds a frame back ---------------------------------------

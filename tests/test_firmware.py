@@ -186,6 +186,41 @@ def test_sources_must_return_the_window_shape():
         _device(source=Broken()).read_out()
 
 
+# -- ownership ----------------------------------------------------------------------
+class _Session:
+    def __init__(self):
+        self.gone = False
+        self.revoked = 0
+
+    def host_gone(self):
+        return self.gone
+
+    def revoke(self):
+        self.revoked += 1
+
+
+def test_a_session_whose_host_hung_up_gives_way_and_loses_the_camera_for_good():
+    from firmware_sim.device import NotHeld
+
+    dev = _device(source=FlatField())
+    first, second, third = _Session(), _Session(), _Session()
+    assert dev.claim(first) and not dev.claim(second)  # a live host keeps the camera
+    with dev.held_by(first):
+        assert dev.write_register(addr("EXPOSURE_US"), 5000) == RegError.OK
+    first.gone = True  # its host hung up; its session has not noticed yet
+    assert dev.claim(second) and first.revoked == 1
+    assert dev.regs.get("EXPOSURE_US") == 10_000  # reset, as when the first session ends
+    with pytest.raises(NotHeld):
+        with dev.held_by(first):
+            pass
+    assert not dev.release(first) and dev.claimed  # the first session's late teardown lets go of nothing
+    assert not dev.claim(third) and second.revoked == 0
+    assert dev.release(second) and not dev.claimed and dev.claim(third)
+    plain = object()  # a holder with no host_gone is never taken for gone, nor is claim() without one
+    assert dev.release(third) and dev.claim(plain) and not dev.claim(third) and dev.release(plain)
+    assert dev.claim() and not dev.claim(third) and not dev.release(third) and dev.release()
+
+
 # -- faults -------------------------------------------------------------------------
 def test_fault_injection_is_seeded_and_counted():
     plan = FaultPlan(seed=11, drop=0.1, corrupt=0.1, incomplete=0.1, stall=0.05, disconnect=0.05)
