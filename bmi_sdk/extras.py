@@ -7,7 +7,7 @@ extras (``pyproject.toml``; exact versions in ``constraints.txt``):
 
 * ``[train]`` — torch, kornia, onnx (``torch.onnx.export`` needs it; so does
   the MAC count of ``bmi bench infer``), h5py (the NYU Depth V2 loader):
-  ``bmi train``, ``bmi eval``, model export;
+  ``bmi train``, model export;
 * ``[calibrate]`` — jax, jaxlib, jaxopt and matplotlib (the fit's PNG report):
   the fit of ``bmi calibrate``. Reading a calibration file needs none of them;
 * ``[scaleout]`` — dask[distributed]: ``--scheduler``;
