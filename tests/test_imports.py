@@ -22,6 +22,8 @@ def _loaded_after(statement: str, modules: tuple[str, ...]) -> dict:
     ("import bmi_sdk.nn.metrics", ("torch",)),
     ("import bmi_sdk.nn.data", ("torch",)),
     ("import bmi_sdk.runtime", ("torch", "jax", "bmi_sdk.nn", "bmi_sdk.bench", "bmi_sdk.cli")),
+    ("import calibration.io", ("jax", "jaxopt", "calibration.fit")),  # bmi infer --calibration (issue 14)
+    ("import bmi_sdk.scenes", ("h5py", "torch")),  # bmi simulate's procedural scenes
 ])
 def test_import_loads_only_what_it_needs(statement, absent):
     assert _loaded_after(statement, absent) == dict.fromkeys(absent, False)
