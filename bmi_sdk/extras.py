@@ -39,7 +39,11 @@ class MissingExtraError(ModuleNotFoundError):
     def __init__(self, what: str, extra: str, module: str):
         super().__init__(f"{what} needs the [{extra}] extra: pip install 'bmi-sdk[{extra}]' "
                          f"(no module named {module!r})", name=module)
-        self.extra = extra
+        self.what, self.extra = what, extra
+
+    def __reduce__(self):
+        """Pickled by its own arguments, so that it comes back intact from a Dask worker."""
+        return type(self), (self.what, self.extra, self.name)
 
 
 @contextlib.contextmanager

@@ -184,3 +184,15 @@ def test_a_missing_module_no_extra_provides_is_not_blamed_on_an_extra():
         with needs_extra("this"):
             import bmi_sdk_no_such_module  # noqa: F401
     assert not isinstance(info.value, MissingExtraError)
+
+
+def test_a_missing_extra_error_survives_pickling():
+    """It may be raised in a task on a Dask worker and re-raised in the client."""
+    import pickle
+
+    from bmi_sdk.extras import MissingExtraError
+
+    error = pickle.loads(pickle.dumps(MissingExtraError("--scheduler", "scaleout", "dask")))
+    assert str(error) == ("--scheduler needs the [scaleout] extra: pip install 'bmi-sdk[scaleout]' "
+                          "(no module named 'dask')")
+    assert (error.extra, error.name) == ("scaleout", "dask")
