@@ -1,5 +1,6 @@
 # Two entry points (README): `make demo` and `make test`. Both create the virtual
-# environment on first use and install the project with the pinned constraints.
+# environment on first use and install the project with every extra (`.[test]`
+# pulls `[all]`: train, calibrate, scaleout, plot) and the pinned constraints.
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python

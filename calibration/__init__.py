@@ -11,15 +11,23 @@
 The perturbation model itself lives in ``bmi_sdk.optics.perturb`` (re-exported
 here as ``Perturbation``); docs/calibration.md describes the file format.
 
+Only the fit needs jax and jaxopt (the ``[calibrate]`` extra): ``FitResult``
+and ``fit_calibration`` are imported on first use (PEP 562), so reading and
+validating a calibration file, and the runtime's calibrated camera
+(``bmi infer --calibration``), work in a decode-only install. Without the
+extra, the first use raises ``MissingExtraError`` naming it.
+
 Importing the package changes no process-wide state: jax switches to float64
 only inside the fit (``model.float64``), and jaxopt's "no longer maintained"
 warning is silenced only around its import (``model._solver_module``).
 """
 
+import importlib
+
+from bmi_sdk.extras import needs_extra
 from bmi_sdk.optics.perturb import PARAMETERS, UNITS, Perturbation
 
 from .extract import Extraction, Spot, extract_spots
-from .fit import FitResult, fit_calibration
 from .io import SCHEMA, Calibration, load_calibration, write_calibration
 from .targets import (CalibrationError, CapturePlan, Captures, PointSource, PointSourceScene, Target,
                       load_captures, simulate_captures, standard_target)
@@ -30,3 +38,20 @@ __all__ = [
     "extract_spots", "FitResult", "fit_calibration", "SCHEMA", "Calibration", "write_calibration",
     "load_calibration",
 ]
+
+_FIT_NAMES = ("FitResult", "fit_calibration")
+"""Public names of the ``fit`` submodule, which imports jax."""
+
+
+def __getattr__(name: str):
+    """``FitResult`` / ``fit_calibration``, imported from ``fit`` on first use (it needs the [calibrate] extra)."""
+    if name not in _FIT_NAMES:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    with needs_extra(f"calibration.{name}"):
+        value = getattr(importlib.import_module(f"{__name__}.fit"), name)
+    globals()[name] = value  # resolved once
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_FIT_NAMES))

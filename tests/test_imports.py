@@ -30,6 +30,8 @@ def _loaded_after(statement: str, modules: tuple[str, ...]) -> dict:
     ("import devices", ("firmware_sim", "bmi_sdk.optics", "bmi_sdk.render", "scipy", "cv2")),
     ("import firmware_sim", ("bmi_sdk.optics", "bmi_sdk.render", "scipy", "cv2")),
     ("import bmi_sdk.protocol.wire", ("bmi_sdk.geometry", "devices", "firmware_sim", "scipy", "cv2")),
+    ("import calibration.io", ("jax", "jaxopt", "calibration.fit")),  # bmi infer --calibration (issue 14)
+    ("import bmi_sdk.scenes", ("h5py", "torch")),  # bmi simulate's procedural scenes
 ])
 def test_import_loads_only_what_it_needs(statement, absent):
     assert _loaded_after(statement, absent) == dict.fromkeys(absent, False)

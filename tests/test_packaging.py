@@ -9,7 +9,9 @@ run the ``.pth`` files there, so the editable install of the checkout stays
 out, and the test checks that ``bmi_sdk`` is imported from the wheel.
 """
 
+import email
 import os
+import re
 import shutil
 import site
 import subprocess
@@ -78,16 +80,34 @@ def test_installed_wheel_runs_bmi_lens(wheel):
     assert "lens bmi_monocentric" in lens.stdout and "f_number                          1.78858" in lens.stdout
 
 
-NOT_IMPORTED = {"jaxlib": "jax's compiled backend: jax imports it; declared to pin it to jax's version",
+def test_wheel_metadata_asks_only_what_decoding_needs(wheel):
+    """``pip install bmi-sdk`` (no extra) installs neither torch nor jax: the wheel's unconditional
+    requirements hold neither, and each extra is declared."""
+    _, _, whl = wheel
+    with zipfile.ZipFile(whl) as z:
+        (meta,) = [n for n in z.namelist() if n.endswith(".dist-info/METADATA")]
+        headers = email.message_from_bytes(z.read(meta))
+    unconditional = {re.split(r"[<>=!~\[ ;]", r)[0].lower() for r in headers.get_all("Requires-Dist")
+                     if "extra ==" not in r}
+    assert "numpy" in unconditional and "onnxruntime" in unconditional
+    assert unconditional & {"torch", "kornia", "jax", "jaxlib", "jaxopt"} == set()
+    assert {"train", "calibrate", "scaleout", "plot", "all", "test"} <= set(headers.get_all("Provides-Extra"))
+
+
+NOT_IMPORTED = {"jaxlib": "jax's compiled backend: jax imports it; declared beside jax in [calibrate], and "
+                          "constraints.txt pins both to one version",
                 "kornia": "the users' chosen library for image operations on torch tensors; no torch-side image "
                           "operation exists yet (docs/architecture.md, Packaging)"}
 """Declared dependencies the code does not import itself, each with the reason it is declared."""
 
+RUNTIME_EXTRAS = ("train", "calibrate", "scaleout", "plot")
+"""The extras the code uses (``bmi_sdk.extras``); ``all`` and ``test`` only gather them and the test tools."""
+
 
 def test_every_declared_dependency_is_imported():
-    """A dependency nothing imports costs every install and misleads readers: each exception says why."""
+    """A dependency nothing imports costs every install and misleads readers: each exception says why.
+    Checked for the core requirements and for each extra the code uses."""
     import importlib.metadata
-    import re
     import tomllib
 
     import grimp
@@ -99,6 +119,7 @@ def test_every_declared_dependency_is_imported():
     imported = {m.split(".")[0] for m in graph.modules if not m.startswith(PACKAGES)}
     module_dists = importlib.metadata.packages_distributions()
     used = {norm(d) for m in imported for d in module_dists.get(m, ())}
-    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    declared = project["dependencies"] + [r for e in RUNTIME_EXTRAS for r in project["optional-dependencies"][e]]
     names = {norm(re.split(r"[<>=!~\[ ;]", d)[0]) for d in declared}
     assert sorted(names - used - set(NOT_IMPORTED)) == []

@@ -3,8 +3,10 @@
 Every module in this package that defines ``register(subparsers)`` adds its
 subcommands; ``main`` discovers them, so a new command group is one new file.
 Handlers import their heavy dependencies (torch, jax, onnxruntime) inside the
-handler so that ``bmi --help`` stays fast. Diagnostics (warnings, notes, errors)
-go through ``logging`` (``_logging``; ``-v`` / ``-q``), results to stdout.
+handler so that ``bmi --help`` stays fast, and so that a command needs only the
+extras it uses (``bmi_sdk.extras``): one that reaches for a missing extra stops
+with one line naming it. Diagnostics (warnings, notes, errors) go through
+``logging`` (``_logging``; ``-v`` / ``-q``), results to stdout.
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ import argparse
 import importlib
 import pkgutil
 import sys
+
+from bmi_sdk.extras import MissingExtraError, needs_extra
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -50,7 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     configure(args.log_verbose, args.log_quiet, args.command)
     log = command_logger(args.command)
     try:
-        return int(handler(args) or 0)
+        with needs_extra("this command"):
+            return int(handler(args) or 0)
     except KeyboardInterrupt:
         log.error("cancelled")
         return 130
@@ -62,13 +67,15 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _user_error_types() -> tuple[type, ...]:
-    """Errors that carry a message for the user (bad input, a refused file, a camera that refused or failed).
+    """Errors that carry a message for the user (bad input, a refused file, a camera that refused or failed,
+    an extra that is not installed).
 
     ``devices.errors.CameraError`` is looked up in ``sys.modules`` rather than
     imported: a command that raised one has loaded it, and ``bmi --help``
     stays free of the device stack.
     """
-    types: list[type] = [ValueError, OSError]  # OSError covers FileNotFoundError, FileExistsError, TimeoutError
+    # OSError covers FileNotFoundError, FileExistsError, TimeoutError
+    types: list[type] = [ValueError, OSError, MissingExtraError]
     camera_errors = sys.modules.get("devices.errors")
     if camera_errors is not None:
         types.append(camera_errors.CameraError)

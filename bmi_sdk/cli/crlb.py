@@ -92,6 +92,9 @@ def _run(args) -> int:
 
     from bmi_sdk.optics.crlb import MIN_ENERGY_CAPTURED, CrlbSettings, cos_throughput, crlb
 
+    if args.plot:
+        import matplotlib  # noqa: F401  (a missing [plot] extra stops the command now, not after minutes of work)
+
     settings = CrlbSettings(patch_px=args.patch_px, spectrum_exponent=args.spectrum_exponent,
                             spectrum_kind=args.spectrum_kind, rms_contrast=args.rms_contrast,
                             noise_sigma=CrlbSettings().noise_sigma if args.noise_sigma is None else args.noise_sigma,

@@ -6,6 +6,7 @@ import contextlib
 import sys
 from typing import Iterator
 
+from ..extras import needs_extra
 from .scheduler import SchedulerSpec, parse_scheduler
 
 LOCAL_CONNECT_TIMEOUT = "300s"
@@ -26,14 +27,16 @@ def open_client(scheduler: str | SchedulerSpec | None, announce: bool = True) ->
     ``local:N`` starts a ``LocalCluster`` of N worker processes with one thread each (Dask's nanny sets
     OMP/MKL/OpenBLAS to one thread too), on a free dashboard port, and closes it on exit, also on error
     or Ctrl-C. ``tcp://…`` connects to a running scheduler and leaves it running. With ``announce`` the
-    workers and the dashboard address (when there is one) are printed to stderr.
+    workers and the dashboard address (when there is one) are printed to stderr. Without Dask (the
+    ``[scaleout]`` extra) a scheduler raises ``MissingExtraError`` naming it.
     """
     spec = parse_scheduler(scheduler) if not isinstance(scheduler, SchedulerSpec) else scheduler
     if spec is None:
         yield None
         return
-    import dask
-    from distributed import Client, LocalCluster
+    with needs_extra("--scheduler"):
+        import dask
+        from distributed import Client, LocalCluster
 
     with contextlib.ExitStack() as stack:
         if spec.is_local:

@@ -11,6 +11,9 @@ calibration, whose pixel coordinates are 0-based like ours).
 The official split, ``splits.mat`` (``trainNdxs`` 795, ``testNdxs`` 654,
 1-based indices into the 1449 frames), is read when given; it is a MATLAB v5
 file (scipy) on the NYU site, v7.3 copies (h5py) are accepted too.
+
+h5py comes with the ``[train]`` extra and is imported on first use, so
+``bmi_sdk.scenes`` (the procedural scenes of ``bmi simulate``) loads without it.
 """
 
 from __future__ import annotations
@@ -18,11 +21,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import h5py
 import numpy as np
 import scipy.io
 
 from bmi_sdk.color import srgb_uint_to_linear
+from bmi_sdk.extras import needs_extra
 from bmi_sdk.scenes.scene import PinholeIntrinsics, Scene
 
 NYU_RGB_INTRINSICS = PinholeIntrinsics(
@@ -33,6 +36,13 @@ NYU_RGB_INTRINSICS = PinholeIntrinsics(
 """Kinect RGB camera of NYU Depth V2 (toolbox ``camera_params.m``), 640×480."""
 
 
+def _h5py():
+    """h5py, or ``MissingExtraError`` naming the ``[train]`` extra."""
+    with needs_extra("reading NYU Depth V2"):
+        import h5py
+    return h5py
+
+
 def read_nyu_split(splits_path: str | os.PathLike, split: str) -> np.ndarray:
     """0-based frame indices of the official ``"train"`` or ``"test"`` split from ``splits.mat``."""
     key = {"train": "trainNdxs", "test": "testNdxs"}.get(split)
@@ -41,6 +51,7 @@ def read_nyu_split(splits_path: str | os.PathLike, split: str) -> np.ndarray:
     path = Path(splits_path)
     if not path.is_file():
         raise FileNotFoundError(f"NYU split file not found: {path}")
+    h5py = _h5py()
     if h5py.is_hdf5(path):
         with h5py.File(path, "r") as f:
             if key not in f:
@@ -70,6 +81,7 @@ class NyuDepthV2:
         self.path = Path(mat_path)
         if not self.path.is_file():
             raise FileNotFoundError(f"NYU Depth V2 labeled file not found: {self.path}")
+        h5py = _h5py()
         if not h5py.is_hdf5(self.path):
             raise ValueError(f"{self.path}: not a MATLAB v7.3 (HDF5) file")
         self._file = h5py.File(self.path, "r")
