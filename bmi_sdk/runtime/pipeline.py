@@ -5,7 +5,7 @@ Per tile (see ``tiling``): gather the raw window with a 2-px demosaic margin
 with the one contract path (``model_io.raw_to_rgb``: demosaic, black level,
 normalisation; the simulated sensor applies no white balance, so neither does
 this), append the field channels of the tile's *absolute* sensor position
-(``model_io.field_channels`` with the frame's ROI offset), run the network,
+(``model_io.network_input`` with the frame's ROI offset), run the network,
 and add the weighted outputs into a band of ``tile_px`` rows. Rows no later
 tile can touch are normalised by the weight sum and moved into the output
 arrays, so the working memory is one band plus one tile whatever the frame
@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..geometry import SensorGeometry
-from ..model_io import INPUT_CHANNELS, field_channels, raw_to_rgb, reflect_indices, window_cfa
+from ..model_io import INPUT_CHANNELS, network_input, raw_to_rgb, reflect_indices, window_cfa
 from .model import Model
 from .tiling import TilePlan
 
@@ -155,10 +155,10 @@ def infer_raw(model: Model, raw: np.ndarray, *, black_level_dn: float, white_lev
             window = raw[np.ix_(reflect_indices(r - m, tile + 2 * m, height), reflect_indices(c - m, tile + 2 * m, width))]
             rgb = raw_to_rgb(window, black_level_dn, white_level_dn, window_cfa(cfa, r - m, c - m))[m:-m, m:-m]
             t1 = time.perf_counter()
-            parts = [rgb.transpose(2, 0, 1), field_channels(geometry, row0 + r, col0 + c, tile, tile)]
+            x = network_input(rgb, geometry, row0 + r, col0 + c)
             if extra is not None:
-                parts.append(extra[:, reflect_indices(r, tile, height)][:, :, reflect_indices(c, tile, width)])
-            x = np.concatenate(parts)[None]
+                x = np.concatenate([x, extra[None, :, reflect_indices(r, tile, height)][..., reflect_indices(c, tile, width)]],
+                                   axis=1)
             t2 = time.perf_counter()
             out_rgb, out_depth, *out_sigma = model.run(np.ascontiguousarray(x, np.float32))
             t3 = time.perf_counter()
