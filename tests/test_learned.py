@@ -190,3 +190,10 @@ def test_the_shipped_refinement_is_the_default_decoder(tmp_path):
     depth, sigma = np.load(tmp_path / "o" / "depth.npy"), np.load(tmp_path / "o" / "depth_sigma.npy")
     ok = np.isfinite(depth)
     assert ok.mean() > 0.9 and np.all((depth[ok] > 0.1) & (depth[ok] < 100)) and np.all(sigma[ok] > 0)
+
+
+def test_classical_knobs_with_another_decoder_are_refused_not_ignored(tmp_path):
+    run = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", "infer", str(tmp_path / "f.dng"), "--out",
+                          str(tmp_path / "o"), "--decoder", "learned", "--window-px", "48"], capture_output=True, text=True)
+    assert run.returncode == 1 and "--window-px" in run.stderr and "--decoder classical" in run.stderr
+    assert not (tmp_path / "o").exists()

@@ -16,6 +16,10 @@ def depth_range(text: str) -> tuple[float, float]:
         raise ValueError(f"--depth-range {text}: {exc}") from None
 
 
+CLASSICAL_KNOBS = {"window_px": 64, "stride_px": 16, "candidates": 48, "noise_sigma": None}
+"""``--decoder classical``'s options and their defaults: any other value with another decoder is refused."""
+
+
 def _run(args) -> int:
     from bmi_sdk.cli._infer_many import infer_many, wants_batch
     from bmi_sdk.cli._logging import command_logger
@@ -25,6 +29,10 @@ def _run(args) -> int:
     if args.depth_range is not None:
         args.depth_range = depth_range(args.depth_range)
     args.decoder = decoder_for(args.decoder, model_path=args.model)
+    knobs = [f"--{k.replace('_', '-')}" for k, default in CLASSICAL_KNOBS.items() if getattr(args, k) != default]
+    if knobs and args.decoder != "classical":
+        raise ValueError(f"{', '.join(knobs)}: classical decoder options, not taken by the {args.decoder} decoder "
+                         "(the learned one decodes with its model's own; use --decoder classical)")
     if args.provider is not None:  # an unavailable provider fails here, naming the available ones, before any work
         from bmi_sdk.runtime.model import choose_providers
 
@@ -120,9 +128,11 @@ def register(subparsers) -> None:
                         f"(calibrated) kernels, no network, writes the depth 1σ; learned: the classical evidence "
                         f"refined by a network (learned.onnx), with a depth 1σ (default: the kind of --model, "
                         f"else {DEFAULT_DECODER}; docs/decoder.md)")
-    p.add_argument("--window-px", type=int, default=64, help="classical: evidence window (default 64)")
-    p.add_argument("--stride-px", type=int, default=16, help="classical: window stride (default 16)")
-    p.add_argument("--candidates", type=int, default=48,
+    p.add_argument("--window-px", type=int, default=CLASSICAL_KNOBS["window_px"],
+                   help="classical: evidence window (default 64)")
+    p.add_argument("--stride-px", type=int, default=CLASSICAL_KNOBS["stride_px"],
+                   help="classical: window stride (default 16)")
+    p.add_argument("--candidates", type=int, default=CLASSICAL_KNOBS["candidates"],
                    help="classical: depth candidates spaced in 1/d, snapped to the kernel grid (default 48)")
     p.add_argument("--noise-sigma", type=float, default=None,
                    help="classical: raw noise σ in units of full scale (default: estimated from the frame)")
