@@ -80,8 +80,9 @@ def frame_and_calibration(tmp_path_factory):
 def test_infer_with_a_calibration_file_needs_no_extra(frame_and_calibration, tmp_path, decoder):
     """The decode path, calibration file included, runs with none of the extras' modules importable."""
     frame, calib = frame_and_calibration
+    knobs = ("--candidates", 12) if decoder == "classical" else ()  # a classical option; other decoders refuse it
     run = _bmi_without(EXTRA_MODULES, "infer", frame, "--out", tmp_path / "o", "--decoder", decoder,
-                       "--calibration", calib.path, "--candidates", 12, "--quiet")
+                       "--calibration", calib.path, *knobs, "--quiet")
     assert run.returncode == 0, run.stderr[-3000:]
     report = json.loads((tmp_path / "o" / "report.json").read_text())
     if decoder == "cnn":  # the file is validated; no model was trained for it, so the nominal one runs
