@@ -6,6 +6,7 @@ drop an error on the way:
 
 * no errors (the design): a ``tensor``-mode map over the lens's shared, disk-cached PSF tensor
   (the paper's rotated radial tensor; fast, and what the benchmark renders with), or ``exact``;
+* its PSF tensor (``psf_tensor``): the design's, or one built with the camera's errors;
 * with errors (a calibrated or simulated built camera): an ``exact``-mode map whose kernels are
   traced through the perturbed lens at every (θ, φ) (``optics.perturb``), each centred where the
   design's chief ray lands, so a kernel is displaced by exactly the built camera's landing error
@@ -16,6 +17,7 @@ drop an error on the way:
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 from dataclasses import dataclass, field
@@ -24,6 +26,11 @@ import numpy as np
 
 from .geometry import SensorGeometry
 from .optics.perturb import Perturbation
+
+SENSOR_FIELDS = ("width_px", "height_px", "pitch_um", "radius_mm", "cx_px", "cy_px", "max_field_deg",
+                 "field_table_deg", "radial_table_mm")
+CHIEF_FIT_GRID, CHIEF_FIT_DEGREE = 8, 2
+"""Pupil fit of a trace that only needs where the chief ray lands (as ``optics.report.chief_ray_table``)."""
 
 
 @dataclass(frozen=True)
@@ -54,19 +61,30 @@ class BuiltCamera:
     def sha256(self) -> str:
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()
 
+    def psf_tensor(self):
+        """The camera's PSF tensor on its lens profile's grid: the design's shared tensor, or one built with the
+        camera's errors (along φ = 0; disk-cached under a key that includes them)."""
+        from .lenses import lens_tensor
+        from .optics import PsfTensor
+
+        nominal = lens_tensor(self.lens_name)
+        return nominal if self.is_nominal else PsfTensor(nominal.lens, nominal.spec, perturbation=self.perturbation)
+
     def psf_map(self, mode: str | None = None, centre_calibrated: bool = False):
         """The camera's ``PsfMap``: tensor mode for the design, exact mode (perturbed lens) otherwise.
 
         ``centre_calibrated``: take the on-axis landing shift out of every kernel (for images whose
         optical centre was moved to the nominal one, as ``bmi eval`` renders its perturbed rows).
         """
-        from .lenses import lens_tensor
         from .render import PsfMap
 
         mode = mode or ("tensor" if self.is_nominal else "exact")
-        perturbation = None if self.is_nominal else self.perturbation
-        return PsfMap(lens_tensor(self.lens_name), self.sensor(), mode=mode, perturbation=perturbation,
-                      centre_calibrated=centre_calibrated and perturbation is not None)
+        return PsfMap(self.psf_tensor(), self.sensor(), mode=mode,
+                      centre_calibrated=centre_calibrated and not self.is_nominal)
+
+    def ray_geometry(self) -> SensorGeometry:
+        """``traced_ray_geometry`` of this camera (memoised: a batch of frames traces it once)."""
+        return traced_ray_geometry(self)
 
     @classmethod
     def from_calibration(cls, calibration, geometry: SensorGeometry | None = None) -> "BuiltCamera":
@@ -74,3 +92,50 @@ class BuiltCamera:
         lens = calibration.doc.get("lens", {}).get("name") or "bmi_monocentric"
         return cls(lens_name=lens, perturbation=calibration.perturbation, geometry=geometry,
                    calibration_id=calibration.id)
+
+
+@functools.lru_cache(maxsize=8)
+def traced_ray_geometry(camera: BuiltCamera, field_step_deg: float = 0.5, azimuths: int = 48) -> SensorGeometry:
+    """The sensor geometry of the camera's chief rays: which object direction (θ, φ) each pixel sees.
+
+    What the point cloud and ``depth_z`` use. The design camera's is its sensor geometry. A camera
+    with decenter, tilt, PSF shift or a sensor-radius error images the scene elsewhere: its chief
+    rays (587.6 nm, infinity, like the design table) are traced through the built lens
+    (``optics.perturb.trace_spots``) on a (θ, φ) grid of ``field_step_deg`` × ``azimuths``. The
+    optical centre moves to where the axis lands, the radial table is the azimuth mean of the
+    landing distances from it, the sensor radius is the built one, and what the symmetric mapping
+    leaves (a decenter moves a spot by d⊥/R: its sagittal and meridional shifts differ by up to
+    2 px at 55° for 10 µm) is a ``DisplacedGeometry`` table. Glare and PSF scale move no ray.
+    """
+    base = camera.sensor()
+    p = camera.perturbation
+    if not (np.any(p.psf_shift_px) or np.any(p.decenter_um) or np.any(p.tilt_arcmin)
+            or p.sensor_radius_error_pct != 0.0):
+        return base
+    import math
+
+    from .geometry import DisplacedGeometry
+    from .optics import get_lens
+    from .optics.perturb import perturbed_lens, trace_spots
+
+    lens = get_lens(camera.lens_name)
+    theta = np.arange(0.0, base.max_field_deg + field_step_deg / 2, field_step_deg)
+    phi = np.arange(azimuths) * (360.0 / azimuths)
+    theta_grid, phi_grid = (a.ravel() for a in np.meshgrid(theta, phi, indexing="ij"))
+    _, land, _ = trace_spots(lens, p, theta_grid, phi_grid, math.inf, 0.5876, base.centre_px, base.pitch_um,
+                             fit_grid=CHIEF_FIT_GRID, fit_degree=CHIEF_FIT_DEGREE)
+    land = land + np.array([p.psf_shift_px[1], p.psf_shift_px[0]])
+    by_field = land.reshape(len(theta), len(phi), 2)
+    centre = by_field[0].mean(axis=0)
+    radial_mm = np.hypot(*(by_field - centre).transpose(2, 0, 1)).mean(axis=1) * base.pitch_um * 1e-3
+    radius = perturbed_lens(lens, p).image.radius_mm
+    symmetric = SensorGeometry(width_px=base.width_px, height_px=base.height_px, pitch_um=base.pitch_um,
+                               radius_mm=None if math.isinf(radius) else abs(radius), cx_px=float(centre[1]),
+                               cy_px=float(centre[0]), max_field_deg=base.max_field_deg,
+                               field_table_deg=tuple(theta.tolist()), radial_table_mm=tuple(radial_mm.tolist()))
+    row, col = symmetric.pixel_of_field(theta_grid, phi_grid)
+    residual = np.stack([land[:, 0] - row, land[:, 1] - col], axis=-1)
+    return DisplacedGeometry(**{f: getattr(symmetric, f) for f in SENSOR_FIELDS},
+                             displacement_step_deg=field_step_deg, displacement_phi_count=azimuths,
+                             displacement_px=tuple(residual.ravel().tolist()))
+

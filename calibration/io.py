@@ -8,7 +8,7 @@
   fit statistics, residuals per capture and on held-out captures, rejected
   spots with reasons, degeneracies with advice, ``injected`` (simulations);
 * ``<stem>.psf.npz`` + ``<stem>.psf.json``: the corrected PSF tensor
-  (``PsfTensor`` format, meridian φ = 0, see ``perturb.perturbed_tensor``);
+  (a ``PsfTensor`` built with the fitted errors: meridian φ = 0, see ``perturb.perturbed_kernels``);
 * ``<stem>.png``: measured vs fitted PSFs and the residual map over the field.
 
 ``calibration_id`` is the first 16 hex digits of the SHA-256 of the file's
@@ -26,11 +26,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bmi_sdk import __version__
-from bmi_sdk.geometry import BMI_SENSOR
 from bmi_sdk.io_atomic import write_json
 from bmi_sdk.json_files import read_json_object
-from bmi_sdk.optics import TensorSpec, get_lens
-from bmi_sdk.optics.perturb import PARAMETERS, SIZES, UNITS, VECTOR_NAMES, Perturbation, perturbed_tensor
+from bmi_sdk.optics import PsfTensor, TensorSpec, get_lens
+from bmi_sdk.optics.perturb import PARAMETERS, SIZES, UNITS, VECTOR_NAMES, Perturbation
 
 from .targets import CalibrationError
 
@@ -62,15 +61,13 @@ class Calibration:
         return Perturbation(**values, stray_light_spread_px=self.doc["stray_light_spread_px"])
 
     def tensor(self):
-        """The corrected PSF tensor (``PsfTensor.load`` checks its own hash too)."""
-        from bmi_sdk.optics import PsfTensor
-
+        """The corrected PSF tensor, carrying the fitted errors (``PsfTensor.load`` checks its own hash too)."""
         return PsfTensor.load(self.path.parent / self.doc["corrected_tensor"]["file"])
 
 
 def write_calibration(path, result, captures, extraction=None, lens_name: str = "bmi_monocentric",
                       tensor_fields_deg=DEFAULT_TENSOR_FIELDS_DEG, tensor_depths_m=DEFAULT_TENSOR_DEPTHS_M,
-                      report: bool = True, method: str = "lm", geometry=BMI_SENSOR) -> Calibration:
+                      report: bool = True, method: str = "lm") -> Calibration:
     """Write the calibration file, its corrected tensor and report (see module doc); returns it loaded."""
     path = Path(path)
     if path.suffix != ".json":
@@ -79,7 +76,8 @@ def write_calibration(path, result, captures, extraction=None, lens_name: str = 
     lens = get_lens(lens_name)
     spec = TensorSpec(field_deg=tuple(tensor_fields_deg), depth_m=tuple(tensor_depths_m),
                       kernel_px=captures.plan.kernel_px)
-    tensor = perturbed_tensor(lens, spec, result.estimate, geometry.centre_px)
+    tensor = PsfTensor(lens, spec, use_cache=False, perturbation=result.estimate)
+    tensor.ensure(range(len(spec.field_deg)), range(len(spec.depth_m)))
     tensor_path = tensor.save(path.with_name(path.stem + ".psf.npz"))
     tensor_meta = json.loads(tensor_path.with_suffix(".json").read_text())
     corr = [[None if v != v else float(v) for v in row] for row in result.correlation]

@@ -96,3 +96,35 @@ def test_glare_and_validation():
         Perturbation().with_term("decenter_um=10")
     p = Perturbation().with_term("decenter_um=10,0").with_term("stray_light_fraction=0.03")
     assert p.decenter_um == (10.0, 0.0) and Perturbation.from_vector(p.to_vector()) == p
+
+
+def test_a_built_tensor_is_keyed_by_its_errors_and_carries_them_to_exact_kernels(lens, tmp_path):
+    """A tensor's identity includes the errors it was built with, a saved tensor keeps them, and an exact-mode
+    PsfMap over it (e.g. a calibration's corrected tensor) traces every error, not the nominal lens."""
+    from bmi_sdk.geometry import BMI_SENSOR
+    from bmi_sdk.optics import PsfTensor, TensorSpec
+    from bmi_sdk.render import PsfMap
+
+    p = Perturbation(decenter_um=(8.0, -3.0), stray_light_fraction=0.02, sensor_radius_error_pct=0.5)
+    spec = TensorSpec(field_deg=(0.0, 40.0), depth_m=(2.0,), kernel_px=21)
+    nominal = PsfTensor(lens, spec, cache_dir=tmp_path / "cache")
+    built = PsfTensor(lens, spec, cache_dir=tmp_path / "cache", perturbation=p)
+    assert built.key != nominal.key and built.cache_dir != nominal.cache_dir
+    assert PsfTensor(lens, spec, perturbation=Perturbation()).key == nominal.key  # no errors: the design
+    assert built.ensure([0, 1], [0]) == 2
+    assert PsfTensor(lens, spec, cache_dir=tmp_path / "cache", perturbation=p).ensure([0, 1], [0]) == 0  # cached
+    again = PsfTensor.load(built.save(tmp_path / "built.npz"))
+    assert again.perturbation == p and again.key == built.key
+    np.testing.assert_array_equal(again.data, built.data)
+
+    carried = PsfMap(again, BMI_SENSOR, mode="exact").kernels(40.0, 30.0, [0])
+    named = PsfMap(nominal, BMI_SENSOR, mode="exact", perturbation=p).kernels(40.0, 30.0, [0])
+    np.testing.assert_array_equal(carried, named)
+    design = PsfMap(nominal, BMI_SENSOR, mode="exact").kernels(40.0, 30.0, [0])
+    assert np.abs(carried - design).sum() > 0.05
+    with pytest.raises(ValueError, match="built with"):
+        PsfMap(again, BMI_SENSOR, mode="exact", perturbation=Perturbation(decenter_um=(1.0, 0.0)))
+    given = PsfTensor.from_kernels(lens, spec, built.data)
+    assert given.key.startswith("given-") and not given.reproducible
+    with pytest.raises(ValueError, match="given kernels"):
+        PsfMap(given, BMI_SENSOR, mode="exact")

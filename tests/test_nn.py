@@ -234,32 +234,40 @@ def test_dihedral_roundtrip():
     assert dihedral(a, 4).shape == (4, 3)
 
 
-def test_hardware_perturbations_move_and_magnify_kernels_as_defined():
-    from bmi_sdk.nn.evaluate import perturb
+def test_hardware_conditions_are_the_calibrated_error_model():
+    """Every bmi eval hardware row is an optics.perturb.Perturbation (the model bmi calibrate fits), rendered
+    from the built lens's own tensor: the shift moves each kernel's centroid by 0.5 px along +col, the scale
+    magnifies it, and the glare is exactly (1 − f)·PSF + f·G with the calibration's glare kernel."""
+    from bmi_sdk.nn.evaluate import EXACT, HARDWARE
     from bmi_sdk.optics import PsfTensor, TensorSpec
+    from bmi_sdk.optics.perturb import Perturbation, glare_kernel
 
-    spec = TensorSpec(field_deg=(0.0, 30.0), depth_m=(1.0, 2.0), kernel_px=21)
-    tensor = PsfTensor("bmi_monocentric", spec, use_cache=False)
-    yy, xx = np.mgrid[-10:11, -10:11].astype(float)
-    kernel = np.exp(-(xx ** 2 + yy ** 2) / (2 * 2.0 ** 2))
-    tensor.data[...] = (kernel / kernel.sum()).astype(np.float32)
-    tensor.filled[...] = True
+    assert all(isinstance(p, Perturbation) for p in (*HARDWARE.values(), *EXACT.values()))
+    assert EXACT["joint"].decenter_um == (10.0, 0.0) and EXACT["joint"].tilt_arcmin == (1.0, 0.0)  # the paper's joint
+    spec = TensorSpec(field_deg=(30.0,), depth_m=(2.0,), kernel_px=41)
 
-    def centroid_col(k):
-        return float((k * xx).sum() / k.sum())
+    def kernels(p=None):
+        tensor = PsfTensor("bmi_monocentric", spec, use_cache=False, perturbation=p)
+        tensor.ensure([0], [0])
+        return tensor.data[:, 0, 0].astype(np.float64)
 
-    def second_moment(k):
-        return float((k * (xx ** 2 + yy ** 2)).sum() / k.sum())
+    yy, xx = np.mgrid[-20:21, -20:21].astype(float)
 
-    shifted = perturb(tensor, shift_px=0.5)
-    assert centroid_col(shifted.data[1, 1, 0]) == pytest.approx(0.5, abs=0.01)
-    assert np.allclose(shifted.data.sum(axis=(-2, -1)), 1.0, atol=1e-5)
-    scaled = perturb(tensor, scale=0.05, seed=3)
-    ratios = np.array([second_moment(scaled.data[0, i, j]) / second_moment(kernel)
-                       for i in range(2) for j in range(2)])
-    assert np.all(np.isclose(np.sqrt(ratios), 1.05, atol=0.005) | np.isclose(np.sqrt(ratios), 0.95, atol=0.005))
-    # the three channels of an entry share one scale factor
-    assert np.allclose(scaled.data[0], scaled.data[2])
+    def centroid(k):
+        return np.array([(k * xx).sum(), (k * yy).sum()])
+
+    def rms_radius(k):
+        cx, cy = centroid(k)
+        return float(np.sqrt((((xx - cx) ** 2 + (yy - cy) ** 2) * k).sum()))
+
+    nominal = kernels()
+    shifted = kernels(HARDWARE["psf_shift_0.5px"])
+    for c in range(3):
+        assert centroid(shifted[c]) - centroid(nominal[c]) == pytest.approx([0.5, 0.0], abs=0.01)
+    scaled = kernels(HARDWARE["psf_scale_5pct"])
+    assert all(1.02 < rms_radius(scaled[c]) / rms_radius(nominal[c]) < 1.06 for c in range(3))
+    glare = glare_kernel(41, (0.0, 0.0), Perturbation().stray_light_spread_px)
+    np.testing.assert_allclose(kernels(HARDWARE["stray_light_3pct"]), 0.97 * nominal + 0.03 * glare, atol=1e-6)
 
 
 def test_eval_exact_conditions_resolve_and_render_the_perturbed_lens(monkeypatch):

@@ -53,11 +53,10 @@ def test_zone_method_matches_the_per_pixel_reference(tensor):
 
 def test_with_one_psf_for_all_layers_the_model_is_a_plain_convolution(tensor):
     """Occlusion-aware compositing reduces exactly to h * I when every layer blurs alike."""
-    flat = PsfTensor(MONO, SMALL, use_cache=False)
     y, x = np.mgrid[-20:21, -20:21]
-    gauss = np.exp(-(x**2 + y**2) / (2 * 3.0**2)).astype(np.float32)
-    flat.data[...] = gauss / gauss.sum()
-    flat.filled[...] = True
+    gauss = np.exp(-(x**2 + y**2) / (2 * 3.0**2))
+    shape = (len(SMALL.channels), len(SMALL.field_deg), len(SMALL.depth_m), 41, 41)
+    flat = PsfTensor.from_kernels(MONO, SMALL, np.broadcast_to(gauss / gauss.sum(), shape))
     rgb, range_m = scene(48, 48, np.random.default_rng(2))
     out = render_coded(rgb, range_m, flat, BMI_SENSOR, 2000, 2000, zone_px=16, psf_mode="tensor")
     expected = np.stack([fftconvolve(rgb[..., c], flat.data[0, 0, 0], mode="same") for c in range(3)], axis=-1)

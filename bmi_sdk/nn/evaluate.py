@@ -12,11 +12,14 @@ A condition is what changes between capture and the fixed trained network:
 
 * noise σ (the sensor stage; ``ideal`` = σ 0, still 12-bit quantised,
   ``standard`` = 0.005, ``noise_<σ>`` the sweep);
-* a perturbed PSF tensor used at render time (hardware errors, no
-  retraining) — definitions in ``perturb``;
+* hardware errors, no retraining, each an ``optics.perturb.Perturbation``: the
+  one hardware-error model, the one ``bmi calibrate`` fits. Errors a rotationally
+  symmetric tensor can hold (``HARDWARE``: PSF shift, scale, stray light, sensor
+  radius) render from the built lens's PSF tensor (``PsfTensor(perturbation=…)``,
+  its φ = 0 kernels rotated per pixel, so the shift is radial);
 * a built lens that breaks the rotational symmetry (``EXACT``: lens decenter
-  10 µm, tilt 1 arcmin, traced exactly at every zone's (θ, φ) by an
-  ``exact``-mode ``PsfMap`` with an ``optics.perturb.Perturbation``). The
+  10 µm, tilt 1 arcmin, the paper's joint condition, traced exactly at every zone's (θ, φ) by an
+  ``exact``-mode ``PsfMap`` with the ``Perturbation``). The
   camera's optical centre is taken as calibrated: a 10 µm decenter moves the
   whole image by ~5 px, which any principal-point calibration removes and
   which would otherwise dominate the image metrics as misregistration, so
@@ -39,7 +42,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
 from bmi_sdk.model_io import network_input, raw_to_rgb, window_cfa
 from bmi_sdk.lenses import lens_geometry, lens_tensor
@@ -49,32 +51,33 @@ from bmi_sdk.optics.perturb import Perturbation
 from bmi_sdk.sensor import BLACK_LEVEL_DN, CFA_PATTERN, PAPER_NOISE_SIGMAS, WHITE_LEVEL_DN, relative_illumination
 
 REGIONS = {"centre": (0.0, 20.0), "edge": (52.0, 58.0)}
-STRAY_SIGMA_PX = 100.0
-"""Width of the veiling-glare kernel of the stray-light condition (0.2 mm on the sensor)."""
 
 HARDWARE = {
-    "psf_shift_0.5px": {"shift_px": 0.5},
-    "psf_scale_3pct": {"scale": 0.03},
-    "psf_scale_5pct": {"scale": 0.05},
-    "stray_light_3pct": {"stray": 0.03},
-    "joint": {"shift_px": 0.5, "scale": 0.03, "stray": 0.03},
-    "sensor_radius_0.5pct": {"radius": 0.005},
-    "sensor_radius_1pct": {"radius": 0.01},
-    "sensor_radius_2pct": {"radius": 0.02},
+    "psf_shift_0.5px": Perturbation(psf_shift_px=(0.5, 0.0)),
+    "psf_scale_3pct": Perturbation(psf_scale_pct=3.0),
+    "psf_scale_5pct": Perturbation(psf_scale_pct=5.0),
+    "stray_light_3pct": Perturbation(stray_light_fraction=0.03),
+    "sensor_radius_0.5pct": Perturbation(sensor_radius_error_pct=0.5),
+    "sensor_radius_1pct": Perturbation(sensor_radius_error_pct=1.0),
+    "sensor_radius_2pct": Perturbation(sensor_radius_error_pct=2.0),
 }
-"""Hardware-error conditions (paper Tables 5, 6) that a rotationally symmetric model can represent."""
+"""Hardware-error conditions (paper Tables 5, 6) that a rotationally symmetric PSF tensor can hold, rendered
+from the built lens's tensor: the shift along +col of the φ = 0 kernels (radial once rotated), the scale one
+factor for every kernel, the glare ``perturb.glare_kernel`` of the calibrated spread, the radius re-traced."""
 
 EXACT = {
     "nominal_exact": Perturbation(),
     "decenter_10um": Perturbation(decenter_um=(10.0, 0.0)),
     "tilt_1arcmin": Perturbation(tilt_arcmin=(1.0, 0.0)),
+    "joint": Perturbation(psf_shift_px=(0.5, 0.0), psf_scale_pct=3.0, decenter_um=(10.0, 0.0),
+                          tilt_arcmin=(1.0, 0.0), stray_light_fraction=0.03),
     "built_camera": Perturbation(decenter_um=(10.0, 0.0), psf_shift_px=(0.5, 0.0), stray_light_fraction=0.03,
                                  sensor_radius_error_pct=0.5),
 }
 """Conditions rendered with exact-mode kernels of the (perturbed) lens at σ = ``STANDARD_SIGMA``; decenter
-along the sensor's +col, tilt about it; ``built_camera`` is the decoding issue's perturbed camera (decenter
-10 µm, PSF shift 0.5 px, stray light 3 %, sensor radius +0.5 %) with every error in its kernels;
-``nominal_exact`` is their reference (module doc)."""
+along the sensor's +col, tilt about it; ``joint`` is the paper's (shift 0.5 px, scale 3 %, decenter 10 µm,
+tilt 1′, stray light 3 %); ``built_camera`` is the decoding issue's perturbed camera (decenter 10 µm, PSF
+shift 0.5 px, stray light 3 %, sensor radius +0.5 %); ``nominal_exact`` is their reference (module doc)."""
 
 
 def noise_conditions() -> dict:
@@ -86,60 +89,6 @@ def noise_conditions() -> dict:
 def known_conditions() -> list[str]:
     """Every condition name, in the default order (``fisheye_standard`` needs its own model)."""
     return [*noise_conditions(), *HARDWARE, *EXACT, "fisheye_standard"]
-
-
-def perturb(tensor, *, shift_px: float = 0.0, scale: float = 0.0, radius: float = 0.0, seed: int = 0, **_):
-    """A copy of a (complete) PSF tensor with hardware errors applied to every kernel.
-
-    * ``shift_px``: every kernel moved by that many pixels along its radial
-      axis (+col, away from the optical centre): a systematic centroid error
-      (cubic-spline shift, negatives clipped, unit sum restored);
-    * ``scale``: every (θ, d) kernel magnified by 1 ± ``scale`` (cubic spline; sign drawn per
-      entry with ``seed``, the same for the three channels) about its centre,
-      k'(x) ∝ k(x / s), unit sum restored — the paper's "random PSF scale error";
-    * ``radius``: the sensor sphere's radius changed by that fraction
-      (vertex kept, so the sensor leaves the Petzval surface off axis): the
-      kernels are re-traced with ``Lens.with_image_radius`` (a rotationally
-      symmetric change our tracer models exactly); the pixel → field mapping
-      of the nominal sensor is kept, so only the PSF change is modelled, not
-      the small distortion of the chief-ray landing points.
-    """
-    from bmi_sdk.optics import PsfTensor
-
-    if radius:
-        lens = tensor.lens.with_image_radius(tensor.lens.image.radius_mm * (1 + radius))
-        return PsfTensor(lens, tensor.spec)
-    out = PsfTensor(tensor.lens, tensor.spec, use_cache=False)
-    tensor.ensure_all()
-    data = tensor.data.astype(np.float64)
-    if shift_px:
-        flat = data.reshape(-1, *data.shape[-2:])
-        for n in range(len(flat)):
-            flat[n] = ndimage.shift(flat[n], (0.0, shift_px), order=3, mode="constant")
-    if scale:
-        rng = np.random.default_rng(seed)
-        signs = rng.choice([-1.0, 1.0], size=data.shape[1:3])
-        k = data.shape[-1]
-        c = (k - 1) / 2
-        for i in range(data.shape[1]):
-            for j in range(data.shape[2]):
-                s = 1 + signs[i, j] * scale
-                for ch in range(data.shape[0]):
-                    data[ch, i, j] = ndimage.affine_transform(data[ch, i, j], np.eye(2) / s, offset=c - c / s,
-                                                              order=3, mode="constant")
-    data = np.maximum(data, 0.0)
-    data /= data.sum(axis=(-2, -1), keepdims=True)
-    out.data[...] = data.astype(np.float32)
-    out.filled[...] = True
-    return out
-
-
-def stray_light(optical: np.ndarray, fraction: float) -> np.ndarray:
-    """Diffuse stray light: a ``fraction`` of the light moved from the image into a wide Gaussian veil
-    (σ = ``STRAY_SIGMA_PX``), i.e. every PSF mixed with a broad normalised glare kernel."""
-    veil = np.stack([ndimage.gaussian_filter(optical[..., c], STRAY_SIGMA_PX, mode="reflect")
-                     for c in range(optical.shape[2])], axis=-1)
-    return ((1 - fraction) * optical + fraction * veil).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -275,8 +224,7 @@ class ClassicalTiles:
         return out.aif, out.depth_m, out.depth_sigma_m
 
 
-def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition: str,
-          stray: float = 0.0) -> list[dict]:
+def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition: str) -> list[dict]:
     """Rows {condition, decoder, region, metrics…} for one condition over pre-rendered tiles.
 
     ``model``: a ``NetworkTiles`` or a ``ClassicalTiles`` (raw tile in). Decoders that report a depth 1σ
@@ -288,10 +236,7 @@ def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition:
     per_region: dict[str, list] = {}
     z_sums: dict[str, list] = {}
     for k, item in enumerate(renders):
-        optical = item["optical_full"]
-        if stray:
-            optical = stray_light(optical, stray)
-        optical = optical[m:m + t, m:m + t]
+        optical = item["optical_full"][m:m + t, m:m + t]
         rng = np.random.default_rng([bench.seed, 99, k, int(round(sigma * 1e6))])
         raw = simulate_raw(optical, sigma, rng, item["row0"], item["col0"])
         valid = geometry.valid_mask(item["row0"], item["col0"], t, t) & np.isfinite(item["range_m"])
@@ -352,9 +297,9 @@ def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(),
     condition whose kernels a camera model can represent it also reads the built camera's own kernels
     (decoder ``classical_calibrated``: decoding with a perfect calibration). The learned refinement
     (``learned_model``, default the shipped ``learned.onnx``) does the same through its classical stage
-    (``learned`` and ``learned_calibrated``); there is no fisheye refinement, so no fisheye learned row. The stray-light rows
-    have no calibrated twin: their veil is an image-level operation here, not a kernel.
+    (``learned`` and ``learned_calibrated``); there is no fisheye refinement, so no fisheye learned row.
     """
+    from bmi_sdk.built_camera import BuiltCamera
     from bmi_sdk.decode import ClassicalConfig
     from bmi_sdk.render import PsfMap
 
@@ -386,18 +331,15 @@ def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(),
 
     rows: list[dict] = []
     renders = None
-    on_nominal = [c for c in conditions if c in noise or (c in HARDWARE and HARDWARE[c].keys() == {"stray"})]
-    for name in on_nominal:
+    for name in [c for c in conditions if c in noise]:
         renders = renders or bench.renders(nominal, progress)
         for model in models:
-            rows += score(model, renders, bench, noise.get(name, STANDARD_SIGMA), name,
-                          HARDWARE.get(name, {}).get("stray", 0.0))
-    for name in [c for c in conditions if c in HARDWARE and c not in on_nominal]:
-        p = HARDWARE[name]
-        built = perturb(nominal, **p, seed=bench.seed)
+            rows += score(model, renders, bench, noise[name], name)
+    for name in [c for c in conditions if c in HARDWARE]:
+        built = BuiltCamera(bench.lens, HARDWARE[name]).psf_tensor()
         renders_p = bench.renders(built, progress)
         for model in models + calibrated(PsfMap(built, geometry, mode="tensor")):
-            rows += score(model, renders_p, bench, STANDARD_SIGMA, name, p.get("stray", 0.0))
+            rows += score(model, renders_p, bench, STANDARD_SIGMA, name)
     for name in [c for c in conditions if c in EXACT]:
         renders_p = bench.renders(nominal, progress, psf_mode="exact", perturbation=EXACT[name])
         built_map = PsfMap(nominal, geometry, mode="exact", perturbation=EXACT[name], centre_calibrated=True)

@@ -214,7 +214,7 @@ def kernel_derivatives(lens: Lens, field_deg, depth_m, kernel_px: int, settings:
         raise ValueError(f"finite depths beyond {MAX_FINITE_DEPTH_M:g} m are refused (the traced pupil fits lose "
                          f"precision for far objects), got {depth_m[too_far].max():g} m; use math.inf for infinity")
     near, far, scale = depth_stencil(depth_m, settings.inverse_step_per_m)
-    lam_nm = sorted({lam for ch in settings.channels for lam, _ in ch})
+    lam_nm = spectral.wavelengths_nm(settings.channels)
     todo = np.nonzero(scale > 0)[0]
     entries = [(i, side, lam) for i in todo for side in (0, 1) for lam in lam_nm]
     n_ch = len(settings.channels)
@@ -235,11 +235,9 @@ def kernel_derivatives(lens: Lens, field_deg, depth_m, kernel_px: int, settings:
                              "(its pupil fit failed; the field may be vignetted at this range)")
         mono[i, side, lam] = psf.kernel
         energy[i] = min(energy[i], psf.energy_captured)
-    for i in todo:
-        for c, channel in enumerate(settings.channels):
-            k_near = sum(w * mono[i, 0, lam] for lam, w in channel)
-            k_far = sum(w * mono[i, 1, lam] for lam, w in channel)
-            dk[i, c] = (k_far / k_far.sum() - k_near / k_near.sum()) * scale[i]
+    near_k, far_k = (spectral.channel_kernels({lam: np.stack([mono[i, side, lam] for i in todo]) for lam in lam_nm},
+                                              settings.channels) for side in (0, 1))
+    dk[todo] = np.swapaxes(far_k - near_k, 0, 1) * scale[todo, None, None, None]
     return dk, energy
 
 

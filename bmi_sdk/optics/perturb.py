@@ -313,35 +313,27 @@ def spot_kernels(lens: Lens, p: Perturbation, field_deg, phi_deg, depth_m, wavel
     return SpotOptics(kernels, land, chief_land)
 
 
-def perturbed_tensor(lens: Lens, spec, p: Perturbation, sensor_centre_px=(0.0, 0.0)):
-    """A PsfTensor of the perturbed lens on ``spec``'s grid, along the meridian φ = 0 (+col).
+def perturbed_kernels(lens: Lens, spec, p: Perturbation, field_deg, depth_m) -> np.ndarray:
+    """Kernels (C, n, K, K) float32 of the perturbed lens at n (θ, d) pairs on ``spec``'s grid, along φ = 0 (+col).
 
-    Each kernel is centred on the pixel where the *design* puts the chief ray
-    of (θ, d), so a renderer that maps pixels to fields with the nominal
-    geometry gets the perturbed PSF where it really lands (sub-pixel offsets
-    and the spot displacement of decenter, tilt and radius included, as long
-    as they stay inside the kernel). Terms that break the lens's rotational
-    symmetry (decenter, tilt, a shift) are exact on this meridian only; the
-    calibration file keeps the parameters for exact kernels at any azimuth.
+    What a ``PsfTensor`` built with ``perturbation=p`` holds. Each kernel is centred on the
+    pixel where the *design* puts the chief ray of (θ, d, λ), so a renderer that maps pixels
+    to fields with the nominal geometry gets the perturbed PSF where it really lands
+    (sub-pixel offsets and the spot displacement of decenter, tilt and radius included, as
+    long as they stay inside the kernel). Terms that break the lens's rotational symmetry
+    (decenter, tilt, a shift) are exact on this meridian only; an exact-mode ``PsfMap``
+    traces them at every azimuth. Both landings are traced from the same sensor centre, so
+    the kernels do not depend on where the sensor's vertex pixel is.
     """
-    from .tensor import PsfTensor
+    from . import spectral
 
-    tensor = PsfTensor(perturbed_lens(lens, p), spec, use_cache=False)
-    nominal = Perturbation()
-    theta_grid, depth_grid = np.meshgrid(np.asarray(spec.field_deg), np.asarray(spec.depth_m), indexing="ij")
-    theta, depth = theta_grid.ravel(), depth_grid.ravel()
-    lam_nm = sorted({lam for ch in spec.channels for lam, _ in ch})
+    theta = np.atleast_1d(np.asarray(field_deg, dtype=np.float64))
+    depth = np.broadcast_to(np.asarray(depth_m, dtype=np.float64), theta.shape)
+    origin_px = (0.0, 0.0)
     mono = {}
-    for lam in lam_nm:
-        _, design_px, _ = trace_spots(lens, nominal, theta, 0.0, depth, lam * 1e-3, sensor_centre_px, spec.pitch_um,
+    for lam in spectral.wavelengths_nm(spec.channels):
+        _, design_px, _ = trace_spots(lens, Perturbation(), theta, 0.0, depth, lam * 1e-3, origin_px, spec.pitch_um,
                                       spec.fit_grid, spec.fit_degree)
-        mono[lam] = spot_kernels(lens, p, theta, 0.0, depth, lam * 1e-3, design_px, spec.kernel_px,
-                                 sensor_centre_px, spec.pitch_um, spec.oversample, spec.guard, spec.fit_grid,
-                                 spec.fit_degree).kernels
-    shape = (len(spec.field_deg), len(spec.depth_m), spec.kernel_px, spec.kernel_px)
-    for c, channel in enumerate(spec.channels):
-        k = sum(w * mono[lam] for lam, w in channel).reshape(shape)
-        k = np.maximum(k, 0.0)  # a fitted glare fraction slightly below 0 must not make negative PSF wings
-        tensor.data[c] = (k / k.sum(axis=(-1, -2), keepdims=True)).astype(np.float32)
-    tensor.filled[...] = True
-    return tensor
+        mono[lam] = spot_kernels(lens, p, theta, 0.0, depth, lam * 1e-3, design_px, spec.kernel_px, origin_px,
+                                 spec.pitch_um, spec.oversample, spec.guard, spec.fit_grid, spec.fit_degree).kernels
+    return spectral.channel_kernels(mono, spec.channels, clip_negative=True).astype(np.float32)

@@ -7,8 +7,10 @@ channel. Default grid (paper §3.3): θ 0–60° every 0.6° (101), d 0.7–10 m
 every 0.1 m (94), 3 channels at 656.3 / 587.6 / 486.1 nm.
 
 Only the entries a request touches are computed (:meth:`PsfTensor.ensure`);
-computed entries go to a disk cache keyed by the lens's optical hash and every
-setting that changes a kernel, one shard per field angle, written atomically.
+computed entries go to a disk cache keyed by the lens's optical hash, the
+hardware errors of the built lens (``optics.perturb``; none for the design)
+and every setting that changes a kernel, one shard per field angle, written
+atomically.
 """
 
 from __future__ import annotations
@@ -81,31 +83,38 @@ class TensorSpec:
         d["channels"] = tuple(tuple(tuple(p) for p in c) for c in d["channels"])
         return cls(**d)
 
-    def cache_key(self, lens: Lens) -> str:
-        text = json.dumps({"lens": lens.sha256(), "spec": self.to_dict(), "schema": SCHEMA}, sort_keys=True)
+    def cache_key(self, lens: Lens, perturbation=None) -> str:
+        """Identity of the kernels this spec makes for ``lens`` (built with ``perturbation``, None: the design)."""
+        identity = {"lens": lens.sha256(), "spec": self.to_dict(), "schema": SCHEMA}
+        if perturbation is not None:
+            identity["perturbation"] = perturbation.to_dict()
+        text = json.dumps(identity, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:20]
 
 
-def compute_kernels(lens: Lens, spec: TensorSpec, field_deg, depth_m) -> np.ndarray:
-    """Kernels (C, n, K, K) for n (θ, d) pairs, batched through the exact pupil trace."""
+def compute_kernels(lens: Lens, spec: TensorSpec, field_deg, depth_m, perturbation=None) -> np.ndarray:
+    """Kernels (C, n, K, K) for n (θ, d) pairs, batched through the exact pupil trace.
+
+    ``perturbation`` (an ``optics.perturb.Perturbation``; None is the design): the kernels of
+    that built lens along the meridian φ = 0 instead (``perturb.perturbed_kernels``).
+    """
     field_deg = np.atleast_1d(np.asarray(field_deg, dtype=np.float64))
     depth_m = np.atleast_1d(np.asarray(depth_m, dtype=np.float64))
-    lam_nm = sorted({lam for ch in spec.channels for lam, _ in ch})
+    if perturbation is not None:
+        from .perturb import perturbed_kernels
+
+        return perturbed_kernels(lens, spec, perturbation, field_deg, depth_m)
+    lam_nm = spectral.wavelengths_nm(spec.channels)
     pairs = [(i, lam) for i in range(len(field_deg)) for lam in lam_nm]
-    mono = {}
+    mono = {lam: np.empty((len(field_deg), spec.kernel_px, spec.kernel_px)) for lam in lam_nm}
     for start in range(0, len(pairs), BATCH_ENTRIES):
         chunk = pairs[start:start + BATCH_ENTRIES]
         idx = np.array([i for i, _ in chunk])
         lam = np.array([lam for _, lam in chunk]) * 1e-3
         fits = fit_pupils(lens, field_deg[idx], depth_m[idx], lam, grid=spec.fit_grid, degree=spec.fit_degree)
         for (i, lam_i), fit in zip(chunk, fits):
-            mono[i, lam_i] = psf_from_pupil(fit, spec.kernel_px, spec.pitch_um, spec.oversample, spec.guard).kernel
-    out = np.zeros((len(spec.channels), len(field_deg), spec.kernel_px, spec.kernel_px), dtype=np.float64)
-    for c, channel in enumerate(spec.channels):
-        for i in range(len(field_deg)):
-            out[c, i] = sum(weight * mono[i, lam] for lam, weight in channel)
-    out /= out.sum(axis=(2, 3), keepdims=True)
-    return out.astype(np.float32)
+            mono[lam_i][i] = psf_from_pupil(fit, spec.kernel_px, spec.pitch_um, spec.oversample, spec.guard).kernel
+    return spectral.channel_kernels(mono, spec.channels).astype(np.float32)
 
 
 class PsfCacheWarning(UserWarning):
@@ -180,20 +189,55 @@ def default_cache_dir() -> Path:
 
 
 class PsfTensor:
-    """A lazily filled PSF tensor for one lens and spec (see module doc)."""
+    """A lazily filled PSF tensor of one lens as built, on one spec (see module doc).
+
+    It holds only kernels it can reproduce: those of ``lens`` with the hardware errors
+    ``perturbation`` (``optics.perturb.Perturbation``; None or all zero is the design), traced
+    on demand and cached on disk under ``key``, which covers all three. A perturbed tensor
+    holds the built lens's kernels along the meridian φ = 0, each centred where the design's
+    chief ray lands (``perturb.perturbed_kernels``); an exact-mode ``render.PsfMap`` over it
+    traces the same errors at every (θ, φ). Kernels that come from elsewhere (a synthetic
+    test kernel) enter through :meth:`from_kernels`: keyed by their content, never
+    computed, and refused by exact mode.
+    """
 
     def __init__(self, lens: Lens | str = "bmi_monocentric", spec: TensorSpec | None = None,
-                 cache_dir: str | os.PathLike | None = None, use_cache: bool = True):
+                 cache_dir: str | os.PathLike | None = None, use_cache: bool = True, perturbation=None):
         self.lens = load_lens(lens) if isinstance(lens, str) else lens
         self.spec = spec or TensorSpec()
+        if perturbation is not None and not np.any(perturbation.to_vector()):
+            perturbation = None  # the design (a glare spread without glare changes nothing)
+        self.perturbation = perturbation
+        self.key = self.spec.cache_key(self.lens, perturbation)
         shape = (len(self.spec.channels), len(self.spec.field_deg), len(self.spec.depth_m))
         self.data = np.zeros(shape + (self.spec.kernel_px,) * 2, dtype=np.float32)
         self.filled = np.zeros(shape, dtype=bool)
+        self.reproducible = True
         self.cache_dir = None
         if use_cache:
             root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
-            self.cache_dir = root / self.spec.cache_key(self.lens)
+            self.cache_dir = root / self.key
         self._shards_loaded: set[int] = set()
+
+    @classmethod
+    def from_kernels(cls, lens: Lens | str, spec: TensorSpec, psf: np.ndarray) -> "PsfTensor":
+        """A complete tensor of given kernels (C, n_θ, n_d, K, K), unit sum each; keyed by their content.
+
+        For kernels the optics did not make (an analytic test kernel): the tensor cannot
+        compute or trace them, so it is never cached and ``PsfMap`` refuses it in exact mode.
+        """
+        tensor = cls(lens, spec, use_cache=False)
+        psf = np.asarray(psf, dtype=np.float32)
+        if psf.shape != tensor.data.shape:
+            raise ValueError(f"kernels of shape {psf.shape}, the spec needs {tensor.data.shape}")
+        sums = psf.astype(np.float64).sum(axis=(-2, -1))
+        if not (np.isfinite(psf).all() and np.allclose(sums, 1.0, atol=1e-4)):
+            raise ValueError("given kernels must be finite with unit sum each")
+        tensor.data[...] = psf
+        tensor.filled[...] = True
+        tensor.reproducible = False
+        tensor.key = "given-" + hashlib.sha256(np.ascontiguousarray(psf).tobytes()).hexdigest()[:14]
+        return tensor
 
     # -- access -------------------------------------------------------------
     @property
@@ -219,7 +263,9 @@ class PsfTensor:
             return 0
         theta = self.field_deg[[i for i, _ in missing]]
         depth = self.depth_m[[j for _, j in missing]]
-        kernels = compute_kernels(self.lens, self.spec, theta, depth)
+        if not self.reproducible:
+            raise ValueError(f"tensor {self.key} holds given kernels only; entries {missing[:3]} cannot be computed")
+        kernels = compute_kernels(self.lens, self.spec, theta, depth, self.perturbation)
         for n, (i, j) in enumerate(missing):
             self.data[:, i, j] = kernels[:, n]
             self.filled[:, i, j] = True
@@ -244,13 +290,14 @@ class PsfTensor:
             bar = tqdm(total=len(todo), desc=f"PSF tensor ({workers} processes)", unit="field")
         depths = np.asarray(self.spec.depth_m)
         if workers == 1:
-            results = (compute_kernels(self.lens, self.spec, np.full(len(depths), self.spec.field_deg[i]), depths)
-                       for i in todo)
+            results = (compute_kernels(self.lens, self.spec, np.full(len(depths), self.spec.field_deg[i]), depths,
+                                       self.perturbation) for i in todo)
             pool = None
         else:
             pool = _spawn_single_threaded_pool(workers)
             results = pool.map(compute_kernels, [self.lens] * len(todo), [self.spec] * len(todo),
-                               [np.full(len(depths), self.spec.field_deg[i]) for i in todo], [depths] * len(todo))
+                               [np.full(len(depths), self.spec.field_deg[i]) for i in todo], [depths] * len(todo),
+                               [self.perturbation] * len(todo))
         try:
             for i, kernels in zip(todo, results):
                 self.data[:, i] = kernels
@@ -309,6 +356,9 @@ class PsfTensor:
             "units": {"field_deg": "degree", "depth_m": "metre (range from the lens centre)", "pitch_um": "micrometre"},
             "lens": {"name": self.lens.name, "sha256": self.lens.sha256(), "prescription": self.lens.to_dict()},
             "spec": self.spec.to_dict(),
+            "perturbation": None if self.perturbation is None else self.perturbation.to_dict(),
+            "key": self.key,
+            "kernels": "traced" if self.reproducible else "given",
             "channel_names": list(spectral.CHANNELS),
             "code_version": __version__,
             "complete": bool(self.filled.all()),
@@ -342,8 +392,17 @@ class PsfTensor:
         if digest != meta.get("npz_sha256"):
             raise ValueError(f"{path}: content hash does not match its metadata (file changed or corrupt)")
         lens = Lens.from_dict(meta["lens"]["prescription"])
-        tensor = cls(lens, TensorSpec.from_dict(meta["spec"]), use_cache=False)
+        perturbation = None
+        if meta.get("perturbation") is not None:
+            from .perturb import Perturbation
+
+            perturbation = Perturbation.from_dict(meta["perturbation"])
+        spec = TensorSpec.from_dict(meta["spec"])
         with np.load(path, allow_pickle=False) as z:
-            tensor.data[...] = z["psf"].astype(np.float32)
-            tensor.filled[...] = z["filled"]
+            psf, filled = z["psf"].astype(np.float32), z["filled"]
+        if meta.get("kernels") == "given":
+            return cls.from_kernels(lens, spec, psf)
+        tensor = cls(lens, spec, use_cache=False, perturbation=perturbation)
+        tensor.data[...] = psf
+        tensor.filled[...] = filled
         return tensor

@@ -17,14 +17,20 @@ decenter, tilt, sensor radius, PSF shift/scale, glare) is an ``exact``-mode
 option: each monochromatic kernel is ``perturb.spot_kernels`` of the perturbed
 lens at (θ, φ, depth, λ), sampled on the K × K grid centred on the pixel where
 the *design* lens's traced chief ray of that (θ, φ, depth, λ) lands (the
-convention of ``perturb.perturbed_tensor``). The renderer maps pixels to
+convention of ``perturb.perturbed_kernels``). The renderer maps pixels to
 fields with the nominal geometry, so each PSF appears displaced by exactly
 (perturbed − design) chief-ray landing, and a zero perturbation is the
 nominal kernel. The design landing is traced per entry, not taken from
 ``SensorGeometry.pixel_of_field``: a geometry holds one table (587.6 nm,
 infinity; up to 0.5 px of lateral colour away), or the ideal R·θ mapping
-(up to 24 px away), neither of which is part of the perturbation. The tensor is rotationally symmetric, so
-``tensor`` mode refuses a perturbation.
+(up to 24 px away), neither of which is part of the perturbation.
+
+A tensor built with a perturbation (``PsfTensor(perturbation=…)``, e.g. a
+calibration's corrected tensor) carries it: ``exact`` mode over it traces
+those errors at every (θ, φ), and ``tensor`` mode rotates its φ = 0 kernels
+like any tensor kernel. Given a nominal tensor, ``tensor`` mode refuses a
+perturbation: a rotationally symmetric tensor cannot hold decenter or tilt at
+every azimuth.
 
 Tensor-mode details:
 
@@ -51,6 +57,7 @@ import cv2
 import numpy as np
 
 from ..geometry import SensorGeometry
+from ..optics import spectral
 from ..optics.perturb import Perturbation, spot_kernels, trace_spots
 from ..optics.psf import psf_from_pupil
 from ..optics.pupil import fit_pupils
@@ -99,7 +106,8 @@ class PsfMap:
     """Kernels for arbitrary (θ, φ, depth index); depths are the tensor's grid (see module doc).
 
     ``perturbation`` (``exact`` mode only): the hardware errors of a built lens; ``None`` or all
-    zero is the design, and its kernels are bit-identical to a map without one.
+    zero is the design, and its kernels are bit-identical to a map without one. A tensor
+    built with errors carries them (``tensor.perturbation``); naming other errors is refused.
     ``centre_calibrated``: the camera's optical centre is known (as ``bmi calibrate``
     measures it), so the on-axis spot displacement of the perturbation, a shift of
     the whole image, is taken out of every kernel; what remains is the
@@ -114,9 +122,15 @@ class PsfMap:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         if perturbation is not None and not np.any(perturbation.to_vector()):
             perturbation = None  # the design (a glare spread without glare changes nothing)
-        if perturbation is not None and mode != "exact":
+        carried = tensor.perturbation
+        if perturbation is not None and carried is not None and perturbation != carried:
+            raise ValueError(f"the tensor was built with {carried}, not {perturbation}: one camera per map")
+        if perturbation is not None and carried is None and mode != "exact":
             raise ValueError("a perturbation needs psf_mode='exact': the PSF tensor is rotationally symmetric "
                              "and cannot hold decenter or tilt at every azimuth")
+        if mode == "exact" and not tensor.reproducible:
+            raise ValueError(f"tensor {tensor.key} holds given kernels, which cannot be traced: use mode='tensor'")
+        perturbation = perturbation or carried
         self.tensor = tensor
         self.geometry = geometry
         self.interpolation = interpolation
@@ -141,7 +155,7 @@ class PsfMap:
         missing = [int(j) for j in depth_indices if key + (int(j),) not in self._exact]
         if missing:
             spec = self.tensor.spec
-            lam_nm = sorted({lam for ch in spec.channels for lam, _ in ch})
+            lam_nm = spectral.wavelengths_nm(spec.channels)
             depth = np.asarray(spec.depth_m)[missing]
             d_grid, l_grid = np.meshgrid(depth, lam_nm, indexing="ij")
             theta = float(np.clip(theta_deg, 0.0, self.field_deg[-1]))
@@ -152,12 +166,11 @@ class PsfMap:
                                        rotation_deg=float(phi_deg)).kernel for fit in fits]
             else:
                 flat = self._perturbed_mono(theta, float(phi_deg), d_grid.ravel(), l_grid.ravel() * 1e-3)
-            mono = dict(zip(((a, b) for a in missing for b in lam_nm), flat))
-            for dj in missing:
-                k = np.stack([sum(w * mono[dj, lam] for lam, w in ch) for ch in spec.channels])
-                if self.perturbation is not None:
-                    k = np.maximum(k, 0.0)  # a fitted glare fraction slightly below 0 must not make negative wings
-                self._exact[key + (dj,)] = (k / k.sum(axis=(1, 2), keepdims=True)).astype(np.float32)
+            by_depth = np.asarray(flat).reshape(len(missing), len(lam_nm), self.kernel_px, self.kernel_px)
+            mono = {lam: by_depth[:, m] for m, lam in enumerate(lam_nm)}
+            kernels = spectral.channel_kernels(mono, spec.channels, clip_negative=self.perturbation is not None)
+            for n, dj in enumerate(missing):
+                self._exact[key + (dj,)] = kernels[:, n].astype(np.float32)
         return np.stack([self._exact[key + (int(j),)] for j in depth_indices], axis=1)
 
     def _perturbed_mono(self, theta_deg: float, phi_deg: float, depth_m: np.ndarray,
