@@ -203,11 +203,105 @@ class SensorGeometry:
 
     @classmethod
     def from_dict(cls, d: dict) -> "SensorGeometry":
+        """The geometry ``to_dict`` wrote (a ``DisplacedGeometry`` when it holds a displacement table)."""
         cy, cx = d.get("centre_px", (None, None))
-        return cls(width_px=int(d["width_px"]), height_px=int(d["height_px"]), pitch_um=float(d["pitch_um"]),
-                   radius_mm=d.get("radius_mm"), cx_px=cx, cy_px=cy, max_field_deg=float(d.get("max_field_deg", 60)),
-                   field_table_deg=tuple(d.get("field_table_deg", ())),
-                   radial_table_mm=tuple(d.get("radial_table_mm", ())))
+        kwargs = dict(width_px=int(d["width_px"]), height_px=int(d["height_px"]), pitch_um=float(d["pitch_um"]),
+                      radius_mm=d.get("radius_mm"), cx_px=cx, cy_px=cy, max_field_deg=float(d.get("max_field_deg", 60)),
+                      field_table_deg=tuple(d.get("field_table_deg", ())),
+                      radial_table_mm=tuple(d.get("radial_table_mm", ())))
+        if "displacement" in d:
+            disp = d["displacement"]
+            return DisplacedGeometry(**kwargs, displacement_step_deg=float(disp["step_deg"]),
+                                     displacement_phi_count=int(disp["phi_count"]),
+                                     displacement_px=tuple(float(x) for x in disp["px"]))
+        return SensorGeometry(**kwargs)
+
+
+@dataclass(frozen=True, repr=False)
+class DisplacedGeometry(SensorGeometry):
+    """A sensor geometry whose chief rays land off its rotationally symmetric mapping by a smooth displacement.
+
+    A built camera with decenter or tilt breaks the rotational symmetry: the chief ray of (θ, φ) lands at
+    ``SensorGeometry.pixel_of_field(θ, φ) + D(θ, φ)``. D (row, col) px is tabulated on the regular grid
+    θ = i·``displacement_step_deg`` (0 … the table's end), φ = j·360°/n_φ, flattened in
+    ``displacement_px`` as (n_θ, n_φ, 2), and interpolated bilinearly (periodic in φ, clamped in θ).
+    ``field_angles`` inverts it: on a lattice of sensor pixels every ``INVERSE_LATTICE_PX`` the
+    displacement E(pixel) = D(f) of the field f the pixel sees is found by fixed-point iteration
+    f ← symmetric field of (pixel − D(f)) (D is a few px and changes by ~1e-3 px per px, so two steps
+    leave ~1e-5 px), once; any pixel then sees the symmetric field of (pixel − E(pixel)), E bilinear
+    between lattice points (C speed: a full frame costs what the symmetric mapping does, twice).
+    """
+
+    INVERSE_LATTICE_PX = 32
+
+    displacement_step_deg: float = 1.0
+    displacement_phi_count: int = 1
+    displacement_px: tuple = ()
+
+    def __post_init__(self):
+        super().__post_init__()
+        d = np.asarray(self.displacement_px, dtype=np.float64)
+        if not self.displacement_step_deg > 0 or self.displacement_phi_count < 1 or \
+                d.size % (2 * self.displacement_phi_count) or not d.size or not np.all(np.isfinite(d)):
+            raise ValueError(f"displacement_px must hold finite (n_theta, {self.displacement_phi_count}, 2) values "
+                             f"on a {self.displacement_step_deg}° θ grid")
+        object.__setattr__(self, "_table", d.reshape(-1, self.displacement_phi_count, 2))
+
+    def displacement(self, theta_deg, phi_deg) -> tuple[np.ndarray, np.ndarray]:
+        """(d_row, d_col) px of the chief rays of (θ, φ) from the symmetric mapping (bilinear in the table)."""
+        table = self._table
+        n_theta, n_phi = table.shape[:2]
+        # beyond the image circle (θ NaN or past the table) the edge's displacement continues
+        t = np.clip(np.nan_to_num(np.asarray(theta_deg, dtype=np.float64), nan=np.inf) / self.displacement_step_deg,
+                    0.0, n_theta - 1.0)
+        f = np.mod(np.asarray(phi_deg, dtype=np.float64), 360.0) / (360.0 / n_phi)
+        i0 = np.minimum(np.floor(t).astype(int), n_theta - 2) if n_theta > 1 else np.zeros_like(t, dtype=int)
+        j0 = np.floor(f).astype(int) % n_phi
+        j1 = (j0 + 1) % n_phi
+        wt = (t - i0)[..., None]
+        wf = (f - np.floor(f))[..., None]
+        i1 = np.minimum(i0 + 1, n_theta - 1)
+        d = ((1 - wt) * ((1 - wf) * table[i0, j0] + wf * table[i0, j1])
+             + wt * ((1 - wf) * table[i1, j0] + wf * table[i1, j1]))
+        return d[..., 0], d[..., 1]
+
+    def pixel_of_field(self, theta_deg, phi_deg):
+        row, col = super().pixel_of_field(theta_deg, phi_deg)
+        d_row, d_col = self.displacement(theta_deg, phi_deg)
+        return row + d_row, col + d_col
+
+    def _inverse_lattice(self) -> np.ndarray:
+        """(2, n_rows, n_cols) displacement E (row, col) px of the chief rays landing on lattice pixels."""
+        lattice = getattr(self, "_lattice", None)
+        if lattice is None:
+            step = self.INVERSE_LATTICE_PX
+            rows = np.arange(0, self.height_px + step, step, dtype=np.float64)[:, None]
+            cols = np.arange(0, self.width_px + step, step, dtype=np.float64)[None, :]
+            d_row = d_col = np.zeros(np.broadcast_shapes(rows.shape, cols.shape))
+            for _ in range(3):
+                theta, phi = super().field_angles(rows - d_row, cols - d_col)
+                d_row, d_col = self.displacement(theta, phi)
+            lattice = np.stack([d_row, d_col])
+            object.__setattr__(self, "_lattice", lattice)
+        return lattice
+
+    def field_angles(self, rows, cols):
+        from scipy.ndimage import map_coordinates  # here: the host API imports this module without scipy
+
+        rows, cols = np.broadcast_arrays(np.asarray(rows, dtype=np.float64), np.asarray(cols, dtype=np.float64))
+        at = [rows / self.INVERSE_LATTICE_PX, cols / self.INVERSE_LATTICE_PX]
+        d_row, d_col = (map_coordinates(e, at, order=1, mode="nearest") for e in self._inverse_lattice())
+        return super().field_angles(rows - d_row, cols - d_col)
+
+    @property
+    def max_displacement_px(self) -> float:
+        return float(np.hypot(self._table[..., 0], self._table[..., 1]).max())
+
+    def to_dict(self) -> dict:
+        d = super().to_dict()
+        d["displacement"] = {"step_deg": self.displacement_step_deg, "phi_count": self.displacement_phi_count,
+                             "px": [float(x) for x in self.displacement_px]}
+        return d
 
 
 IDEAL_BMI_SENSOR = SensorGeometry()

@@ -235,6 +235,9 @@ def test_simulate_calibrate_infer_loop_uses_the_calibrated_kernels(tmp_path):
     fitted = report["camera"]["perturbation"]["decenter_um"][0]
     assert fitted == pytest.approx(result.estimate.decenter_um[0]) and abs(fitted - 8.0) < 2.0
     assert report["camera"]["sha256"] != BuiltCamera(geometry=GEOMETRY).sha256()
+    rays = report["rays"]  # the point cloud follows the calibrated camera's rays: its image moved with the lens
+    assert rays["source"] == "traced through the calibrated camera"
+    assert rays["centre_px"][1] - rays["nominal_centre_px"][1] == pytest.approx(fitted / 2.0, abs=0.1)
     sidecar = json.loads((tmp_path / "f.json").read_text())
     assert sidecar["source"]["injected_perturbation"]["decenter_um"] == [8.0, 0.0]
     assert np.isfinite(np.load(tmp_path / "o" / "depth.npy")).any()

@@ -31,16 +31,22 @@ def _read_checked(frame_or_path, allow_test_pattern: bool):
 
 
 def _write_and_report(out_dir, result, frame, quality, timings: dict, head: dict, ply_step_px: int,
-                      depth_range_m) -> dict:
+                      depth_range_m, camera) -> dict:
     """Write a decoded frame's files into ``out_dir`` and return its report, whichever decoder ran: the
     decoder's own ``head`` entries, the frame, its quality, the result's summary, timings, memory and files.
-    ``run_job`` completes the report and writes it once."""
+    The point cloud and ``depth_z`` follow the chief rays of ``camera`` (a ``BuiltCamera``: a calibrated
+    camera's traced rays, ``BuiltCamera.ray_geometry``). ``run_job`` completes the report and writes it once."""
     t0 = time.perf_counter()
-    written = write_frame_outputs(out_dir, result, frame, ply_step_px=ply_step_px, depth_range_m=depth_range_m)
+    rays = camera.ray_geometry()
+    timings["ray_geometry_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    written = write_frame_outputs(out_dir, result, frame, geometry=rays, ply_step_px=ply_step_px,
+                                  depth_range_m=depth_range_m)
     timings["write_outputs_s"] = time.perf_counter() - t0
     return {
         "schema": "bmi-infer-report/1",
         **head,
+        "rays": ray_summary(rays, frame.geometry),
         "frame_calibration_id": getattr(frame, "calibration_id", None),
         "frame": {"frame_id": frame.frame_id, "shape": list(frame.data.shape), "roi": vars(frame.roi),
                   "lens": frame.lens, "device": frame.device, "source": frame.source},
@@ -50,6 +56,16 @@ def _write_and_report(out_dir, result, frame, quality, timings: dict, head: dict
         "peak_rss_mb": peak_rss_mb(),
         **written,
     }
+
+
+def ray_summary(rays, sensor) -> dict:
+    """The report's account of the rays the point cloud used: the frame's sensor geometry, or a built
+    camera's traced one (its optical centre, and how far its rays land from the symmetric mapping)."""
+    if rays == sensor:
+        return {"source": "sensor geometry", "centre_px": list(sensor.centre_px)}
+    return {"source": "traced through the calibrated camera", "centre_px": list(rays.centre_px),
+            "nominal_centre_px": list(sensor.centre_px),
+            "max_asymmetric_displacement_px": getattr(rays, "max_displacement_px", 0.0)}
 
 
 def load_model_for(frame, model_path: str | os.PathLike | None = None, calibration_id: str | None = None,
@@ -168,9 +184,8 @@ def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None 
     if depth_range_m is not None:
         check_depth_range(depth_range_m)  # before any work
     frame, quality, timings = _read_checked(frame_or_path, allow_test_pattern)
-    calibration = None
-    if calibration_path is not None:
-        calibration = calibration_for(frame, calibration_path, calibration_id)
+    camera, calibration = camera_for(frame, calibration_path, calibration_id)
+    if calibration is not None:
         calibration_id = calibration["id"]
     note = None
     if model is None:
@@ -183,7 +198,8 @@ def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None 
     timings["infer_s"] = time.perf_counter() - t0
     head = {"decoder": "cnn", "model": model.describe(), "calibration_id": model.manifest["calibration_id"],
             "calibration_note": note, "calibration_file": calibration}
-    return result, _write_and_report(out_dir, result, frame, quality, timings, head, ply_step_px, depth_range_m)
+    return result, _write_and_report(out_dir, result, frame, quality, timings, head, ply_step_px, depth_range_m,
+                                     camera)
 
 
 def camera_for(frame, calibration_path=None, calibration_id: str | None = None):
@@ -232,7 +248,8 @@ def _classical_into(frame_or_path, out_dir, *, calibration_path=None, calibratio
     timings["decode_s"] = time.perf_counter() - t0
     head = {"decoder": "classical", "camera": camera.to_dict() | {"sha256": camera.sha256()},
             "calibration_id": camera.calibration_id, "calibration_note": None, "calibration_file": calibration}
-    return result, _write_and_report(out_dir, result, frame, quality, timings, head, ply_step_px, depth_range_m)
+    return result, _write_and_report(out_dir, result, frame, quality, timings, head, ply_step_px, depth_range_m,
+                                     camera)
 
 
 def _learned_into(frame_or_path, out_dir, *, model: Model | None = None, model_path=None, calibration_path=None,
@@ -269,4 +286,5 @@ def _learned_into(frame_or_path, out_dir, *, model: Model | None = None, model_p
     timings["decode_s"] = time.perf_counter() - t0
     head = {"decoder": "learned", "model": model.describe(), "camera": camera.to_dict() | {"sha256": camera.sha256()},
             "calibration_id": camera.calibration_id, "calibration_note": None, "calibration_file": calibration}
-    return result, _write_and_report(out_dir, result, frame, quality, timings, head, ply_step_px, depth_range_m)
+    return result, _write_and_report(out_dir, result, frame, quality, timings, head, ply_step_px, depth_range_m,
+                                     camera)

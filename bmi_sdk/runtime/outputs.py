@@ -196,11 +196,13 @@ def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarr
     return {"files": files, "ply_points": points, "ply_step_px": ply_step_px}
 
 
-def write_frame_outputs(out_dir: str | os.PathLike, result, frame, **options) -> dict:
-    """``write_outputs`` for a decoded frame: geometry and ROI offset come from ``frame`` (a ``devices.RawFrame``),
-    the AiF, range and (classical decoder) range 1σ from ``result``. ``options``: ``write_outputs``'s keywords."""
-    return write_outputs(out_dir, result.aif, result.depth_m, frame.geometry, frame.roi.y_px, frame.roi.x_px,
-                         depth_sigma_m=getattr(result, "depth_sigma_m", None), **options)
+def write_frame_outputs(out_dir: str | os.PathLike, result, frame, geometry: SensorGeometry | None = None,
+                        **options) -> dict:
+    """``write_outputs`` for a decoded frame: the ROI offset comes from ``frame`` (a ``devices.RawFrame``), the rays
+    from ``geometry`` (default the frame's; a calibrated camera's traced rays), the AiF, range and (classical decoder)
+    range 1σ from ``result``. ``options``: ``write_outputs``'s keywords."""
+    return write_outputs(out_dir, result.aif, result.depth_m, geometry or frame.geometry, frame.roi.y_px,
+                         frame.roi.x_px, depth_sigma_m=getattr(result, "depth_sigma_m", None), **options)
 
 
 def write_report(out_dir: str | os.PathLike, report: dict) -> Path:
