@@ -29,8 +29,6 @@ from .optics.perturb import Perturbation
 
 SENSOR_FIELDS = ("width_px", "height_px", "pitch_um", "radius_mm", "cx_px", "cy_px", "max_field_deg",
                  "field_table_deg", "radial_table_mm")
-CHIEF_FIT_GRID, CHIEF_FIT_DEGREE = 8, 2
-"""Pupil fit of a trace that only needs where the chief ray lands (as ``optics.report.chief_ray_table``)."""
 
 
 @dataclass(frozen=True)
@@ -116,7 +114,7 @@ def traced_ray_geometry(camera: BuiltCamera, field_step_deg: float = 0.5, azimut
 
     from .geometry import DisplacedGeometry
     from .optics import get_lens
-    from .optics.perturb import perturbed_lens, trace_spots
+    from .optics.perturb import CHIEF_FIT_DEGREE, CHIEF_FIT_GRID, perturbed_lens, trace_spots
 
     lens = get_lens(camera.lens_name)
     theta = np.arange(0.0, base.max_field_deg + field_step_deg / 2, field_step_deg)

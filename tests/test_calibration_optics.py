@@ -128,3 +128,16 @@ def test_a_built_tensor_is_keyed_by_its_errors_and_carries_them_to_exact_kernels
     assert given.key.startswith("given-") and not given.reproducible
     with pytest.raises(ValueError, match="given kernels"):
         PsfMap(given, BMI_SENSOR, mode="exact")
+
+
+def test_a_chief_ray_landing_does_not_depend_on_the_pupil_fit(lens):
+    """CHIEF_FIT_GRID/DEGREE (a fifth of the cost) may place kernels and rays only because the chief ray is traced
+    apart from the fit: the landing is bit-identical to a full fit's, perturbed or not."""
+    from bmi_sdk.optics.perturb import CHIEF_FIT_DEGREE, CHIEF_FIT_GRID
+
+    theta, phi, depth = [0.0, 23.0, 51.0, 59.0], [0.0, 40.0, 200.0, 311.0], [0.7, 2.0, math.inf, 9.0]
+    for p in (Perturbation(), Perturbation(decenter_um=(6.0, 2.0), tilt_arcmin=(0.4, -0.3), sensor_radius_error_pct=1.0)):
+        full = trace_spots(lens, p, theta, phi, depth, LAM, CENTRE)[1]
+        coarse = trace_spots(lens, p, theta, phi, depth, LAM, CENTRE, fit_grid=CHIEF_FIT_GRID,
+                             fit_degree=CHIEF_FIT_DEGREE)[1]
+        np.testing.assert_array_equal(coarse, full)

@@ -63,6 +63,9 @@ DEFAULT_STRAY_SPREAD_PX = 8.0
 VECTOR_NAMES = tuple(f"{n}[{i}]" if SIZES[n] == 2 else n for n in PARAMETERS for i in range(SIZES[n]))
 """Flat order of the nine numbers (``Perturbation.to_vector``)."""
 ARCMIN_RAD = math.pi / (180.0 * 60.0)
+CHIEF_FIT_GRID, CHIEF_FIT_DEGREE = 8, 2
+"""Pupil fit of a trace that only needs where chief rays land: the chief ray is traced before and apart from
+the fit, so its landing is bit-identical to a full fit's, at a fifth of the cost."""
 
 
 @dataclass(frozen=True)
@@ -333,7 +336,7 @@ def perturbed_kernels(lens: Lens, spec, p: Perturbation, field_deg, depth_m) -> 
     mono = {}
     for lam in spectral.wavelengths_nm(spec.channels):
         _, design_px, _ = trace_spots(lens, Perturbation(), theta, 0.0, depth, lam * 1e-3, origin_px, spec.pitch_um,
-                                      spec.fit_grid, spec.fit_degree)
+                                      CHIEF_FIT_GRID, CHIEF_FIT_DEGREE)
         mono[lam] = spot_kernels(lens, p, theta, 0.0, depth, lam * 1e-3, design_px, spec.kernel_px, origin_px,
                                  spec.pitch_um, spec.oversample, spec.guard, spec.fit_grid, spec.fit_degree).kernels
     return spectral.channel_kernels(mono, spec.channels, clip_negative=True).astype(np.float32)

@@ -58,7 +58,7 @@ import numpy as np
 
 from ..geometry import SensorGeometry
 from ..optics import spectral
-from ..optics.perturb import Perturbation, spot_kernels, trace_spots
+from ..optics.perturb import CHIEF_FIT_DEGREE, CHIEF_FIT_GRID, Perturbation, spot_kernels, trace_spots
 from ..optics.psf import psf_from_pupil
 from ..optics.pupil import fit_pupils
 from ..optics.tensor import PsfTensor
@@ -98,8 +98,6 @@ def resample_kernel(kernel: np.ndarray, scale: float) -> np.ndarray:
 
 
 MODES = ("exact", "tensor")
-DESIGN_FIT_GRID, DESIGN_FIT_DEGREE = 8, 2
-"""Pupil fit of the design trace that only places a perturbed kernel's grid (as ``optics.report.chief_ray_table``)."""
 
 
 class PsfMap:
@@ -181,13 +179,13 @@ class PsfMap:
         centre_px = self.geometry.centre_px
         # The chief ray is traced before (and apart from) the pupil fit: a coarse fit gives the same landing.
         _, design_px, _ = trace_spots(lens, Perturbation(), theta, phi_deg, depth_m, wavelength_um, centre_px,
-                                      pitch_um, fit_grid=DESIGN_FIT_GRID, fit_degree=DESIGN_FIT_DEGREE)
+                                      pitch_um, fit_grid=CHIEF_FIT_GRID, fit_degree=CHIEF_FIT_DEGREE)
         if self.centre_calibrated:
             axis = np.zeros(len(depth_m))
             _, axis_design, _ = trace_spots(lens, Perturbation(), axis, phi_deg, depth_m, wavelength_um, centre_px,
-                                            pitch_um, fit_grid=DESIGN_FIT_GRID, fit_degree=DESIGN_FIT_DEGREE)
+                                            pitch_um, fit_grid=CHIEF_FIT_GRID, fit_degree=CHIEF_FIT_DEGREE)
             _, axis_built, _ = trace_spots(lens, self.perturbation, axis, phi_deg, depth_m, wavelength_um, centre_px,
-                                           pitch_um, fit_grid=DESIGN_FIT_GRID, fit_degree=DESIGN_FIT_DEGREE)
+                                           pitch_um, fit_grid=CHIEF_FIT_GRID, fit_degree=CHIEF_FIT_DEGREE)
             shift_rc = np.array([self.perturbation.psf_shift_px[1], self.perturbation.psf_shift_px[0]])
             design_px = design_px + (axis_built + shift_rc - axis_design)  # the image centre moves with the spot
         return spot_kernels(lens, self.perturbation, theta, phi_deg, depth_m, wavelength_um, design_px,
