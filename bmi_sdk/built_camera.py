@@ -68,17 +68,21 @@ class BuiltCamera:
         nominal = lens_tensor(self.lens_name)
         return nominal if self.is_nominal else PsfTensor(nominal.lens, nominal.spec, perturbation=self.perturbation)
 
-    def psf_map(self, mode: str | None = None, centre_calibrated: bool = False):
+    def psf_map(self, mode: str | None = None, centre_calibrated: bool = False, disk_cache: bool = False):
         """The camera's ``PsfMap``: tensor mode for the design, exact mode (perturbed lens) otherwise.
 
         ``centre_calibrated``: take the on-axis landing shift out of every kernel (for images whose
         optical centre was moved to the nominal one, as ``bmi eval`` renders its perturbed rows).
+        ``disk_cache``: keep exact kernels in the PSF cache (``optics.tensor.default_cache_dir``), so a
+        calibrated camera's second frame (or run) reads its zone kernels instead of tracing them.
         """
+        from .optics.tensor import default_cache_dir
         from .render import PsfMap
 
         mode = mode or ("tensor" if self.is_nominal else "exact")
         return PsfMap(self.psf_tensor(), self.sensor(), mode=mode,
-                      centre_calibrated=centre_calibrated and not self.is_nominal)
+                      centre_calibrated=centre_calibrated and not self.is_nominal,
+                      cache_dir=default_cache_dir() if disk_cache else None)
 
     def ray_geometry(self) -> SensorGeometry:
         """``traced_ray_geometry`` of this camera (memoised: a batch of frames traces it once)."""

@@ -141,3 +141,36 @@ def test_a_chief_ray_landing_does_not_depend_on_the_pupil_fit(lens):
         coarse = trace_spots(lens, p, theta, phi, depth, LAM, CENTRE, fit_grid=CHIEF_FIT_GRID,
                              fit_degree=CHIEF_FIT_DEGREE)[1]
         np.testing.assert_array_equal(coarse, full)
+
+
+def test_a_calibrated_camera_s_exact_kernels_are_kept_on_disk(lens, tmp_path, monkeypatch):
+    """An exact-mode map with a cache_dir writes each (θ, φ)'s kernels once: another map of the same camera reads
+    them without tracing, traces only depths not yet there, another camera gets another folder, and a damaged
+    shard is recomputed with a warning (never used)."""
+    from bmi_sdk.geometry import BMI_SENSOR
+    from bmi_sdk.optics import PsfTensor, TensorSpec
+    from bmi_sdk.optics.tensor import PsfCacheWarning
+    from bmi_sdk.render import PsfMap
+
+    spec = TensorSpec(field_deg=(0.0, 40.0), depth_m=(1.0, 2.0, 4.0), kernel_px=21)
+
+    def camera_map(p):
+        return PsfMap(PsfTensor(lens, spec, use_cache=False, perturbation=p), BMI_SENSOR, mode="exact",
+                      cache_dir=tmp_path)
+
+    p = Perturbation(decenter_um=(5.0, 0.0), stray_light_fraction=0.01)
+    first = camera_map(p)
+    traced = first.kernels(33.0, 21.0, [0, 2])
+    shards = list(first.exact_cache_dir.glob("*.npz"))
+    assert len(shards) == 1
+    second = camera_map(p)
+    monkeypatch.setattr(second, "_perturbed_mono", lambda *a: pytest.fail("read from disk, not traced"))
+    np.testing.assert_array_equal(second.kernels(33.0, 21.0, [0, 2]), traced)
+    monkeypatch.undo()
+    second.kernels(33.0, 21.0, [1])  # a depth not cached yet is traced and added to the shard
+    with np.load(shards[0]) as z:
+        assert z["filled"].all()
+    assert camera_map(Perturbation(decenter_um=(6.0, 0.0))).exact_cache_dir != first.exact_cache_dir
+    shards[0].write_bytes(shards[0].read_bytes()[:200])  # truncated
+    with pytest.warns(PsfCacheWarning, match="recomputing"):
+        np.testing.assert_array_equal(camera_map(p).kernels(33.0, 21.0, [0, 2]), traced)

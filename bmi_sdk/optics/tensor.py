@@ -130,8 +130,9 @@ def _shard_digest(psf: np.ndarray, filled: np.ndarray) -> str:
     return h.hexdigest()
 
 
-def _verified_shard(path: Path, psf_shape: tuple) -> tuple[np.ndarray, np.ndarray, bool]:
-    """(psf, filled, legacy) of a cache shard, or ``ValueError`` saying what is wrong with it.
+def read_kernel_shard(path: Path, psf_shape: tuple) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(psf, filled, legacy) of a cache shard (kernels (C, n, K, K), filled (C, n)), or ``ValueError`` saying what
+    is wrong with it.
 
     Checks: a readable npz (zip CRCs catch truncation and bit flips), the
     expected arrays and shapes, the SHA-256 recorded at write time (``legacy``:
@@ -159,6 +160,13 @@ def _verified_shard(path: Path, psf_shape: tuple) -> tuple[np.ndarray, np.ndarra
     if kernels.size and not np.allclose(sums, 1.0, atol=1e-3):
         raise ValueError(f"kernel sums {sums.min():.4g}..{sums.max():.4g}, expected 1")
     return psf, filled, legacy
+
+
+def write_kernel_shard(path: Path, psf: np.ndarray, filled: np.ndarray) -> None:
+    """Write a cache shard atomically, with the SHA-256 ``read_kernel_shard`` checks."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez(tmp, psf=psf, filled=filled, sha256=np.array(_shard_digest(psf, filled)))
 
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -316,7 +324,7 @@ class PsfTensor:
         return self.cache_dir / f"theta_{i:04d}.npz"
 
     def _load_shard(self, i: int) -> None:
-        """Take the cached kernels of field index ``i``, if its shard passes ``_verified_shard``.
+        """Take the cached kernels of field index ``i``, if its shard passes ``read_kernel_shard``.
 
         A shard that fails (truncated, edited, non-finite, another shape) is
         never used: a ``PsfCacheWarning`` names it and its entries stay
@@ -330,7 +338,7 @@ class PsfTensor:
             return
         expected = (len(self.spec.channels), len(self.spec.depth_m))
         try:
-            psf, filled, legacy = _verified_shard(path, expected + (self.spec.kernel_px,) * 2)
+            psf, filled, legacy = read_kernel_shard(path, expected + (self.spec.kernel_px,) * 2)
         except ValueError as exc:
             warnings.warn(f"PSF cache shard {path} is unusable ({exc}); recomputing it", PsfCacheWarning,
                           stacklevel=3)
@@ -343,10 +351,7 @@ class PsfTensor:
     def _store_shard(self, i: int) -> None:
         if self.cache_dir is None:
             return
-        self.cache_dir.mkdir(parents=True, exist_ok=True)
-        psf, filled = self.data[:, i], self.filled[:, i]
-        with atomic_path(self._shard_path(i), suffix=".npz") as tmp:
-            np.savez(tmp, psf=psf, filled=filled, sha256=np.array(_shard_digest(psf, filled)))
+        write_kernel_shard(self._shard_path(i), self.data[:, i], self.filled[:, i])
 
     # -- files ----------------------------------------------------------------
     def metadata(self) -> dict:

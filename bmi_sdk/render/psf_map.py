@@ -51,7 +51,12 @@ Tensor-mode details:
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+import os
+import warnings
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -61,7 +66,7 @@ from ..optics import spectral
 from ..optics.perturb import CHIEF_FIT_DEGREE, CHIEF_FIT_GRID, Perturbation, spot_kernels, trace_spots
 from ..optics.psf import psf_from_pupil
 from ..optics.pupil import fit_pupils
-from ..optics.tensor import PsfTensor
+from ..optics.tensor import PsfCacheWarning, PsfTensor, read_kernel_shard, write_kernel_shard
 
 INTERPOLATIONS = ("linear", "inverse_square")
 
@@ -106,6 +111,8 @@ class PsfMap:
     ``perturbation`` (``exact`` mode only): the hardware errors of a built lens; ``None`` or all
     zero is the design, and its kernels are bit-identical to a map without one. A tensor
     built with errors carries them (``tensor.perturbation``); naming other errors is refused.
+    ``cache_dir`` (``exact`` mode): keep the exact kernels on disk there, under ``exact_key`` (a calibrated
+    camera's zone kernels cost ~24 ms per (zone, depth), minutes for a frame's first decode).
     ``centre_calibrated``: the camera's optical centre is known (as ``bmi calibrate``
     measures it), so the on-axis spot displacement of the perturbation, a shift of
     the whole image, is taken out of every kernel; what remains is the
@@ -113,7 +120,8 @@ class PsfMap:
     """
 
     def __init__(self, tensor: PsfTensor, geometry: SensorGeometry, interpolation: str = "linear",
-                 mode: str = "exact", perturbation: Perturbation | None = None, centre_calibrated: bool = False):
+                 mode: str = "exact", perturbation: Perturbation | None = None, centre_calibrated: bool = False,
+                 cache_dir: str | os.PathLike | None = None):
         if interpolation not in INTERPOLATIONS:
             raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}")
         if mode not in MODES:
@@ -138,6 +146,45 @@ class PsfMap:
         self.scale = tensor.spec.pitch_um / geometry.pitch_um
         self.field_deg = np.asarray(tensor.spec.field_deg, dtype=np.float64)
         self._exact: dict[tuple, np.ndarray] = {}
+        self.exact_cache_dir = None if cache_dir is None or mode != "exact" else Path(cache_dir) / self.exact_key()
+        self._zones_read: set[tuple] = set()
+
+    def exact_key(self) -> str:
+        """Identity of this map's exact kernels: the tensor's (lens, errors, spec), the errors named here, the
+        sensor geometry and the centre convention; names the disk cache of its zone kernels."""
+        identity = {"tensor": self.tensor.key, "geometry": self.geometry.to_dict(),
+                    "perturbation": None if self.perturbation is None else self.perturbation.to_dict(),
+                    "centre_calibrated": bool(self.centre_calibrated and self.perturbation is not None)}
+        return "exact-" + hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:20]
+
+    def _zone_path(self, key: tuple) -> Path:
+        return self.exact_cache_dir / f"theta{key[0]:+010.5f}_phi{key[1]:+011.5f}.npz"
+
+    def _read_zone(self, key: tuple) -> None:
+        """Take a field position's cached exact kernels (once; a shard failing its checks is recomputed)."""
+        if self.exact_cache_dir is None or key in self._zones_read:
+            return
+        self._zones_read.add(key)
+        path = self._zone_path(key)
+        if not path.exists():
+            return
+        shape = (self.n_channels, len(self.tensor.spec.depth_m), self.kernel_px, self.kernel_px)
+        try:
+            psf, filled, _ = read_kernel_shard(path, shape)
+        except ValueError as exc:
+            warnings.warn(f"PSF cache shard {path} is unusable ({exc}); recomputing it", PsfCacheWarning, stacklevel=4)
+            return
+        for j in np.nonzero(filled.all(axis=0))[0]:
+            self._exact.setdefault(key + (int(j),), psf[:, j])
+
+    def _write_zone(self, key: tuple) -> None:
+        n_depth = len(self.tensor.spec.depth_m)
+        psf = np.zeros((self.n_channels, n_depth, self.kernel_px, self.kernel_px), dtype=np.float32)
+        filled = np.zeros((self.n_channels, n_depth), dtype=bool)
+        for j in range(n_depth):
+            if key + (j,) in self._exact:
+                psf[:, j], filled[:, j] = self._exact[key + (j,)], True
+        write_kernel_shard(self._zone_path(key), psf, filled)
 
     @property
     def n_channels(self) -> int:
@@ -148,8 +195,10 @@ class PsfMap:
         return resampled_size(self.tensor.spec.kernel_px, self.scale)
 
     def _exact_kernels(self, theta_deg: float, phi_deg: float, depth_indices: np.ndarray) -> np.ndarray:
-        """(C, n, K, K) traced at exactly (θ, φ) (through the perturbed lens if any), memoised per (θ, φ, depth)."""
+        """(C, n, K, K) traced at exactly (θ, φ) (through the perturbed lens if any), memoised per (θ, φ, depth)
+        and, with a ``cache_dir``, on disk: one shard per (θ, φ) holding the depths computed so far."""
         key = (round(float(theta_deg), 6), round(float(phi_deg), 6))
+        self._read_zone(key)
         missing = [int(j) for j in depth_indices if key + (int(j),) not in self._exact]
         if missing:
             spec = self.tensor.spec
@@ -169,6 +218,8 @@ class PsfMap:
             kernels = spectral.channel_kernels(mono, spec.channels, clip_negative=self.perturbation is not None)
             for n, dj in enumerate(missing):
                 self._exact[key + (dj,)] = kernels[:, n].astype(np.float32)
+            if self.exact_cache_dir is not None:
+                self._write_zone(key)
         return np.stack([self._exact[key + (int(j),)] for j in depth_indices], axis=1)
 
     def _perturbed_mono(self, theta_deg: float, phi_deg: float, depth_m: np.ndarray,

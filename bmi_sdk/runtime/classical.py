@@ -37,8 +37,9 @@ class ClassicalResult:
 
 
 def classical_decoder(camera: BuiltCamera, config: ClassicalConfig = ClassicalConfig()) -> ClassicalDecoder:
-    """A decoder over ``camera``'s kernels at ``config.candidates`` depths spaced in 1/d."""
-    return ClassicalDecoder.for_psf_map(camera.psf_map(), config)
+    """A decoder over ``camera``'s kernels at ``config.candidates`` depths spaced in 1/d (a calibrated camera's exact
+    kernels kept in the disk cache: its next frame or run reads them)."""
+    return ClassicalDecoder.for_psf_map(camera.psf_map(disk_cache=True), config)
 
 
 def decode_frame(decoder: ClassicalDecoder, frame, camera: BuiltCamera, progress: bool = False) -> ClassicalResult:
