@@ -121,6 +121,34 @@ def test_onnx_export_matches_torch(tmp_path):
         assert np.max(np.abs(g - r.numpy())) <= 1e-4
 
 
+def test_a_trained_network_export_is_verified_and_records_its_lens_kernel(tmp_path):
+    """``bmi train``'s export goes through the runtime's exporter: the manifest verifies, says the
+    monocentric profile's 41-px kernel is the largest PSF and records the check against torch."""
+    from bmi_sdk.model_manifest import verify_model
+    from bmi_sdk.nn.export import export_with_manifest
+
+    torch.manual_seed(0)
+    net = DualHeadMimoUNet(preset_config("tiny"))
+    export_with_manifest(net, tmp_path / "m.onnx", preset="tiny", lens="bmi_monocentric",
+                         training={"command": "bmi train --steps 0"})
+    manifest = verify_model(tmp_path / "m.onnx")
+    assert manifest["largest_psf_px"] == 41
+    assert manifest["onnx_opset"] == 17 and 0 <= manifest["onnx_max_abs_diff_vs_torch"] <= 1e-4
+    assert manifest["training"] == {"command": "bmi train --steps 0"} and "decoder" not in manifest
+
+
+def test_a_trained_network_export_above_the_tolerance_is_refused(tmp_path, monkeypatch):
+    """No export can match torch better than a negative tolerance: the check refuses and no file is left."""
+    from bmi_sdk.nn.export import export_onnx
+    from bmi_sdk.runtime import export as runtime_export
+
+    monkeypatch.setattr(runtime_export, "TOLERANCE", -1.0)
+    torch.manual_seed(0)
+    with pytest.raises(RuntimeError, match="differs from torch"):
+        export_onnx(DualHeadMimoUNet(preset_config("tiny")), tmp_path / "m.onnx")
+    assert list(tmp_path.iterdir()) == []
+
+
 # -- data -----------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("k", [1, 2, 3])
