@@ -333,6 +333,15 @@ def test_a_cache_run_that_died_resumes_and_a_different_sharding_is_refused(seria
         build_cache(target, CacheSpec(**CACHE_SPEC_KW), progress=False, shard_samples=3)
 
 
+def test_a_cache_rendered_in_two_local_processes_equals_the_serial_cache(serial_cache, tmp_path):
+    """``workers=2`` without a scheduler: spawned single-threaded processes (``parallel.map_jobs``), each with
+    one renderer for all its shards, publish the serial cache's shards byte for byte and no temporaries."""
+    from bmi_sdk.nn.data import CacheSpec, build_cache
+
+    build_cache(tmp_path / "cache", CacheSpec(**CACHE_SPEC_KW), progress=False, workers=2, shard_samples=SHARD)
+    _assert_same_cache(tmp_path / "cache", serial_cache)
+
+
 def test_cli_train_renders_its_cache_on_local_2_as_the_serial_cache(psf_cache, tmp_path):
     from bmi_sdk.nn.data import CacheSpec, build_cache
 
