@@ -337,3 +337,25 @@ def test_fisheye_benchmark_scores_the_same_scene_content_as_the_bmi_benchmark():
     np.testing.assert_array_equal(bmi.scene("edge", 5)[1], direct.range_m)
     with pytest.raises(ValueError, match="less margin"):
         mirror_extend(direct.rgb, direct.range_m, -2)
+
+
+# -- bmi train's recorded command ------------------------------------------------------------------------
+
+def test_the_recorded_train_command_parses_back_to_the_run_it_records():
+    """The manifest's ``training.command`` is the run's full command line: parsed again it gives the same
+    arguments, --cache (which names the cache the run trained on) included."""
+    import shlex
+
+    from bmi_sdk.cli import build_parser
+    from bmi_sdk.cli.train import _argv
+
+    argv = ["train", "--decoder", "learned", "--preset", "tiny", "--steps", "4000", "--samples", "1024", "--seed",
+            "1", "--lr", "2e-4", "--cache", ".bmi_cache/train/refine 1024", "--out", "out/learned",
+            "--render-workers", "3", "--refine-sigma", "0.002", "0.01", "--no-export", "--threads", "2"]
+    args = build_parser().parse_args(argv)
+    recorded = _argv(args)
+    assert "--cache '.bmi_cache/train/refine 1024'" in recorded and "--threads 2" in recorded
+    again = build_parser().parse_args(["train", *shlex.split(" ".join(recorded))])
+    assert vars(again) == vars(args) and again.refine_sigma == [0.002, 0.01]
+    defaults = _argv(build_parser().parse_args(["train", "--out", "o"]))
+    assert defaults == ["--out o", "--threads 2"]
