@@ -121,6 +121,34 @@ def test_onnx_export_matches_torch(tmp_path):
         assert np.max(np.abs(g - r.numpy())) <= 1e-4
 
 
+def test_a_trained_network_export_is_verified_and_records_its_lens_kernel(tmp_path):
+    """``bmi train``'s export goes through the runtime's exporter: the manifest verifies, says the
+    monocentric profile's 41-px kernel is the largest PSF and records the check against torch."""
+    from bmi_sdk.model_manifest import verify_model
+    from bmi_sdk.nn.export import export_with_manifest
+
+    torch.manual_seed(0)
+    net = DualHeadMimoUNet(preset_config("tiny"))
+    export_with_manifest(net, tmp_path / "m.onnx", preset="tiny", lens="bmi_monocentric",
+                         training={"command": "bmi train --steps 0"})
+    manifest = verify_model(tmp_path / "m.onnx")
+    assert manifest["largest_psf_px"] == 41
+    assert manifest["onnx_opset"] == 17 and 0 <= manifest["onnx_max_abs_diff_vs_torch"] <= 1e-4
+    assert manifest["training"] == {"command": "bmi train --steps 0"} and "decoder" not in manifest
+
+
+def test_a_trained_network_export_above_the_tolerance_is_refused(tmp_path, monkeypatch):
+    """No export can match torch better than a negative tolerance: the check refuses and no file is left."""
+    from bmi_sdk.nn.export import export_onnx
+    from bmi_sdk.runtime import export as runtime_export
+
+    monkeypatch.setattr(runtime_export, "TOLERANCE", -1.0)
+    torch.manual_seed(0)
+    with pytest.raises(RuntimeError, match="differs from torch"):
+        export_onnx(DualHeadMimoUNet(preset_config("tiny")), tmp_path / "m.onnx")
+    assert list(tmp_path.iterdir()) == []
+
+
 # -- data -----------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("k", [1, 2, 3])
@@ -317,3 +345,25 @@ def test_fisheye_benchmark_scores_the_same_scene_content_as_the_bmi_benchmark():
     np.testing.assert_array_equal(bmi.scene("edge", 5)[1], direct.range_m)
     with pytest.raises(ValueError, match="less margin"):
         mirror_extend(direct.rgb, direct.range_m, -2)
+
+
+# -- bmi train's recorded command ------------------------------------------------------------------------
+
+def test_the_recorded_train_command_parses_back_to_the_run_it_records():
+    """The manifest's ``training.command`` is the run's full command line: parsed again it gives the same
+    arguments, --cache (which names the cache the run trained on) included."""
+    import shlex
+
+    from bmi_sdk.cli import build_parser
+    from bmi_sdk.cli.train import _argv
+
+    argv = ["train", "--decoder", "learned", "--preset", "tiny", "--steps", "4000", "--samples", "1024", "--seed",
+            "1", "--lr", "2e-4", "--cache", ".bmi_cache/train/refine 1024", "--out", "out/learned",
+            "--render-workers", "3", "--refine-sigma", "0.002", "0.01", "--no-export", "--threads", "2"]
+    args = build_parser().parse_args(argv)
+    recorded = _argv(args)
+    assert "--cache '.bmi_cache/train/refine 1024'" in recorded and "--threads 2" in recorded
+    again = build_parser().parse_args(["train", *shlex.split(" ".join(recorded))])
+    assert vars(again) == vars(args) and again.refine_sigma == [0.002, 0.01]
+    defaults = _argv(build_parser().parse_args(["train", "--out", "o"]))
+    assert defaults == ["--out o", "--threads 2"]

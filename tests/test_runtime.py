@@ -308,3 +308,17 @@ def test_export_records_the_lens_profiles_tensor_key_and_kernel(tmp_path):
     fisheye = lens_tensor("fisheye")
     assert manifest["largest_psf_px"] == 161
     assert manifest["psf_tensor_key"] == fisheye.spec.cache_key(fisheye.lens)
+
+
+def test_an_export_onnxruntime_disagrees_with_is_refused_and_leaves_no_file(tmp_path):
+    """A Python branch on the batch size: tracing keeps the 1-batch example's branch, so at the check's batch of 2
+    the ONNX graph and torch disagree; the export is refused and writes neither model nor manifest."""
+
+    class BatchBranch(nn.Module):
+        def forward(self, x):
+            gain = 1.0 if x.shape[0] == 1 else 2.0
+            return x[:, :3] * gain, 1.0 + x[:, 3:4] * gain
+
+    with pytest.raises(RuntimeError, match="differs from torch"):
+        export_model(BatchBranch(), tmp_path / "branch.onnx", preset="test")
+    assert list(tmp_path.iterdir()) == []

@@ -333,6 +333,38 @@ def test_a_cache_run_that_died_resumes_and_a_different_sharding_is_refused(seria
         build_cache(target, CacheSpec(**CACHE_SPEC_KW), progress=False, shard_samples=3)
 
 
+def test_a_cache_rendered_in_two_local_processes_equals_the_serial_cache(serial_cache, tmp_path):
+    """``workers=2`` without a scheduler: spawned single-threaded processes (``parallel.map_jobs``), each with
+    one renderer for all its shards, publish the serial cache's shards byte for byte and no temporaries."""
+    from bmi_sdk.nn.data import CacheSpec, build_cache
+
+    build_cache(tmp_path / "cache", CacheSpec(**CACHE_SPEC_KW), progress=False, workers=2, shard_samples=SHARD)
+    _assert_same_cache(tmp_path / "cache", serial_cache)
+
+
+def test_a_refinement_cache_decoded_in_two_local_processes_equals_the_serial_one(psf_cache, tmp_path):
+    """The classical decode of the render shards, one decoder per process: in 2 spawned processes
+    (``parallel.map_jobs``) it stores the same raw frames (noise drawn per pair index) and σ as in this one,
+    and the same classical channels to float16 rounding (numpy runs one BLAS thread in a pool's process,
+    several here, and sums in another order)."""
+    from bmi_sdk.nn.data import CacheSpec, build_cache
+    from bmi_sdk.nn.refine_data import RefineSpec, build_refine_cache
+
+    renders = build_cache(tmp_path / "serial", CacheSpec(samples=3, crop_px=48, jitter_px=4, seed=3),
+                          progress=False, shard_samples=1)
+    shutil.copytree(renders, tmp_path / "pooled")
+    refine = RefineSpec(decoder={"candidates": 12})
+    serial = build_refine_cache(renders, refine, workers=1, progress=False)
+    pooled = build_refine_cache(tmp_path / "pooled", refine, workers=2, progress=False)
+    assert sorted(p.name for p in pooled.iterdir()) == sorted(p.name for p in serial.iterdir())
+    for path in serial.glob("shard_*.npz"):
+        with np.load(path) as a, np.load(pooled / path.name) as b:
+            assert a.files == ["raw", "features", "sigma"] == b.files
+            assert np.array_equal(a["raw"], b["raw"]) and np.array_equal(a["sigma"], b["sigma"]), path.name
+            np.testing.assert_allclose(b["features"].astype(np.float32), a["features"].astype(np.float32),
+                                       rtol=2 ** -8, atol=2 ** -8, err_msg=path.name)
+
+
 def test_cli_train_renders_its_cache_on_local_2_as_the_serial_cache(psf_cache, tmp_path):
     from bmi_sdk.nn.data import CacheSpec, build_cache
 

@@ -93,14 +93,26 @@ def _run(args) -> int:
 
 
 def _argv(args) -> list[str]:
-    out = [f"--preset {args.preset}", f"--steps {args.steps}", f"--out {args.out}"]
-    if args.lens != "bmi_monocentric":
-        out.append(f"--lens {args.lens}")
-    for name, default in (("samples", 768), ("crop", 128), ("batch", 8), ("lr", 5e-4), ("decoder", "cnn"),
-                          ("init_from", None), ("warmup_steps", None), ("seed", 0), ("sigma", None), ("sigma_max", None)):
-        if getattr(args, name) != default:
-            out.append(f"--{name.replace('_', '-')} {getattr(args, name)}")
-    if args.decoder == "learned" and tuple(args.refine_sigma) != (0.003, 0.012):
-        out.append(f"--refine-sigma {args.refine_sigma[0]} {args.refine_sigma[1]}")
-    out.append(f"--threads {args.threads}")  # CPU float reductions depend on it: part of a bit-exact rerun
+    """The run's options as ``bmi train`` takes them: ``--out``, ``--threads`` (CPU float reductions depend on it:
+    part of a bit-exact rerun) and every option whose value is not its default (``--cache`` included), in the
+    parser's order; parsed again they give the same arguments."""
+    import argparse
+    import shlex
+
+    parser = argparse.ArgumentParser(prog="bmi").add_subparsers()
+    register(parser)
+    defaults = vars(parser.choices["train"].parse_args(["--out", args.out]))
+    out = []
+    for name, default in defaults.items():
+        value = getattr(args, name)
+        if name == "handler" or (value == default and name not in ("out", "threads")):
+            continue
+        flag = f"--{name.replace('_', '-')}"
+        if isinstance(value, bool):
+            out.append(flag)  # a store_true switch that is on
+        elif isinstance(value, (list, tuple)):
+            if tuple(value) != tuple(default):
+                out.append(" ".join([flag, *(shlex.quote(str(v)) for v in value)]))
+        else:
+            out.append(f"{flag} {shlex.quote(str(value))}")
     return out

@@ -240,8 +240,8 @@ class ShardRenderer:
     """What rendering a shard needs besides the spec: the lens's PSF tensor and sensor, and dataset scenes.
 
     Calling it opens the tensor, whose kernels load from the disk cache (``build_cache`` filled it first)
-    as renders touch them and then stay in memory: a Dask worker keeps one for all its shards
-    (``scaleout.fan_out`` state).
+    as renders touch them and then stay in memory: a process (``parallel.map_jobs`` state) or a Dask worker
+    (``scaleout.fan_out`` state) keeps one for all its shards.
     """
 
     lens: str
@@ -266,11 +266,6 @@ def render_shard(renderer: dict, job: tuple) -> int:
              for i in shard_sample_range(spec, shard, shard_samples)]
     arrays = {k: np.stack([it[k] for it in items]) for k in items[0]}
     return len(items) if publish_once(path, lambda tmp: np.savez(tmp, **arrays), suffix=".npz") else 0
-
-
-def _render_shard_in_pool(cache_dir: Path, spec: CacheSpec, shard: int, scenes: Sequence | None,
-                          shard_samples: int) -> int:
-    return render_shard(ShardRenderer(spec.lens, scenes)(), (cache_dir, spec, shard, shard_samples))
 
 
 def _remove_stale_temporaries(cache_dir: Path) -> None:
@@ -308,46 +303,21 @@ def build_cache(cache_dir: str | Path, spec: CacheSpec, scenes: Sequence | None 
     if todo:
         lens_tensor(spec.lens).ensure_all(progress=progress, workers=workers)  # every θ is touched: build once
         sizes = [len(shard_sample_range(spec, s, shard_samples)) for s in todo]
+        jobs = [(cache_dir, spec, s, shard_samples) for s in todo]
+        how = dict(state=ShardRenderer(spec.lens, scenes), desc=f"rendering {spec.lens} pairs", unit="pair",
+                   sizes=sizes, progress=progress)
         if scheduler is not None:
             from bmi_sdk.scaleout import fan_out, open_client
 
             with open_client(scheduler, announce=progress) as client:
-                fan_out(render_shard, [(cache_dir, spec, s, shard_samples) for s in todo], client=client,
-                        state=ShardRenderer(spec.lens, scenes), desc=f"rendering {spec.lens} pairs", unit="pair",
-                        sizes=sizes, progress=progress)
+                fan_out(render_shard, jobs, client=client, **how)
         else:
-            _render_with_pool(cache_dir, spec, scenes, todo, sizes, shard_samples, workers, progress)
+            from bmi_sdk.parallel import map_jobs
+
+            for _ in map_jobs(render_shard, jobs, workers, **how):
+                pass  # each shard is published by its job
     _remove_stale_temporaries(cache_dir)
     return cache_dir
-
-
-def _render_with_pool(cache_dir: Path, spec: CacheSpec, scenes: Sequence | None, todo: list[int], sizes: list[int],
-                      shard_samples: int, workers: int, progress: bool) -> None:
-    """The in-process path: shards rendered here or in ``workers`` spawned single-threaded processes."""
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=sum(sizes), desc=f"rendering {spec.lens} pairs ({workers} processes)", unit="pair")
-    pool = None
-    try:
-        if workers > 1:
-            from bmi_sdk.optics.tensor import _spawn_single_threaded_pool
-
-            pool = _spawn_single_threaded_pool(workers)
-            done = pool.map(_render_shard_in_pool, [cache_dir] * len(todo), [spec] * len(todo), todo,
-                            [scenes] * len(todo), [shard_samples] * len(todo))
-        else:
-            renderer = ShardRenderer(spec.lens, scenes)()
-            done = (render_shard(renderer, (cache_dir, spec, s, shard_samples)) for s in todo)
-        for n, size in zip(done, sizes):
-            if bar is not None:
-                bar.update(size)
-    finally:
-        if pool is not None:
-            pool.shutdown(cancel_futures=True)
-        if bar is not None:
-            bar.close()
 
 
 def check_noise_range(sigma: float, sigma_max: float | None) -> None:

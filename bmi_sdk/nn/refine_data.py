@@ -27,6 +27,7 @@ from bmi_sdk.io_atomic import write_json
 from bmi_sdk.model_io import field_channels, raw_to_rgb, window_cfa
 from bmi_sdk.lenses import lens_geometry, lens_tensor
 from bmi_sdk.nn.data import PairCache, dihedral, dihedral_field, simulate_raw
+from bmi_sdk.parallel import map_jobs
 from bmi_sdk.sensor import BLACK_LEVEL_DN, CFA_PATTERN, WHITE_LEVEL_DN
 
 REFINE_SCHEMA = "bmi-refine-cache/1"
@@ -67,12 +68,23 @@ def refine_dir(cache_dir: str | Path, spec: RefineSpec) -> Path:
     return Path(cache_dir) / f"refine-{spec.key()}"
 
 
-def _decoder(lens: str, spec: RefineSpec, threads: int | None):
-    from bmi_sdk.decode import ClassicalDecoder
-    from bmi_sdk.render import PsfMap
+@dataclass(frozen=True)
+class ShardDecoder:
+    """What decoding a shard needs besides its files: the classical decoder of ``lens`` under ``spec`` and the
+    lens's geometry. Calling it builds them; ``parallel.map_jobs`` does so once per process, so every shard a
+    process decodes reuses one decoder (and its memo of zone kernels)."""
 
-    psf_map = PsfMap(lens_tensor(lens), lens_geometry(lens), mode="tensor")
-    return ClassicalDecoder.for_psf_map(psf_map, spec.classical_config(threads))
+    lens: str
+    spec: RefineSpec
+    threads: int | None = None
+
+    def __call__(self) -> dict:
+        from bmi_sdk.decode import ClassicalDecoder
+        from bmi_sdk.render import PsfMap
+
+        psf_map = PsfMap(lens_tensor(self.lens), lens_geometry(self.lens), mode="tensor")
+        return {"decoder": ClassicalDecoder.for_psf_map(psf_map, self.spec.classical_config(self.threads)),
+                "geometry": lens_geometry(self.lens)}
 
 
 def decode_pair(decoder, geometry, optical: np.ndarray, origin, spec: RefineSpec, index: int) -> dict:
@@ -89,19 +101,19 @@ def decode_pair(decoder, geometry, optical: np.ndarray, origin, spec: RefineSpec
     return {"raw": raw, "features": feats.astype(np.float16), "sigma": np.float32(sigma)}
 
 
-def _decode_shard(lens: str, cache_dir: Path, spec: RefineSpec, shard_file: str, first_index: int,
-                  threads: int | None) -> int:
-    """Decode one render shard into the refine folder (published once); returns the pairs written."""
+def decode_shard(decoding: dict, job: tuple) -> int:
+    """Decode render shard ``job = (cache_dir, spec, shard_file, first_index)`` into the refine folder
+    (published once) with ``decoding`` (``ShardDecoder()``); returns the pairs written."""
     from bmi_sdk.scaleout import publish_once
 
+    cache_dir, spec, shard_file, first_index = job
     out = refine_dir(cache_dir, spec) / shard_file
     if out.exists():
         return 0
-    decoder = _decoder(lens, spec, threads)
-    geometry = lens_geometry(lens)
     with np.load(Path(cache_dir) / shard_file, allow_pickle=False) as z:
         optical, origin = z["optical"], z["origin"]
-    items = [decode_pair(decoder, geometry, optical[k], origin[k], spec, first_index + k) for k in range(len(optical))]
+    items = [decode_pair(decoding["decoder"], decoding["geometry"], optical[k], origin[k], spec, first_index + k)
+             for k in range(len(optical))]
     arrays = {k: np.stack([it[k] for it in items]) for k in items[0]}
     return len(items) if publish_once(out, lambda tmp: np.savez(tmp, **arrays), suffix=".npz") else 0
 
@@ -124,29 +136,12 @@ def build_refine_cache(cache_dir: str | Path, spec: RefineSpec, workers: int = 1
     shards = sorted(p.name for p in cache_dir.glob("shard_*.npz"))
     todo = [s for s in shards if not (out / s).exists()]
     firsts = [int(s.removeprefix("shard_").removesuffix(".npz")) * meta["shard_samples"] for s in todo]
-    bar = None
-    if progress and todo:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(todo), desc="classical decode of the training pairs", unit="shard")
-    pool = None
-    try:
-        if workers > 1 and len(todo) > 1:
-            from bmi_sdk.optics.tensor import _spawn_single_threaded_pool
-
-            pool = _spawn_single_threaded_pool(workers)
-            done = pool.map(_decode_shard, [lens] * len(todo), [cache_dir] * len(todo), [spec] * len(todo), todo,
-                            firsts, [1] * len(todo))
-        else:
-            done = (_decode_shard(lens, cache_dir, spec, s, f, None) for s, f in zip(todo, firsts))
-        for _ in done:
-            if bar is not None:
-                bar.update()
-    finally:
-        if pool is not None:
-            pool.shutdown(cancel_futures=True)
-        if bar is not None:
-            bar.close()
+    workers = min(workers, len(todo))  # one shard: decoded here, with the decoder's own threads
+    state = ShardDecoder(lens, spec, threads=1 if workers > 1 else None)
+    jobs = [(cache_dir, spec, s, f) for s, f in zip(todo, firsts)]
+    for _ in map_jobs(decode_shard, jobs, workers, state=state, desc="classical decode of the training pairs",
+                      unit="shard", progress=progress):
+        pass  # each shard is published by its job
     return out
 
 

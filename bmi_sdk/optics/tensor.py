@@ -28,6 +28,7 @@ import numpy as np
 from .. import __version__
 from ..io_atomic import atomic_path, write_json
 from ..json_files import read_json_object
+from ..parallel import map_jobs
 from . import spectral
 from .prescription import Lens, load_lens
 from .psf import DEFAULT_GUARD, DEFAULT_OVERSAMPLE, psf_from_pupil
@@ -169,27 +170,9 @@ def write_kernel_shard(path: Path, psf: np.ndarray, filled: np.ndarray) -> None:
         np.savez(tmp, psf=psf, filled=filled, sha256=np.array(_shard_digest(psf, filled)))
 
 
-_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-
-
-def _spawn_single_threaded_pool(workers: int):
-    """A spawn-context process pool whose workers start with one BLAS thread each."""
-    import concurrent.futures as cf
-    import multiprocessing
-
-    saved = {k: os.environ.get(k) for k in _THREAD_VARS}
-    os.environ.update({k: "1" for k in _THREAD_VARS})
-    try:
-        pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
-        for _ in range(workers):  # start the processes now, while the environment says one thread
-            pool.submit(int, 0).result()
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-    return pool
+def _field_kernels(_state, job) -> np.ndarray:
+    """``parallel.map_jobs``'s job: ``compute_kernels(lens, spec, field_deg, depth_m, perturbation)`` of one field."""
+    return compute_kernels(*job)
 
 
 def default_cache_dir() -> Path:
@@ -291,33 +274,14 @@ class PsfTensor:
             self._load_shard(i)
         todo = [i for i in range(len(self.spec.field_deg)) if not self.filled[:, i].all()]
         workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))
-        bar = None
-        if progress:
-            from tqdm import tqdm
-
-            bar = tqdm(total=len(todo), desc=f"PSF tensor ({workers} processes)", unit="field")
         depths = np.asarray(self.spec.depth_m)
-        if workers == 1:
-            results = (compute_kernels(self.lens, self.spec, np.full(len(depths), self.spec.field_deg[i]), depths,
-                                       self.perturbation) for i in todo)
-            pool = None
-        else:
-            pool = _spawn_single_threaded_pool(workers)
-            results = pool.map(compute_kernels, [self.lens] * len(todo), [self.spec] * len(todo),
-                               [np.full(len(depths), self.spec.field_deg[i]) for i in todo], [depths] * len(todo),
-                               [self.perturbation] * len(todo))
-        try:
-            for i, kernels in zip(todo, results):
-                self.data[:, i] = kernels
-                self.filled[:, i] = True
-                self._store_shard(i)
-                if bar is not None:
-                    bar.update()
-        finally:
-            if pool is not None:
-                pool.shutdown(cancel_futures=True)
-            if bar is not None:
-                bar.close()
+        jobs = [(self.lens, self.spec, np.full(len(depths), self.spec.field_deg[i]), depths, self.perturbation)
+                for i in todo]
+        for i, kernels in zip(todo, map_jobs(_field_kernels, jobs, workers, desc="PSF tensor", unit="field",
+                                             progress=progress)):
+            self.data[:, i] = kernels
+            self.filled[:, i] = True
+            self._store_shard(i)
 
     # -- disk cache -----------------------------------------------------------
     def _shard_path(self, i: int) -> Path:

@@ -1,0 +1,70 @@
+"""bmi_sdk.parallel.map_jobs: results in job order, the same here and in spawned processes, per-process state,
+and a failing job that ends the run with its own exception and a pool that accepts no more work.
+
+Jobs are built-in operators (``fn(state, job)`` = ``operator.mul(3, job)``), so spawned processes can
+unpickle them without importing this test module.
+"""
+
+from __future__ import annotations
+
+import functools
+import operator
+import os
+
+import pytest
+
+from bmi_sdk import parallel
+
+THREE = functools.partial(int, 3)
+"""The per-process state: a picklable zero-argument callable returning 3."""
+
+
+def test_results_come_in_job_order_and_equal_here_and_in_processes():
+    jobs = [5, 0, 7, 2, 9, 4, 1]
+    expected = [3 * j for j in jobs]
+    serial = list(parallel.map_jobs(operator.mul, jobs, 1, state=THREE, progress=False))
+    pooled = list(parallel.map_jobs(operator.mul, jobs, 2, state=THREE, progress=True, desc="test",
+                                    sizes=[2] * len(jobs)))
+    assert serial == expected and pooled == expected
+
+
+def test_without_state_fn_gets_none_and_no_jobs_run_nothing():
+    assert list(parallel.map_jobs(operator.is_, [None, 1], 1, progress=False)) == [True, False]
+    assert list(parallel.map_jobs(operator.mul, [], 2, state=THREE)) == []
+    with pytest.raises(ValueError, match="2 sizes for 1 jobs"):
+        list(parallel.map_jobs(operator.mul, [1], 1, sizes=[1, 1]))
+
+
+def test_a_failing_job_raises_its_error_and_shuts_the_pool_down(monkeypatch):
+    pools = []
+
+    def recording_pool(*args, **kwargs):
+        pools.append(spawn(*args, **kwargs))
+        return pools[-1]
+
+    spawn = parallel.spawn_single_threaded_pool
+    monkeypatch.setattr(parallel, "spawn_single_threaded_pool", recording_pool)
+    results = parallel.map_jobs(operator.truediv, [1, 2, 0, 4], 2, state=THREE, progress=False)
+    assert next(results) == 3.0
+    with pytest.raises(ZeroDivisionError):
+        list(results)
+    with pytest.raises(RuntimeError, match="shutdown"):
+        pools[0].submit(int, 0)
+    # a consumer that stops early closes the pool too
+    early = parallel.map_jobs(operator.mul, [1, 2, 3], 2, state=THREE, progress=False)
+    assert next(early) == 3
+    early.close()
+    with pytest.raises(RuntimeError, match="shutdown"):
+        pools[1].submit(int, 0)
+
+
+def test_the_pools_processes_start_with_one_blas_thread_and_leave_the_environment_alone(monkeypatch):
+    monkeypatch.setenv("OMP_NUM_THREADS", "7")
+    monkeypatch.delenv("MKL_NUM_THREADS", raising=False)
+    pool = parallel.spawn_single_threaded_pool(1)
+    try:
+        seen = pool.submit(os.getenv, "OMP_NUM_THREADS").result()  # read in the worker
+    finally:
+        pool.shutdown()
+    assert seen == "1"
+    assert os.environ["OMP_NUM_THREADS"] == "7" and "MKL_NUM_THREADS" not in os.environ
