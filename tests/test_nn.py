@@ -2,6 +2,7 @@
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -367,3 +368,23 @@ def test_the_recorded_train_command_parses_back_to_the_run_it_records():
     assert vars(again) == vars(args) and again.refine_sigma == [0.002, 0.01]
     defaults = _argv(build_parser().parse_args(["train", "--out", "o"]))
     assert defaults == ["--out o", "--threads 2"]
+
+
+def test_shipped_manifests_record_their_architecture_s_measured_receptive_field():
+    """The runtime sizes tile overlaps from a manifest's receptive_field_px: for every shipped model it must be what
+    the one probe (runtime.export.measure_receptive_field) measures on its preset's architecture."""
+    from dataclasses import replace
+
+    from bmi_sdk.model_manifest import verify_model
+    from bmi_sdk.model_io import INPUT_CHANNELS
+    from bmi_sdk.nn.model import DualHeadMimoUNet, InferenceWrapper, preset_config
+    from bmi_sdk.runtime.export import measure_receptive_field
+
+    models = sorted((Path(__file__).resolve().parents[1] / "bmi_sdk" / "models").glob("*.onnx"))
+    assert models
+    for path in models:
+        manifest = verify_model(path)
+        extra = manifest["input_channels"] - INPUT_CHANNELS
+        config = replace(preset_config(manifest["preset"]), extra_channels=extra, sigma_head=bool(extra))
+        net = InferenceWrapper(DualHeadMimoUNet(config)).eval()
+        assert manifest["receptive_field_px"] == measure_receptive_field(net, 256, channels=manifest["input_channels"])
