@@ -265,3 +265,22 @@ def test_a_refused_run_leaves_no_output_folder(tmp_path):
                          text=True)
     assert run.returncode == 1 and "at least 3 candidates" in run.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_aif_windows_have_lengths_the_fft_factors_well():
+    """A block's AiF window holds its core and both halos, in whole Bayer quads, at a length scipy's FFT
+    factors into small primes (the 256-px block with its 50-px halo was 356 = 4 × 89)."""
+    import scipy.fft
+
+    from bmi_sdk.decode.classical import fft_span_px
+
+    for core, halo in ((256, 50), (192, 50), (17, 50), (256, 170), (1, 2)):
+        span = fft_span_px(core, halo)
+        assert span >= core + 2 * halo and span % 2 == 0
+        assert scipy.fft.next_fast_len(span, real=True) == span
+        n = span
+        for prime in (2, 3, 5, 7, 11):
+            while n % prime == 0:
+                n //= prime
+        assert n == 1, span
+    assert fft_span_px(256, 50) == 360
