@@ -20,15 +20,12 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
 from .geometry import SensorGeometry
 from .optics.perturb import Perturbation
-
-SENSOR_FIELDS = ("width_px", "height_px", "pitch_um", "radius_mm", "cx_px", "cy_px", "max_field_deg",
-                 "field_table_deg", "radial_table_mm")
 
 
 @dataclass(frozen=True)
@@ -42,7 +39,7 @@ class BuiltCamera:
 
     @property
     def is_nominal(self) -> bool:
-        return not np.any(self.perturbation.to_vector())
+        return self.perturbation.is_design
 
     def sensor(self) -> SensorGeometry:
         """The sensor geometry (the lens's default sensor unless one was given)."""
@@ -137,7 +134,7 @@ def traced_ray_geometry(camera: BuiltCamera, field_step_deg: float = 0.5, azimut
                                field_table_deg=tuple(theta.tolist()), radial_table_mm=tuple(radial_mm.tolist()))
     row, col = symmetric.pixel_of_field(theta_grid, phi_grid)
     residual = np.stack([land[:, 0] - row, land[:, 1] - col], axis=-1)
-    return DisplacedGeometry(**{f: getattr(symmetric, f) for f in SENSOR_FIELDS},
+    return DisplacedGeometry(**{f.name: getattr(symmetric, f.name) for f in fields(SensorGeometry)},
                              displacement_step_deg=field_step_deg, displacement_phi_count=azimuths,
                              displacement_px=tuple(residual.ravel().tolist()))
 

@@ -123,16 +123,17 @@ class Benchmark:
         return mirror_extend(scene.rgb, scene.range_m, self.margin_px - SCENE_MARGIN_PX)
 
     def renders(self, tensor, progress: bool = False, psf_mode: str = "tensor",
-                perturbation: Perturbation | None = None, centre_calibrated: bool = True) -> list[dict]:
+                centre_calibrated: bool = True) -> list[dict]:
         """Scene, optical image (relative illumination applied) and position of every tile, for one tensor.
 
-        ``psf_mode`` and ``perturbation`` make the zone kernels (``render.PsfMap``; a perturbation needs
-        ``exact``); ``centre_calibrated`` (default) takes the whole-image shift of a perturbation out, as
-        a camera whose optical centre is calibrated sees it.
+        ``psf_mode`` makes the zone kernels (``render.PsfMap``) from ``tensor``, with the hardware errors
+        it was built with (``BuiltCamera.psf_tensor``); ``centre_calibrated`` (default) takes the
+        whole-image shift of those errors out in ``exact`` mode, as a camera whose optical centre is
+        calibrated sees it.
         """
         from bmi_sdk.scaleout import fan_out, open_client
 
-        state = _WindowRenderer(self, tensor, psf_mode, perturbation, centre_calibrated)
+        state = _WindowRenderer(self, tensor, psf_mode, centre_calibrated)
         with open_client(self.scheduler, announce=False) as client:
             return fan_out(_render_window, self.windows(), client=client, state=state,
                            desc="rendering benchmark tiles", unit="tile", progress=progress)
@@ -145,15 +146,13 @@ class _WindowRenderer:
     bench: Benchmark
     tensor: object
     psf_mode: str
-    perturbation: Perturbation | None
     centre_calibrated: bool
 
     def __call__(self) -> dict:
         from bmi_sdk.render import PsfMap
 
         geometry = lens_geometry(self.bench.lens)
-        psf_map = PsfMap(self.tensor, geometry, mode=self.psf_mode, perturbation=self.perturbation,
-                         centre_calibrated=self.centre_calibrated)
+        psf_map = PsfMap(self.tensor, geometry, mode=self.psf_mode, centre_calibrated=self.centre_calibrated)
         return {"bench": self.bench, "tensor": self.tensor, "geometry": geometry, "psf_map": psf_map}
 
 
@@ -336,14 +335,14 @@ def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(),
         for model in models:
             rows += score(model, renders, bench, noise[name], name)
     for name in [c for c in conditions if c in HARDWARE]:
-        built = BuiltCamera(bench.lens, HARDWARE[name]).psf_tensor()
-        renders_p = bench.renders(built, progress)
-        for model in models + calibrated(PsfMap(built, geometry, mode="tensor")):
+        camera = BuiltCamera(bench.lens, HARDWARE[name])
+        renders_p = bench.renders(camera.psf_tensor(), progress)
+        for model in models + calibrated(camera.psf_map(mode="tensor")):
             rows += score(model, renders_p, bench, STANDARD_SIGMA, name)
     for name in [c for c in conditions if c in EXACT]:
-        renders_p = bench.renders(nominal, progress, psf_mode="exact", perturbation=EXACT[name])
-        built_map = PsfMap(nominal, geometry, mode="exact", perturbation=EXACT[name], centre_calibrated=True)
-        for model in models + calibrated(built_map):
+        camera = BuiltCamera(bench.lens, EXACT[name])
+        renders_p = bench.renders(camera.psf_tensor(), progress, psf_mode="exact")
+        for model in models + calibrated(camera.psf_map(mode="exact", centre_calibrated=True)):
             rows += score(model, renders_p, bench, STANDARD_SIGMA, name)
     if "fisheye_standard" in conditions:
         fb = Benchmark(lens="fisheye", tiles=bench.tiles, tile_px=bench.tile_px, seed=bench.seed, threads=bench.threads,

@@ -97,6 +97,11 @@ class Perturbation:
         if not self.stray_light_spread_px > 0:
             raise ValueError(f"stray_light_spread_px must be > 0, got {self.stray_light_spread_px}")
 
+    @property
+    def is_design(self) -> bool:
+        """No error at all (a glare spread without glare changes nothing): the lens as designed."""
+        return not np.any(self.to_vector())
+
     # -- conversions ----------------------------------------------------------
     def to_vector(self) -> np.ndarray:
         return np.concatenate([np.atleast_1d(getattr(self, n)) for n in PARAMETERS]).astype(np.float64)

@@ -163,6 +163,22 @@ def read_kernel_shard(path: Path, psf_shape: tuple) -> tuple[np.ndarray, np.ndar
     return psf, filled, legacy
 
 
+def usable_kernel_shard(path: Path, psf_shape: tuple, stacklevel: int = 2):
+    """``read_kernel_shard``'s (psf, filled, legacy), or None: when there is no shard, and when it fails its checks.
+
+    A failing shard (truncated, edited, non-finite, another shape) is never used: a ``PsfCacheWarning``
+    names it (``stacklevel`` counts from the caller), and its entries are recomputed and written again.
+    """
+    if not path.exists():
+        return None
+    try:
+        return read_kernel_shard(path, psf_shape)
+    except ValueError as exc:
+        warnings.warn(f"PSF cache shard {path} is unusable ({exc}); recomputing it", PsfCacheWarning,
+                      stacklevel=stacklevel + 1)
+        return None
+
+
 def write_kernel_shard(path: Path, psf: np.ndarray, filled: np.ndarray) -> None:
     """Write a cache shard atomically, with the SHA-256 ``read_kernel_shard`` checks."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -196,10 +212,8 @@ class PsfTensor:
                  cache_dir: str | os.PathLike | None = None, use_cache: bool = True, perturbation=None):
         self.lens = load_lens(lens) if isinstance(lens, str) else lens
         self.spec = spec or TensorSpec()
-        if perturbation is not None and not np.any(perturbation.to_vector()):
-            perturbation = None  # the design (a glare spread without glare changes nothing)
-        self.perturbation = perturbation
-        self.key = self.spec.cache_key(self.lens, perturbation)
+        self.perturbation = None if perturbation is None or perturbation.is_design else perturbation
+        self.key = self.spec.cache_key(self.lens, self.perturbation)
         shape = (len(self.spec.channels), len(self.spec.field_deg), len(self.spec.depth_m))
         self.data = np.zeros(shape + (self.spec.kernel_px,) * 2, dtype=np.float32)
         self.filled = np.zeros(shape, dtype=bool)
@@ -288,25 +302,16 @@ class PsfTensor:
         return self.cache_dir / f"theta_{i:04d}.npz"
 
     def _load_shard(self, i: int) -> None:
-        """Take the cached kernels of field index ``i``, if its shard passes ``read_kernel_shard``.
-
-        A shard that fails (truncated, edited, non-finite, another shape) is
-        never used: a ``PsfCacheWarning`` names it and its entries stay
-        unfilled, so ``ensure`` recomputes them and rewrites the shard.
-        """
+        """Take the cached kernels of field index ``i``, if its shard is usable (``usable_kernel_shard``); the
+        entries of a failing one stay unfilled, so ``ensure`` recomputes them and rewrites the shard."""
         if self.cache_dir is None or i in self._shards_loaded:
             return
         self._shards_loaded.add(i)
-        path = self._shard_path(i)
-        if not path.exists():
-            return
         expected = (len(self.spec.channels), len(self.spec.depth_m))
-        try:
-            psf, filled, legacy = read_kernel_shard(path, expected + (self.spec.kernel_px,) * 2)
-        except ValueError as exc:
-            warnings.warn(f"PSF cache shard {path} is unusable ({exc}); recomputing it", PsfCacheWarning,
-                          stacklevel=3)
+        shard = usable_kernel_shard(self._shard_path(i), expected + (self.spec.kernel_px,) * 2, stacklevel=3)
+        if shard is None:
             return
+        psf, filled, legacy = shard
         self.data[:, i][filled] = psf[filled]
         self.filled[:, i] |= filled
         if legacy:  # written before shards carried a hash: record one now that its values passed the checks

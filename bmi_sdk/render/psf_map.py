@@ -55,7 +55,6 @@ import hashlib
 import json
 import math
 import os
-import warnings
 from pathlib import Path
 
 import cv2
@@ -66,7 +65,7 @@ from ..optics import spectral
 from ..optics.perturb import CHIEF_FIT_DEGREE, CHIEF_FIT_GRID, Perturbation, spot_kernels, trace_spots
 from ..optics.psf import psf_from_pupil
 from ..optics.pupil import fit_pupils
-from ..optics.tensor import PsfCacheWarning, PsfTensor, read_kernel_shard, write_kernel_shard
+from ..optics.tensor import PsfTensor, usable_kernel_shard, write_kernel_shard
 
 INTERPOLATIONS = ("linear", "inverse_square")
 
@@ -126,8 +125,8 @@ class PsfMap:
             raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}")
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-        if perturbation is not None and not np.any(perturbation.to_vector()):
-            perturbation = None  # the design (a glare spread without glare changes nothing)
+        if perturbation is not None and perturbation.is_design:
+            perturbation = None
         carried = tensor.perturbation
         if perturbation is not None and carried is not None and perturbation != carried:
             raise ValueError(f"the tensor was built with {carried}, not {perturbation}: one camera per map")
@@ -165,15 +164,11 @@ class PsfMap:
         if self.exact_cache_dir is None or key in self._zones_read:
             return
         self._zones_read.add(key)
-        path = self._zone_path(key)
-        if not path.exists():
-            return
         shape = (self.n_channels, len(self.tensor.spec.depth_m), self.kernel_px, self.kernel_px)
-        try:
-            psf, filled, _ = read_kernel_shard(path, shape)
-        except ValueError as exc:
-            warnings.warn(f"PSF cache shard {path} is unusable ({exc}); recomputing it", PsfCacheWarning, stacklevel=4)
+        shard = usable_kernel_shard(self._zone_path(key), shape, stacklevel=4)
+        if shard is None:
             return
+        psf, filled, _ = shard
         for j in np.nonzero(filled.all(axis=0))[0]:
             self._exact.setdefault(key + (int(j),), psf[:, j])
 
