@@ -61,8 +61,17 @@ class Calibration:
         return Perturbation(**values, stray_light_spread_px=self.doc["stray_light_spread_px"])
 
     def tensor(self):
-        """The corrected PSF tensor, carrying the fitted errors (``PsfTensor.load`` checks its own hash too)."""
-        return PsfTensor.load(self.path.parent / self.doc["corrected_tensor"]["file"])
+        """The corrected PSF tensor, carrying the fitted errors (``PsfTensor.load`` checks its own hash too).
+
+        The tensor's JSON names the errors an exact-mode map over it traces, and the npz hash does not
+        cover that JSON: a tensor whose errors are not this file's fitted ones is refused.
+        """
+        path = self.path.parent / self.doc["corrected_tensor"]["file"]
+        tensor = PsfTensor.load(path)
+        fitted = None if self.perturbation.is_design else self.perturbation
+        if tensor.perturbation != fitted:
+            raise CalibrationError(f"{path}: built with {tensor.perturbation}, but {self.path.name} fitted {fitted}")
+        return tensor
 
 
 def write_calibration(path, result, captures, extraction=None, lens_name: str = "bmi_monocentric",

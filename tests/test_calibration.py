@@ -197,6 +197,13 @@ def test_calibration_file_round_trip_and_validation(single, tmp_path):
     _validation_changes_no_process_state(tmp_path / "calib.json", doc)
     tensor = again.tensor()
     assert tensor.data.shape == (3, 2, 1, 21, 21) and np.allclose(tensor.data.sum(axis=(-1, -2)), 1.0, atol=1e-5)
+    assert tensor.perturbation == again.perturbation  # an exact-mode map over it traces the fitted errors
+    tensor_json = tmp_path / "calib.psf.json"
+    edited = json.loads(tensor_json.read_text())
+    edited["perturbation"]["decenter_um"] = [99.0, 0.0]  # the npz hash does not cover this JSON
+    tensor_json.write_text(json.dumps(edited))
+    with pytest.raises(CalibrationError, match="fitted"):
+        again.tensor()
     doc["parameters"]["decenter_um"]["value"] = [0.0, 0.0]
     (tmp_path / "calib.json").write_text(json.dumps(doc))
     with pytest.raises(CalibrationError, match="calibration_id"):
