@@ -125,6 +125,42 @@ def relative_illumination(geometry: SensorGeometry, row0: int, col0: int, height
 
 
 @dataclass(frozen=True)
+class NoiseProfile:
+    """Raw noise as a function of signal: Var[x] = ``scale`` · x + ``offset`` for the normalised signal
+    x = (DN − black) / (white − black) (the DNG ``NoiseProfile`` tag's convention, DNG 1.4 spec, tag 51041).
+
+    ``scale`` carries the shot noise (Poisson: variance ∝ mean), ``offset`` the read noise, the ADC's
+    rounding (1/12 DN²) and, for the paper's additive model, its σ². One pair for all colour planes
+    (the simulated sensor applies one gain to every CFA colour).
+    """
+
+    scale: float
+    offset: float
+
+    def __post_init__(self):
+        for name in ("scale", "offset"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"NoiseProfile.{name} must be finite and >= 0, got {value}")
+        if self.scale == 0 and self.offset == 0:
+            raise ValueError("NoiseProfile: scale and offset are both 0 (a noiseless raw frame has no profile)")
+
+    @classmethod
+    def additive(cls, sigma: float, white_level_dn: int = WHITE_LEVEL_DN,
+                 black_level_dn: int = BLACK_LEVEL_DN) -> "NoiseProfile":
+        """The paper's model as ``nn.data.simulate_raw`` applies it: N(0, σ²) on x, then rounding to whole DN."""
+        span = float(white_level_dn - black_level_dn)
+        return cls(0.0, float(sigma) ** 2 + 1.0 / (12.0 * span ** 2))
+
+    def variance(self, signal) -> np.ndarray:
+        """Noise variance at normalised signal ``signal`` (negative signals count as 0)."""
+        return self.scale * np.maximum(np.asarray(signal, dtype=np.float64), 0.0) + self.offset
+
+    def to_dict(self) -> dict:
+        return {"scale": self.scale, "offset": self.offset}
+
+
+@dataclass(frozen=True)
 class SensorModel:
     """Photon-transfer parameters of the simulated BMI sensor (2 µm pixels, 12-bit ADC).
 
@@ -161,6 +197,28 @@ class SensorModel:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def noise_profile(self, analog_gain: float, exposure_us: float, black_level_dn: int) -> NoiseProfile:
+        """The raw noise of a frame read out at ``analog_gain`` and ``exposure_us`` (module doc's photon transfer).
+
+        With g = conversion gain × analog gain (DN per electron) and span W = white − black, an unsaturated
+        pixel of mean μ electrons has x = g μ / W and Var[x] = (g² (μ + σ_r²) + 1/12) / W², so
+        scale = g / W and offset = (g² σ_r² + 1/12) / W². The additive model (``additive_sigma``) adds
+        σ · full-scale electrons instead of shot and read noise: scale 0.
+        """
+        if not analog_gain > 0:
+            raise ValueError(f"analog_gain must be > 0, got {analog_gain}")
+        if not exposure_us > 0:
+            raise ValueError(f"exposure_us must be > 0, got {exposure_us}")
+        span = float(self.white_level_dn - black_level_dn)
+        if not span > 0:
+            raise ValueError(f"black_level_dn must be below the white level {self.white_level_dn}, got {black_level_dn}")
+        g = self.conversion_gain_dn_per_e * analog_gain
+        rounding = 1.0 / 12.0
+        if self.additive_sigma is not None:
+            sigma_dn = self.additive_sigma * self.electrons_per_us * exposure_us * g
+            return NoiseProfile(0.0, (sigma_dn ** 2 + rounding) / span ** 2)
+        return NoiseProfile(g / span, ((g * self.read_noise_e) ** 2 + rounding) / span ** 2)
 
     # -- the chain, step by step -------------------------------------------
     def mean_electrons(self, irradiance: np.ndarray, exposure_us: float) -> np.ndarray:
