@@ -8,6 +8,7 @@ from bmi_sdk.sensor import (
     BLACK_LEVEL_DN,
     PAPER_NOISE_SIGMAS,
     WHITE_LEVEL_DN,
+    NoiseProfile,
     SensorModel,
     adc_dn,
     add_gaussian_noise,
@@ -50,6 +51,40 @@ def test_poisson_gaussian_dn_moments(mean_e):
     n = dn.size
     assert abs(dn.mean() - mu) < 5 * np.sqrt(var / n)
     assert abs(dn.var() / var - 1) < 5 * np.sqrt(2 / n) + 0.01
+
+
+@pytest.mark.parametrize("additive_sigma, irradiance, exposure_us, gain, black", [
+    (None, 0.0, 1000, 1.0, 256),     # read noise and ADC rounding only: the offset alone
+    (None, 0.005, 5000, 4.0, 64),    # 15 e⁻: exact Poisson regime
+    (None, 0.1, 2000, 1.0, 256),     # 120 e⁻: Gaussian limit
+    (None, 0.2, 1000, 16.0, 256),    # highest gain
+    (None, 0.5, 10_000, 1.5, 0),     # 3000 e⁻, half the well
+    (0.01, 0.3, 10_000, 1.0, 256),   # the paper's additive model
+    (0.01, 0.05, 2000, 8.0, 64),
+    (0.01, 0.5, 500, 2.0, 256),      # σ of 3.8 DN: rounding still a small part
+])
+def test_noise_profile_is_the_measured_variance_of_flat_fields(additive_sigma, irradiance, exposure_us, gain, black):
+    """Var[x] of a 400×400 flat field through the whole chain (shot/additive noise, read noise, ADC) equals
+    the profile at the field's expected signal x = g μ / (white − black), within 4 σ of the sample variance."""
+    model = SensorModel() if additive_sigma is None else SensorModel(additive_sigma=additive_sigma)
+    dn = model.expose_mosaic(np.full((400, 400), irradiance, np.float32), exposure_us, gain, black,
+                             np.random.default_rng(11))
+    span = model.white_level_dn - black
+    x = (dn.astype(np.float64) - black) / span
+    assert 0 < dn.min() and dn.max() < model.white_level_dn  # nothing clipped: the profile's domain
+    expected_x = model.conversion_gain_dn_per_e * gain * irradiance * model.electrons_per_us * exposure_us / span
+    profile = model.noise_profile(gain, exposure_us, black)
+    expected_var = float(profile.variance(expected_x))
+    n = x.size
+    assert abs(x.mean() - expected_x) < 5 * np.sqrt(expected_var / n)
+    assert abs(x.var(ddof=1) / expected_var - 1) < 4 * np.sqrt(2 / (n - 1))  # ≈ 0.014
+    assert (profile.scale == 0) == (additive_sigma is not None)  # the additive model has no shot noise
+
+
+@pytest.mark.parametrize("scale, offset", [(-1e-4, 1e-6), (1e-4, -1e-9), (np.nan, 1e-6), (1e-4, np.inf), (0.0, 0.0)])
+def test_noise_profile_refuses_negative_non_finite_and_all_zero_values(scale, offset):
+    with pytest.raises(ValueError, match="NoiseProfile"):
+        NoiseProfile(scale, offset)
 
 
 def test_saturation_and_black_frame():
