@@ -44,8 +44,8 @@ from .camera import STRATEGIES, StreamCamera
 from .camera_protocol import Camera
 from .dng import load_raw, save_dng
 from .errors import (AccessDeniedError, CameraError, ConfigurationError, DeviceBusyError, DeviceFaultError,
-                     DeviceNotFoundError, DeviceRemovedError, GrabTimeoutError, IncompleteFrameError, ProtocolError,
-                     RawFileError)
+                     DeviceNotFoundError, DeviceRemovedError, GrabTimeoutError, IncompleteFrameError,
+                     NoiseProfileWarning, ProtocolError, RawFileError)
 from .frame import FrameStatus, RawFrame, Roi
 from .replay import ReplayCamera
 from .sim import DEFAULT_NAME as _SIM_DEFAULT_NAME
@@ -56,7 +56,7 @@ __all__ = [
     "open_camera", "list_devices", "parse_tcp_address", "DeviceInfo", "StreamCamera", "ReplayCamera", "RawFrame",
     "FrameStatus", "Roi", "load_raw", "save_dng", "STRATEGIES", "AccessDeniedError", "CameraError",
     "ConfigurationError", "DeviceBusyError", "DeviceFaultError", "DeviceNotFoundError", "DeviceRemovedError",
-    "GrabTimeoutError", "IncompleteFrameError", "ProtocolError", "RawFileError",
+    "GrabTimeoutError", "IncompleteFrameError", "NoiseProfileWarning", "ProtocolError", "RawFileError",
 ]
 
 

@@ -14,6 +14,13 @@ Timeouts in ``grab`` and ``capture`` count *silence*: a device that is still
 reading out a frame (a scene rendered through the lens can take minutes) sends
 PROGRESS heartbeats, each of which restarts the wait; only a device that says
 nothing for ``timeout_s`` is given up on. ``on_progress`` sees the heartbeats.
+
+Each sensor frame carries its ``noise_profile``, computed from the sensor model
+the device describes in its HELLO reply (``info["sensor_model"]``) at the
+gain, exposure and black level of the frame's header, so a decoder is told the
+noise instead of estimating it from the picture. A device that does not
+describe its sensor gives frames without one (None); so do test-pattern
+frames, which are digital and carry no sensor noise.
 """
 
 from __future__ import annotations
@@ -22,6 +29,7 @@ import collections
 import socket
 import threading
 import time
+import warnings
 from typing import Callable
 
 import numpy as np
@@ -29,8 +37,10 @@ import numpy as np
 from bmi_sdk.geometry import SensorGeometry
 from bmi_sdk.protocol.registers import BY_NAME, ROI_REGISTERS, RegError
 from bmi_sdk.protocol.wire import FLAG_TEST_PATTERN, FrameHeader
+from bmi_sdk.sensor import NoiseProfile, SensorModel
 
-from .errors import CameraError, ConfigurationError, DeviceFaultError, DeviceRemovedError, GrabTimeoutError
+from .errors import (CameraError, ConfigurationError, DeviceFaultError, DeviceRemovedError, GrabTimeoutError,
+                     NoiseProfileWarning)
 from .frame import BufferPool, FrameStatus, RawFrame, Roi
 from .link import StreamLink
 from .settings import Settings, refused, specs_from_register_map
@@ -95,6 +105,33 @@ class StreamCamera:
         self.device = {k: self.info[k] for k in ("model", "serial", "firmware_version")}
         self.settings = Settings(specs_from_register_map(self.info["registers"]), self.info["registers"],
                                  self._read_reg, self._write_reg)
+        self._sensor_model = self._sensor_model_from_info()
+
+    def _sensor_model_from_info(self) -> SensorModel | None:
+        """The device's ``SensorModel`` from HELLO, or None when it sends none. One it sends but this host
+        cannot read (unknown fields, values out of range) is a warning, not a failure to open: only the
+        frames' noise profiles depend on it."""
+        described = self.info.get("sensor_model")
+        if described is None:
+            return None
+        try:
+            return SensorModel(**described)
+        except (TypeError, ValueError) as exc:
+            warnings.warn(f"{self.uri}: the device's sensor_model is unreadable ({exc}); its frames carry no "
+                          "noise profile", NoiseProfileWarning)
+            return None
+
+    def _noise_profile(self, header: FrameHeader) -> NoiseProfile | None:
+        """The noise of a frame read out with ``header``'s settings; None for a test pattern (no sensor noise),
+        without a sensor model, or for a header the model cannot describe (its white level differs, or a
+        gain, exposure or black level outside the model's domain)."""
+        model = self._sensor_model
+        if model is None or header.flags & FLAG_TEST_PATTERN or header.white_level_dn != model.white_level_dn:
+            return None
+        try:
+            return model.noise_profile(header.gain_milli / 1000, header.exposure_us, header.black_level_dn)
+        except ValueError:
+            return None
 
     def reconnect(self) -> None:
         """Open a new link after a disconnect; re-applies the settings written so far (a device that
@@ -308,7 +345,7 @@ class StreamCamera:
                 roi=Roi(header.roi_x_px, header.roi_y_px, header.width_px, header.height_px),
                 geometry=self.geometry, lens=self.lens, device=self.device, cfa=header.cfa,
                 test_pattern=bool(header.flags & FLAG_TEST_PATTERN),
-                source=self.info.get("source"))
+                source=self.info.get("source"), noise_profile=self._noise_profile(header))
             self.stats["delivered"] += 1
             self.stats[status.value] += 1
             self._alive_s = time.monotonic()

@@ -45,3 +45,8 @@ class ProtocolError(CameraError):
 
 class RawFileError(CameraError, ValueError):
     """A raw file that is not a BMI raw frame (another camera's DNG, a missing or mismatched sidecar)."""
+
+
+class NoiseProfileWarning(UserWarning):
+    """A noise profile could not be read (a device's unreadable sensor model, a malformed DNG NoiseProfile tag
+    in another camera's raw file): the frame comes without one (``noise_profile`` None)."""

@@ -17,6 +17,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from bmi_sdk.geometry import SensorGeometry
+from bmi_sdk.sensor import NoiseProfile
 
 from .errors import IncompleteFrameError
 
@@ -62,6 +63,7 @@ class RawFrame:
     source: dict | None = None       # what the simulated world showed (None on hardware)
     calibration_id: str | None = None
     is_bmi: bool = True              # False: a raw file from another camera (load_raw(require_bmi=False))
+    noise_profile: NoiseProfile | None = None  # the pixels' noise (DNG NoiseProfile); None: unknown, or a test pattern
     _finalizer: weakref.finalize | None = field(default=None, repr=False)
 
     # -- buffer ownership ------------------------------------------------------
@@ -103,6 +105,7 @@ class RawFrame:
             "geometry": self.geometry.to_dict(), "lens": self.lens, "device": self.device,
             "skipped_frames": self.skipped_frames, "test_pattern": self.test_pattern, "source": self.source,
             "calibration_id": self.calibration_id, "shape": list(self.data.shape),
+            "noise_profile": None if self.noise_profile is None else self.noise_profile.to_dict(),
         }
 
     def save_dng(self, path, overwrite: bool = True) -> None:

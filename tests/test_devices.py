@@ -282,6 +282,27 @@ def test_broken_streams_get_clear_errors(script, match):
     assert peak < 50 << 20  # a huge length field allocated nothing
     assert reasons and match.split()[0] in reasons[0]
 
+def test_frames_the_devices_sensor_model_cannot_describe_have_no_noise_profile():
+    """A header at a gain of 0 (outside the model) or another white level than the model's gets None, not a
+    profile for other pixels than these, nor a crash of the link thread."""
+    import zlib
+
+    from bmi_sdk.sensor import SensorModel
+
+    payload = bytes(packed_size(64 * 48))
+
+    def frame(**kw):
+        body = _header_bytes(**kw) + payload + zlib.crc32(payload).to_bytes(4, "little")
+        return envelope(Msg.FRAME, body) + body
+
+    uri = _fake_device(frame(frame_id=0) + frame(frame_id=1, gain_milli=0) + frame(frame_id=2, white_level_dn=1023))
+    with open_camera(uri, timeout_s=2) as cam:
+        cam.start(buffers=3)
+        got = [cam.grab(timeout_s=3) for _ in range(3)]
+        assert [f.complete for f in got] == [True] * 3
+        assert [f.noise_profile for f in got] == [SensorModel().noise_profile(1.0, 100, 0), None, None]
+        for f in got:
+            f.release()
 
 
 def test_bmi_acquire_writes_dngs_rawpy_opens(tmp_path):
