@@ -3,7 +3,9 @@
 The DNG carries what DNG has tags for: CFA pattern (RGGB), black and white
 level, camera make/model/serial, exposure, and the camera's colour
 (``ColorMatrix1`` under ``CalibrationIlluminant1`` D65, ``AsShotNeutral``), so
-that raw viewers and LibRaw render the frame's colours as the scene had them. The sidecar ``<name>.json`` carries
+that raw viewers and LibRaw render the frame's colours as the scene had them, and, when the frame has one,
+its noise (``NoiseProfile``, tag 51041: one (S, O) pair for all colour planes, Var[x] = S·x + O for
+x = (DN − black) / (white − black)). The sidecar ``<name>.json`` carries
 the rest (curved-sensor geometry, lens identity, ROI, frame metadata,
 calibration id) and the SHA-256 of the pixels, so a sidecar that belongs to
 another file is detected. Both are written atomically (temp name + rename),
@@ -13,12 +15,18 @@ DNG first: an interrupted save leaves at worst a DNG without sidecar, which
 ``load_raw`` refuses (``RawFileError``) a DNG that is not from a BMI camera
 (UniqueCameraModel tag), has no sidecar, or whose sidecar does not match, unless
 ``require_bmi=False``: then it returns the raw data with ``is_bmi=False``.
+A NoiseProfile tag that is malformed (not 2 values, or 2 per colour plane that differ; negative,
+non-finite or all zero) or disagrees with the sidecar makes a BMI file a ``RawFileError``: the file was
+damaged or edited, and a decoder told the wrong noise would be silently wrong. In another camera's file
+(``require_bmi=False``) it is a ``NoiseProfileWarning`` and ``noise_profile`` None: that camera's tag
+should not stop its pixels from loading.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -27,13 +35,16 @@ from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
 from bmi_sdk.io_atomic import atomic_path, write_json
 from bmi_sdk.json_files import read_json_object
 from bmi_sdk.protocol.wire import MODEL_NAME
+from bmi_sdk.sensor import NoiseProfile
 
-from .errors import RawFileError
+from .errors import NoiseProfileWarning, RawFileError
 from .frame import SIDECAR_SCHEMA, FrameStatus, RawFrame, Roi
 
 MAKE = "BMI"
 _CFA_CODES = {"R": 0, "G": 1, "B": 2}
 _TAG_UNIQUE_MODEL = 50708
+_TAG_NOISE_PROFILE = 51041
+_COLOR_PLANES = 3  # CFAPlaneColor (R, G, B): the DNG allows one NoiseProfile pair per plane
 
 SRGB_TO_XYZ_D65 = np.array([[0.4124564, 0.3575761, 0.1804375],
                             [0.2126729, 0.7151522, 0.0721750],
@@ -122,10 +133,33 @@ def save_dng(frame: RawFrame, path, overwrite: bool = True) -> None:
         (50728, "2I", 3, _rationals(AS_SHOT_NEUTRAL, signed=False), True),  # AsShotNeutral
         (33434, "2I", 1, (exposure, 1_000_000), True),              # ExposureTime (s)
     ]
+    if frame.noise_profile is not None:
+        profile = frame.noise_profile
+        extratags.append((_TAG_NOISE_PROFILE, "d", 2, (profile.scale, profile.offset), True))  # NoiseProfile
     with atomic_path(path) as tmp:
         tifffile.imwrite(tmp, data, photometric=32803, subfiletype=0, compression=None,
                          metadata=None, extratags=extratags)
     write_json(side, frame.metadata | {"dng": path.name, "pixel_sha256": pixel_sha256(data)})
+
+
+def _noise_profile_from_tag(path: Path, value) -> NoiseProfile | None:
+    """The NoiseProfile tag's value (None: no tag) as one pair; ``RawFileError`` naming the file and the tag
+    if it is not 2 doubles, or 2 per colour plane that all agree, forming a valid ``NoiseProfile``."""
+    if value is None:
+        return None
+    try:
+        pairs = np.asarray(value, dtype=np.float64).reshape(-1, 2)
+    except (TypeError, ValueError):
+        raise RawFileError(f"{path}: NoiseProfile tag ({_TAG_NOISE_PROFILE}) holds {value!r}, "
+                           "expected pairs of numbers (S, O)") from None
+    if len(pairs) not in (1, _COLOR_PLANES) or not np.array_equal(pairs, np.broadcast_to(pairs[0], pairs.shape),
+                                                                  equal_nan=True):
+        raise RawFileError(f"{path}: NoiseProfile tag ({_TAG_NOISE_PROFILE}) holds {pairs.size} values "
+                           f"{pairs.ravel().tolist()}; expected one pair (S, O), or {_COLOR_PLANES} equal ones")
+    try:
+        return NoiseProfile(float(pairs[0, 0]), float(pairs[0, 1]))
+    except ValueError as exc:
+        raise RawFileError(f"{path}: NoiseProfile tag ({_TAG_NOISE_PROFILE}) is invalid ({exc})") from None
 
 
 def _cfa_string(raw) -> str:
@@ -177,7 +211,8 @@ def load_raw(path, require_bmi: bool = True) -> RawFrame:
     """Read a raw file through rawpy (pixels, levels, CFA) and its sidecar (everything else).
 
     A file that is not a BMI raw frame raises ``RawFileError`` naming why, or with
-    ``require_bmi=False`` comes back with ``is_bmi=False`` and nominal geometry.
+    ``require_bmi=False`` comes back with ``is_bmi=False`` and nominal geometry. ``noise_profile`` comes from
+    the DNG NoiseProfile tag (None without one); a malformed one is handled as the module doc says.
     """
     import rawpy
     import tifffile
@@ -195,10 +230,13 @@ def load_raw(path, require_bmi: bool = True) -> RawFrame:
         raise RawFileError(f"{path}: rawpy cannot read it as a raw file ({exc})") from exc
     try:
         with tifffile.TiffFile(path) as tif:
-            tag = tif.pages[0].tags.get(_TAG_UNIQUE_MODEL)
+            tags = tif.pages[0].tags
+            tag = tags.get(_TAG_UNIQUE_MODEL)
             camera_model = str(tag.value) if tag is not None else ""
+            tag = tags.get(_TAG_NOISE_PROFILE)
+            noise_value = tag.value if tag is not None else None
     except tifffile.TiffFileError:
-        camera_model = ""  # not a TIFF-based raw: certainly not ours
+        camera_model, noise_value = "", None  # not a TIFF-based raw: certainly not ours
     problem = None
     side = sidecar_path(path)
     meta: dict = {}
@@ -215,17 +253,27 @@ def load_raw(path, require_bmi: bool = True) -> RawFrame:
     if problem is not None:
         if require_bmi:
             raise RawFileError(f"{path} is not a BMI raw frame: {problem}")
+        try:
+            noise_profile = _noise_profile_from_tag(path, noise_value)
+        except RawFileError as exc:
+            warnings.warn(f"{exc}; loading it without a noise profile", NoiseProfileWarning, stacklevel=2)
+            noise_profile = None
         h, w = data.shape
         return RawFrame(data=data, frame_id=-1, status=FrameStatus.COMPLETE, black_level_dn=black[0],
                         white_level_dn=white, exposure_us=0, analog_gain=float("nan"),
                         temperature_c=float("nan"), device_timestamp_ns=0, readout_timestamp_ns=0,
                         host_timestamp_ns=0, roi=Roi(0, 0, w, h), geometry=BMI_SENSOR, lens={},
                         device={"model": camera_model}, cfa=cfa, is_bmi=False,
-                        source={"foreign_raw_reason": problem})
+                        source={"foreign_raw_reason": problem}, noise_profile=noise_profile)
     _check_sidecar_fields(path, meta, data.shape)
     if cfa != meta["cfa"] or black[0] != meta["black_level_dn"] or white != meta["white_level_dn"]:
         raise RawFileError(f"{path}: DNG tags (CFA {cfa}, black {black[0]}, white {white}) disagree with the "
                            f"sidecar ({meta['cfa']}, {meta['black_level_dn']}, {meta['white_level_dn']})")
+    noise_profile = _noise_profile_from_tag(path, noise_value)
+    tagged = None if noise_profile is None else noise_profile.to_dict()
+    if "noise_profile" in meta and meta["noise_profile"] != tagged:  # sidecars of older SDKs lack the key
+        raise RawFileError(f"{path}: NoiseProfile tag ({_TAG_NOISE_PROFILE}) {tagged} disagrees with the "
+                           f"sidecar's {meta['noise_profile']}")
     return RawFrame(
         data=data, frame_id=meta["frame_id"], status=FrameStatus(meta["status"]), black_level_dn=black[0],
         white_level_dn=white, exposure_us=meta["exposure_us"], analog_gain=meta["analog_gain"],
@@ -233,4 +281,4 @@ def load_raw(path, require_bmi: bool = True) -> RawFrame:
         readout_timestamp_ns=meta["readout_timestamp_ns"], host_timestamp_ns=meta["host_timestamp_ns"],
         roi=Roi(**meta["roi"]), geometry=SensorGeometry.from_dict(meta["geometry"]), lens=meta["lens"],
         device=meta["device"], cfa=cfa, skipped_frames=meta["skipped_frames"], test_pattern=meta["test_pattern"],
-        source=meta["source"], calibration_id=meta["calibration_id"])
+        source=meta["source"], calibration_id=meta["calibration_id"], noise_profile=noise_profile)

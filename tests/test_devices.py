@@ -148,6 +148,7 @@ def test_dng_round_trip_through_rawpy(tmp_path):
     back = load_raw(path)
     np.testing.assert_array_equal(back.data, frame.data)
     assert back.roi == frame.roi and back.geometry == frame.geometry and back.lens == frame.lens
+    assert frame.noise_profile is not None and back.noise_profile == frame.noise_profile  # the DNG's tag 51041
     assert back.is_bmi and back.black_level_dn == 100
     assert not list(tmp_path.glob(".*"))  # no temporary files left behind
     # without its sidecar, or with another frame's sidecar, it is refused or flagged
@@ -183,7 +184,7 @@ def test_replay_folder_behaves_like_a_camera(tmp_path):
         cam.start()
         for f in frames:
             got = cam.grab()
-            assert got.frame_id == f.frame_id
+            assert got.frame_id == f.frame_id and got.noise_profile == f.noise_profile
             np.testing.assert_array_equal(got.data, f.data)
         with pytest.raises(GrabTimeoutError):
             cam.grab()
