@@ -64,6 +64,45 @@ def test_plane_nll_equals_the_brute_force_profile_over_beta():
     assert np.all(got[:, 0] < got[:, 1])  # the kernel that made the data wins
 
 
+def test_plane_nll_with_per_window_noise_equals_the_brute_force_with_each_windows_own_noise():
+    """Signal-dependent noise: windows of one block whose noise variances differ by 100× (dark and bright regions
+    under shot noise) each get the brute-force profile NLL of their own variance, within the grouping's ±5 %
+    (which moves the NLL by far less than a nat here) and the β parabola's 0.5 nats."""
+    rng = np.random.default_rng(2)
+    n = 16
+    w = np.hanning(11)[1:-1]
+    kernel = np.zeros((1, 19, 19))
+    kernel[0, 5:14, 5:14] = np.outer(w, w) / np.outer(w, w).sum()
+    model = folded_model(kernel, n)
+    taper_energy = 100.0
+    noise_var = np.repeat([1e-5, 3e-5, 1e-4, 1e-3], 3) * rng.uniform(0.97, 1.03, 12)
+    v_true = (3e-3 * model[0] + noise_var[:, None, None]) * taper_energy
+    power = (v_true * rng.exponential(size=v_true.shape)).astype(np.float32)
+    got = plane_nll(power, model, noise_var, taper_energy)
+    mult = rfft_multiplicity(n)
+    for k in range(12):
+        v = (np.exp(np.linspace(-16, 2, 4001))[:, None, None] * model[0] + noise_var[k]) * taper_energy
+        brute = (mult * (power[k] / v + np.log(v))).sum(axis=(1, 2)).min()
+        assert got[k, 0] == pytest.approx(brute, abs=0.5)
+    # one value for every window is the scalar call
+    assert np.allclose(plane_nll(power, model, np.full(12, 1e-4), taper_energy), plane_nll(power, model, 1e-4, taper_energy))
+
+
+def test_the_noise_the_evidence_uses_given_then_profile_then_estimated():
+    from bmi_sdk.decode.classical import frame_noise
+    from bmi_sdk.sensor import NoiseProfile
+
+    planes = np.random.default_rng(3).normal(0.3, 0.01, (4, 64, 64)).astype(np.float32)
+    profile = NoiseProfile(2e-4, 1e-6)
+    assert frame_noise(ClassicalConfig(noise_sigma=0.02), planes, profile) == (NoiseProfile(0.0, 0.02 ** 2), "given")
+    assert frame_noise(ClassicalConfig(), planes, profile) == (profile, "profile")
+    estimated, source = frame_noise(ClassicalConfig(noise_model="estimate"), planes, profile)
+    assert source == "estimated" and estimated.scale == 0 and np.sqrt(estimated.offset) == pytest.approx(0.01, rel=0.2)
+    assert frame_noise(ClassicalConfig(), planes, None)[1] == "estimated"
+    with pytest.raises(ValueError, match="noise_model"):
+        ClassicalConfig(noise_model="guess")
+
+
 def test_refinement_recovers_an_analytic_parabola_on_uneven_candidates():
     inv = np.array([1.4, 1.2, 1.0, 0.9, 0.6, 0.3, 0.1])     # 1/d, uneven steps
     x0, sigma = 0.72, 0.05
@@ -208,6 +247,13 @@ def test_infer_classical_writes_depth_sigma_confidence_and_ply_sigma(tmp_path):
     report = json.loads((tmp_path / "o" / "report.json").read_text())
     assert report["decoder"] == "classical" and report["calibration_id"] is None
     assert report["decoder_stats"]["candidate_evaluations"] > 0
+    # the evidence used the camera's own noise, as the DNG's NoiseProfile tag carries it, not a guess
+    from devices import load_raw
+
+    profile = load_raw(tmp_path / "f.dng").noise_profile
+    assert report["decoder_stats"]["noise_source"] == "profile"
+    assert report["decoder_stats"]["noise_profile"] == profile.to_dict()
+    assert report["decoder_stats"]["noise_sigma"] == pytest.approx(0.005, rel=0.05)
 
 
 def test_simulate_calibrate_infer_loop_uses_the_calibrated_kernels(tmp_path):

@@ -21,7 +21,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from bmi_sdk.sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN
+from bmi_sdk.sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, NoiseProfile
 
 from . import cpu_seconds, markdown_table, peak_rss_mb, register_target
 
@@ -63,7 +63,8 @@ def _knob_rows(bench, renders, nominal_map) -> list[list]:
 def plane_absrel(nominal, geometry, decode, field_deg: float, depth_m: float, seed: int = 3) -> float:
     """AbsRel of the decoded depth over a textured plane at ``depth_m`` centred at ``field_deg`` (φ = 30°).
 
-    ``decode(raw, row0, col0)`` → (depth_m, valid) of the raw window at (row0, col0) of the sensor.
+    ``decode(raw, row0, col0, noise)`` → (depth_m, valid) of the raw window at (row0, col0) of the sensor, whose
+    raw noise is ``noise`` (a ``sensor.NoiseProfile``).
     """
     from bmi_sdk.nn.data import STANDARD_SIGMA, simulate_raw
     from bmi_sdk.render import PsfMap, render_coded
@@ -79,7 +80,7 @@ def plane_absrel(nominal, geometry, decode, field_deg: float, depth_m: float, se
     optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
     m = 24
     raw = simulate_raw(optical[m:-m, m:-m], STANDARD_SIGMA, np.random.default_rng(seed), row0 + m, col0 + m)
-    depth, ok = decode(raw, row0 + m, col0 + m)
+    depth, ok = decode(raw, row0 + m, col0 + m, NoiseProfile.additive(STANDARD_SIGMA))
     ok = ok & np.isfinite(depth)
     return float(np.mean(np.abs(depth[ok] - depth_m) / depth_m))
 
@@ -87,8 +88,8 @@ def plane_absrel(nominal, geometry, decode, field_deg: float, depth_m: float, se
 def classical_depth(decoder, geometry):
     """``plane_absrel``'s ``decode`` for a ``ClassicalDecoder``."""
 
-    def decode(raw, row0, col0):
-        out = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0)
+    def decode(raw, row0, col0, noise):
+        out = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0, noise_profile=noise)
         return out.depth_m, out.valid
 
     return decode
@@ -118,7 +119,8 @@ def fit_sigma_model(nominal_map, seed: int = FIT_SEED, tiles: int = FIT_TILES) -
     for k, item in enumerate(bench.renders(nominal_map.tensor)):
         rng = np.random.default_rng([seed, 99, k])
         raw = simulate_raw(item["optical_full"][m:m + t, m:m + t], STANDARD_SIGMA, rng, item["row0"], item["col0"])
-        out = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, item["row0"], item["col0"])
+        out = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, item["row0"], item["col0"],
+                             noise_profile=NoiseProfile.additive(STANDARD_SIGMA))
         stride = decoder.config.stride_px
         ok = out.valid & np.isfinite(item["range_m"])
         ok[np.arange(t) % 4 != 0] = False
@@ -167,7 +169,8 @@ def _full_frame(nominal, geometry) -> str:
     rows = []
     for run in ("first (kernels computed)", "second (kernels memoised)"):
         wall, cpu = time.perf_counter(), cpu_seconds()
-        out = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry)
+        out = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry,
+                             noise_profile=NoiseProfile.additive(STANDARD_SIGMA))
         t = out.stats["timings_s"]
         rows.append([run, time.perf_counter() - wall, cpu_seconds() - cpu, t["evidence_s"], t["kernels_s"], t["aif_s"],
                      out.stats["blocks_skipped"], peak_rss_mb()])

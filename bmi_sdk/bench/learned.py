@@ -24,9 +24,9 @@ def _learned_depth(tiles, geometry, costs: dict):
     from bmi_sdk.model_io import network_input, raw_to_rgb, window_cfa
     from bmi_sdk.sensor import BLACK_LEVEL_DN, CFA_PATTERN, WHITE_LEVEL_DN
 
-    def decode(raw, row0, col0):
+    def decode(raw, row0, col0, noise):
         w0, c0 = time.perf_counter(), cpu_seconds()
-        decoded = tiles.stage.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0)
+        decoded = tiles.stage.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0, noise_profile=noise)
         w1, c1 = time.perf_counter(), cpu_seconds()
         seen = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, window_cfa(CFA_PATTERN, row0, col0))
         x = np.concatenate([network_input(seen, geometry, row0, col0),
@@ -48,7 +48,7 @@ def _full_frame(model_path, nominal, geometry) -> str:
     from bmi_sdk.runtime.pipeline import infer_raw
     from bmi_sdk.decode.features import refinement_features
     from bmi_sdk.scenes import generate_scene
-    from bmi_sdk.sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, relative_illumination
+    from bmi_sdk.sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, NoiseProfile, relative_illumination
 
     h, w = geometry.height_px, geometry.width_px
     scene = generate_scene(h, w, np.random.default_rng(7))
@@ -60,7 +60,8 @@ def _full_frame(model_path, nominal, geometry) -> str:
     model = Model(model_path)
     decoder = learned_decoder(model, BuiltCamera(geometry=geometry))
     w0, c0 = time.perf_counter(), cpu_seconds()
-    decoded = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry)
+    decoded = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry,
+                             noise_profile=NoiseProfile.additive(STANDARD_SIGMA))
     features = refinement_features(decoded, decoder.config.stride_px)
     w1, c1 = time.perf_counter(), cpu_seconds()
     result = infer_raw(model, raw, black_level_dn=BLACK_LEVEL_DN, white_level_dn=WHITE_LEVEL_DN, geometry=geometry,

@@ -66,7 +66,7 @@ def _run(args) -> int:
         stats = report["decoder_stats"]
         print(f"learned refinement {report['model']['sha256'][:12]}… on {report['execution_provider']}, camera "
               f"{report['camera']['sha256'][:12]}…, calibration {report['calibration_id'] or 'nominal PSFs'}, "
-              f"noise σ {stats['noise_sigma']:.4f}")
+              f"noise σ {stats['noise_sigma']:.4f} ({stats['noise_source']})")
         print(f"classical blocks run {stats['blocks_run']}, skipped {stats['blocks_skipped']}; network tiles run "
               f"{report['tiles_run']}, skipped {report['tiles_skipped']}; peak memory {report['peak_rss_mb']:.0f} MB")
         print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_z.npy, depth_sigma.npy, confidence.png, depth_mm.png, "
@@ -75,7 +75,8 @@ def _run(args) -> int:
     if report["decoder"] == "classical":
         stats = report["decoder_stats"]
         print(f"classical decoder, camera {report['camera']['sha256'][:12]}…, "
-              f"calibration {report['calibration_id'] or 'nominal PSFs'}, noise σ {stats['noise_sigma']:.4f}")
+              f"calibration {report['calibration_id'] or 'nominal PSFs'}, noise σ {stats['noise_sigma']:.4f} "
+              f"({stats['noise_source']})")
         print(f"blocks run {stats['blocks_run']}, skipped {stats['blocks_skipped']} (outside the image circle); "
               f"candidate evaluations {stats['candidate_evaluations']} (coarse + fine) against "
               f"{stats['candidate_evaluations_exhaustive']} exhaustive; peak memory {report['peak_rss_mb']:.0f} MB")
@@ -135,7 +136,8 @@ def register(subparsers) -> None:
     p.add_argument("--candidates", type=int, default=CLASSICAL_KNOBS["candidates"],
                    help="classical: depth candidates spaced in 1/d, snapped to the kernel grid (default 48)")
     p.add_argument("--noise-sigma", type=float, default=None,
-                   help="classical: raw noise σ in units of full scale (default: estimated from the frame)")
+                   help="classical: a constant raw noise σ in units of full scale (default: the frame's NoiseProfile "
+                        "tag, the camera's photon transfer; estimated from the picture when the file has none)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an earlier run's results in --out (they are replaced only once all new files "

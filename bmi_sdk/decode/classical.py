@@ -2,7 +2,9 @@
 
 Steps (each in its own module):
 
-1. ``bayer``: the raw frame's four colour planes, and the raw noise σ (given, or estimated).
+1. ``bayer``: the raw frame's four colour planes. The raw noise (``frame_noise``): the frame's
+   ``NoiseProfile`` (variance = scale · signal + offset, from the camera), a given σ, or a σ estimated
+   from the picture; each window's noise variance follows its own mean signal.
 2. Windows of ``window_px`` (full-resolution footprint) every ``stride_px``, on a grid anchored to
    the sensor: window centres sit at rows and columns k·stride − ½ of the frame. The grid is
    processed in blocks of ``block_windows``² windows; each block is one zone (θ, φ of its centre)
@@ -42,10 +44,29 @@ from ..geometry import SensorGeometry
 from ..model_io import raw_to_rgb, reflect_indices, window_cfa
 from ..sensor import relative_illumination
 from .aif import wiener_blend
+from ..sensor import NoiseProfile
 from .bayer import estimate_noise_sigma, normalised_planes
 from .candidates import Candidates, inverse_depth_candidates
 from .evidence import Evidence, hann_taper, plane_nll, window_spectra
 from .kernels import ZoneKernels
+
+
+NOISE_MODELS = ("profile", "estimate")
+
+
+def frame_noise(config: "ClassicalConfig", planes: np.ndarray, profile: NoiseProfile | None) -> tuple[NoiseProfile, str]:
+    """The noise model the evidence uses, and where it came from.
+
+    A given ``noise_sigma`` wins (constant σ); then, with ``noise_model="profile"``, the frame's own
+    ``NoiseProfile`` (the camera's photon transfer: shot noise grows with the signal, so dark windows are
+    cleaner than bright ones); otherwise a constant σ estimated from the frame's flattest blocks
+    (``bayer.estimate_noise_sigma``), which image detail inflates on a sharp, textured frame.
+    """
+    if config.noise_sigma is not None:
+        return NoiseProfile(0.0, float(config.noise_sigma) ** 2), "given"
+    if config.noise_model == "profile" and profile is not None:
+        return profile, "profile"
+    return NoiseProfile(0.0, max(estimate_noise_sigma(planes), 1e-4) ** 2), "estimated"
 
 
 @dataclass(frozen=True)
@@ -59,12 +80,13 @@ class ClassicalConfig:
     slopes: tuple = (2.0,)
     block_windows: int = 16
     # σ model fitted by `bmi bench decoder` (seed 777, 12 tiles per region, the other defaults as here)
-    sigma_laplace_scale: float = 39.6
-    sigma_spread_scale: float = 2.64
-    sigma_floor_inv_per_m: float = 0.083
+    sigma_laplace_scale: float = 2.43
+    sigma_spread_scale: float = 4.40
+    sigma_floor_inv_per_m: float = 0.047
     fill_windows: float = 0.0
     aif_step: int = 4
-    noise_sigma: float | None = None
+    noise_sigma: float | None = None  # a given constant σ (units of full scale) overrides both noise models
+    noise_model: str = "profile"  # "profile": the frame's NoiseProfile when it has one; "estimate": from the picture
     threads: int | None = None  # FFT threads (default: all cores; 1 on a one-thread Dask worker)
 
     def __post_init__(self):
@@ -76,6 +98,10 @@ class ClassicalConfig:
             raise ValueError("block_windows, coarse_step and aif_step must be >= 1")
         if not self.slopes:
             raise ValueError("at least one prior slope is needed")
+        if self.noise_model not in NOISE_MODELS:
+            raise ValueError(f"noise_model must be one of {NOISE_MODELS}, got {self.noise_model!r}")
+        if self.noise_sigma is not None and not self.noise_sigma > 0:
+            raise ValueError(f"noise_sigma must be > 0, got {self.noise_sigma}")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -116,26 +142,30 @@ class ClassicalDecoder:
 
     # -- evidence ---------------------------------------------------------------------------------
     @staticmethod
-    def _block_nll(spectra: list, models: np.ndarray, noise_var: float, taper_energy: float) -> np.ndarray:
+    def _block_nll(spectra: list, models: np.ndarray, noise_vars: list, taper_energy: float) -> np.ndarray:
         """(windows, D) NLL summed over the planes, each plane's prior slope profiled out; ``models`` is
-        ``ZoneKernels.models`` (planes, slopes, D, n, m)."""
+        ``ZoneKernels.models`` (planes, slopes, D, n, m), ``noise_vars`` each plane's per-window noise variance."""
         total = None
         for p, power in enumerate(spectra):
-            best = np.min([plane_nll(power, models[p, a], noise_var, taper_energy) for a in range(models.shape[1])],
+            best = np.min([plane_nll(power, models[p, a], noise_vars[p], taper_energy) for a in range(models.shape[1])],
                           axis=0)
             total = best if total is None else total + best
         return total                                               # (windows, D)
 
     def decode(self, raw: np.ndarray, black_level_dn: float, white_level_dn: float, geometry: SensorGeometry,
-               row0: int = 0, col0: int = 0, cfa: str = "RGGB", progress: bool = False) -> DecodeResult:
-        """Decode an H × W RGGB window whose top-left pixel is (row0, col0) of the full sensor."""
+               row0: int = 0, col0: int = 0, cfa: str = "RGGB", progress: bool = False,
+               noise_profile: NoiseProfile | None = None) -> DecodeResult:
+        """Decode an H × W RGGB window whose top-left pixel is (row0, col0) of the full sensor.
+
+        ``noise_profile``: the frame's raw noise (``RawFrame.noise_profile``; ``frame_noise`` says when it is used).
+        """
         cfg = self.config
         t_start = time.perf_counter()
         timings = dict.fromkeys(("planes_s", "evidence_s", "kernels_s", "fill_s", "upsample_s", "aif_s"), 0.0)
         height, width = raw.shape
         planes = normalised_planes(raw, black_level_dn, white_level_dn, row0, col0)
-        noise = cfg.noise_sigma if cfg.noise_sigma is not None else estimate_noise_sigma(planes)
-        noise = max(float(noise), 1e-4)
+        noise, noise_source = frame_noise(cfg, planes, noise_profile)
+        typical_sigma = float(np.sqrt(noise.variance(np.median(planes))))
         n = cfg.window_px // 2
         sp = cfg.stride_px // 2
         pad = n // 2
@@ -173,11 +203,13 @@ class ClassicalDecoder:
             zone = ZoneKernels.zone_at(geometry, row0 + (br + (nr - 1) / 2) * cfg.stride_px,
                                        col0 + (bc + (nc - 1) / 2) * cfg.stride_px)
             ps = slice(br * sp, br * sp + (nr - 1) * sp + n), slice(bc * sp, bc * sp + (nc - 1) * sp + n)
-            spectra = [window_spectra(padded[p][ps], n, sp, taper, self.threads)[0] for p in range(4)]
+            windows = [window_spectra(padded[p][ps], n, sp, taper, self.threads) for p in range(4)]
+            spectra = [w[0] for w in windows]
+            noise_vars = [noise.variance(w[1]) for w in windows]
             t1 = time.perf_counter()
             models = self.zones.models(zone, coarse)
             t2 = time.perf_counter()
-            coarse_nll = self._block_nll(spectra, models, noise ** 2, taper_energy)
+            coarse_nll = self._block_nll(spectra, models, noise_vars, taper_energy)
             evidence[br:br + nr, bc:bc + nc] = (coarse_nll - coarse_nll.min(axis=1, keepdims=True)).reshape(nr, nc, -1)
             best = np.unique(coarse[np.argmin(coarse_nll, axis=1)])
             reach = np.arange(-cfg.coarse_step, cfg.coarse_step + 1)
@@ -185,7 +217,7 @@ class ClassicalDecoder:
             t3 = time.perf_counter()
             models = self.zones.models(zone, which)
             t4 = time.perf_counter()
-            nll = self._block_nll(spectra, models, noise ** 2, taper_energy)
+            nll = self._block_nll(spectra, models, noise_vars, taper_energy)
             depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
             inv[br:br + nr, bc:bc + nc] = 1.0 / depth_b
             sig[br:br + nr, bc:bc + nc] = sigma_b
@@ -214,7 +246,8 @@ class ClassicalDecoder:
         aif = self._aif(raw, black_level_dn, white_level_dn, cfa, inv_px, valid, geometry, row0, col0, noise)
         timings["aif_s"] = time.perf_counter() - t0
         timings["total_s"] = time.perf_counter() - t_start
-        stats = {"decoder": "classical", "config": cfg.to_dict(), "noise_sigma": noise,
+        stats = {"decoder": "classical", "config": cfg.to_dict(), "noise_sigma": typical_sigma,
+                 "noise_source": noise_source, "noise_profile": noise.to_dict(),
                  "candidates_depth_m": [round(float(d), 4) for d in self.candidates.depth_m],
                  "blocks_run": len(blocks) - skipped, "blocks_skipped": skipped,
                  "candidate_evaluations": evaluations["done"],
@@ -224,7 +257,7 @@ class ClassicalDecoder:
                             cand_inv[coarse], stats)
 
     # -- all-in-focus -----------------------------------------------------------------------------
-    def _aif(self, raw, black, white, cfa, inv_px, valid, geometry, row0, col0, noise) -> np.ndarray:
+    def _aif(self, raw, black, white, cfa, inv_px, valid, geometry, row0, col0, noise: NoiseProfile) -> np.ndarray:
         cfg = self.config
         height, width = raw.shape
         block = cfg.block_windows * cfg.stride_px
@@ -246,8 +279,9 @@ class ClassicalDecoder:
                 zone = ZoneKernels.zone_at(geometry, row0 + (r + r1) / 2, col0 + (c + c1) / 2)
                 inv_core = np.where(core_valid, inv_px[r:r1, c:c1], np.nanmedian(inv_px[r:r1, c:c1][core_valid]))
                 core = (slice(halo, halo + r1 - r), slice(halo, halo + c1 - c))
+                block_sigma = float(np.sqrt(noise.variance(np.mean(rgb[core]))))  # the block's mean signal's noise
                 aif = wiener_blend(rgb, inv_core, cand_inv, lambda idx, z=zone: self.zones.kernels(z, aif_cands[idx]),
-                                   noise, core, self.threads)
+                                   block_sigma, core, self.threads)
                 falloff = relative_illumination(geometry, row0 + r, col0 + c, r1 - r, c1 - c)
                 out[r:r1, c:c1] = np.where(core_valid[..., None] & (falloff[..., None] > 0),
                                            aif / np.maximum(falloff, 1e-6)[..., None], 0.0)

@@ -96,19 +96,23 @@ def rfft_multiplicity(n_plane: int) -> np.ndarray:
 
 
 def window_spectra(plane: np.ndarray, n_plane: int, stride_plane: int, taper: np.ndarray,
-                   threads: int = 1) -> tuple[np.ndarray, tuple]:
+                   threads: int = 1) -> tuple[np.ndarray, np.ndarray, tuple]:
     """Power spectra (rows × cols, n, n//2+1) float32 of the tapered, mean-removed n × n windows of a plane.
 
-    Windows start every ``stride_plane`` samples; returns the spectra and the (rows, cols) grid shape.
+    Windows start every ``stride_plane`` samples. Returns the spectra, each window's t²-weighted mean
+    signal (what its noise variance follows under signal-dependent noise: the noise power a tapered
+    window passes is Σ t² Var[x], ``plane_nll``) and the (rows, cols) grid shape.
     """
     view = np.lib.stride_tricks.sliding_window_view(plane, (n_plane, n_plane))[::stride_plane, ::stride_plane]
     rows, cols = view.shape[:2]
     w = view.reshape(rows * cols, n_plane, n_plane).astype(np.float32)
     tsum = float(taper.sum())
+    taper_sq = taper * taper
+    noise_mean = np.einsum("nij,ij->n", w, taper_sq) / float(taper_sq.sum())
     mean = np.einsum("nij,ij->n", w, taper) / tsum
     w = (w - mean[:, None, None]) * taper
     spec = sfft.rfft2(w, workers=threads)
-    return (spec.real ** 2 + spec.imag ** 2).astype(np.float32), (rows, cols)
+    return (spec.real ** 2 + spec.imag ** 2).astype(np.float32), noise_mean, (rows, cols)
 
 
 @dataclass
@@ -153,32 +157,36 @@ class Evidence:
         return 1.0 / np.maximum(inv, 1e-6), sigma_inv, best
 
 
-def plane_nll(power: np.ndarray, model: np.ndarray, noise_var: float, taper_energy: float) -> np.ndarray:
+def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: float) -> np.ndarray:
     """(windows, D) NLL of one plane's window spectra, β profiled out (module doc).
 
-    ``power`` (windows, n, m) float32; ``model`` (D, n, m) = Σ_aliases |K_d|² S per candidate.
+    ``power`` (windows, n, m) float32; ``model`` (D, n, m) = Σ_aliases |K_d|² S per candidate;
+    ``noise_var``: the raw noise variance, one value or one per window (signal-dependent noise,
+    ``sensor.NoiseProfile``). Each window is measured in units of its own noise power s: with
+    P' = P / s and β' = β / s, P / V + log V = P' / (β' A + 1) + log(β' A + 1) + log s, so one grid of
+    β' and one matrix product serve windows of every noise level, exactly; the log s term is the
+    same for every candidate of a window and is kept, so the NLL is the true one.
     """
     nw = power.shape[0]
     n_cand = model.shape[0]
     mult = rfft_multiplicity(model.shape[1])
     keep = mult > 0
-    p = power.reshape(nw, -1)[:, keep.ravel()]
-    mult = mult[keep]
     a = model.reshape(n_cand, -1)[:, keep.ravel()] * taper_energy        # (D, F)
-    s = max(noise_var, 1e-12) * taper_energy
-    # moment estimate of β per window and candidate: Σ P ≈ β Σ m A + s Σ m
+    mult = mult[keep]
+    s = np.maximum(np.broadcast_to(np.asarray(noise_var, np.float64), (nw,)), 1e-12) * taper_energy  # (W,)
+    p = power.reshape(nw, -1)[:, keep.ravel()] * (1.0 / s)[:, None].astype(np.float32)  # P' (W, F)
+    # moment estimate of β' per window and candidate: Σ m P' ≈ β' Σ m A + Σ m
     total = p @ mult                                                      # (W,)
     gain = a @ mult                                                       # (D,)
-    excess = np.maximum(total - s * mult.sum(), 1e-3 * total + 1e-30)
+    excess = np.maximum(total - mult.sum(), 1e-3 * total + 1e-30)
     lo = np.log(max(float(excess.min() / gain.max()), 1e-30) * BETA_MARGIN[0])
     hi = np.log(float(excess.max() / gain.min()) * BETA_MARGIN[1])
     n_beta = int(np.clip(np.ceil((hi - lo) / np.log(BETA_RATIO)) + 1, 3, MAX_BETA_LEVELS))
-    log_beta = np.linspace(lo, hi, n_beta)
-    v = np.exp(log_beta)[None, :, None] * a[:, None, :] + s                # (D, J, F)
+    v = np.exp(np.linspace(lo, hi, n_beta))[None, :, None] * a[:, None, :] + 1.0  # (D, J, F)
     weights = (mult / v).reshape(n_cand * n_beta, -1).T.astype(np.float32)  # (F, D·J)
     log_term = (np.log(v) * mult).sum(axis=-1).reshape(-1)                   # (D·J,)
     nll = (p @ weights).astype(np.float64) + log_term                        # (W, D·J)
-    nll = nll.reshape(nw, n_cand, n_beta)
+    nll = nll.reshape(nw, n_cand, n_beta) + (mult.sum() * np.log(s))[:, None, None]
     j = np.clip(np.argmin(nll, axis=-1), 1, n_beta - 2)
     take = lambda k: np.take_along_axis(nll, k[..., None], axis=-1)[..., 0]  # noqa: E731
     lo_v, mid_v, hi_v = take(j - 1), take(j), take(j + 1)

@@ -48,7 +48,8 @@ from bmi_sdk.lenses import lens_geometry, lens_tensor
 from bmi_sdk.metrics import depth_metrics, image_metrics, mean_metrics
 from bmi_sdk.nn.data import SCENE_MARGIN_PX, STANDARD_SIGMA, mirror_extend, render_margin_px, sample_window, simulate_raw
 from bmi_sdk.optics.perturb import Perturbation
-from bmi_sdk.sensor import BLACK_LEVEL_DN, CFA_PATTERN, PAPER_NOISE_SIGMAS, WHITE_LEVEL_DN, relative_illumination
+from bmi_sdk.sensor import (BLACK_LEVEL_DN, CFA_PATTERN, PAPER_NOISE_SIGMAS, WHITE_LEVEL_DN, NoiseProfile,
+                            relative_illumination)
 
 REGIONS = {"centre": (0.0, 20.0), "edge": (52.0, 58.0)}
 
@@ -191,13 +192,13 @@ class NetworkTiles:
 
             self.stage = ClassicalDecoder.for_psf_map(psf_map, model_classical_config(self.model, threads))
 
-    def __call__(self, raw: np.ndarray, geometry, row0: int, col0: int):
+    def __call__(self, raw: np.ndarray, geometry, row0: int, col0: int, noise: NoiseProfile):
         seen = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, window_cfa(CFA_PATTERN, row0, col0))
         x = network_input(seen, geometry, row0, col0)
         if self.stage is not None:
             from bmi_sdk.decode.features import refinement_features
 
-            decoded = self.stage.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0)
+            decoded = self.stage.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0, noise_profile=noise)
             x = np.concatenate([x, refinement_features(decoded, self.stage.config.stride_px)[None]], axis=1)
         aif, depth, *sigma = self.model.run(np.ascontiguousarray(x, np.float32))
         return aif[0].transpose(1, 2, 0), depth[0, 0], (sigma[0][0, 0] if sigma else None)
@@ -218,8 +219,8 @@ class ClassicalTiles:
         self.decoder = ClassicalDecoder.for_psf_map(psf_map, config or ClassicalConfig())
         self.name = name
 
-    def __call__(self, raw: np.ndarray, geometry, row0: int, col0: int):
-        out = self.decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0)
+    def __call__(self, raw: np.ndarray, geometry, row0: int, col0: int, noise: NoiseProfile):
+        out = self.decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0, noise_profile=noise)
         return out.aif, out.depth_m, out.depth_sigma_m
 
 
@@ -232,6 +233,7 @@ def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition:
     """
     geometry = lens_geometry(bench.lens)
     m, t = bench.margin_px, bench.tile_px
+    noise = NoiseProfile.additive(sigma)  # the camera's noise is known (its photon transfer); decoders may use it
     per_region: dict[str, list] = {}
     z_sums: dict[str, list] = {}
     for k, item in enumerate(renders):
@@ -239,7 +241,7 @@ def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition:
         rng = np.random.default_rng([bench.seed, 99, k, int(round(sigma * 1e6))])
         raw = simulate_raw(optical, sigma, rng, item["row0"], item["col0"])
         valid = geometry.valid_mask(item["row0"], item["col0"], t, t) & np.isfinite(item["range_m"])
-        aif_hwc, depth_m, depth_sigma_m = model(raw, geometry, item["row0"], item["col0"])
+        aif_hwc, depth_m, depth_sigma_m = model(raw, geometry, item["row0"], item["col0"], noise)
         valid &= np.isfinite(depth_m)
         if depth_sigma_m is not None:
             z = (depth_m[valid] - item["range_m"][valid]) / depth_sigma_m[valid]

@@ -28,7 +28,7 @@ from bmi_sdk.model_io import field_channels, raw_to_rgb, window_cfa
 from bmi_sdk.lenses import lens_geometry, lens_tensor
 from bmi_sdk.nn.data import PairCache, dihedral, dihedral_field, simulate_raw
 from bmi_sdk.parallel import map_jobs
-from bmi_sdk.sensor import BLACK_LEVEL_DN, CFA_PATTERN, WHITE_LEVEL_DN
+from bmi_sdk.sensor import BLACK_LEVEL_DN, CFA_PATTERN, WHITE_LEVEL_DN, NoiseProfile
 
 REFINE_SCHEMA = "bmi-refine-cache/1"
 
@@ -58,9 +58,12 @@ class RefineSpec:
         return asdict(self)
 
     def key(self) -> str:
+        """Hash of the spec and of the whole decoder configuration it resolves to, so a changed decoder default
+        (e.g. the noise model) gives a new folder instead of reusing pairs decoded the old way."""
         import hashlib
 
-        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:12]
+        resolved = {**self.to_dict(), "classical": self.classical_config().to_dict()}
+        return hashlib.sha256(json.dumps(resolved, sort_keys=True).encode()).hexdigest()[:12]
 
 
 def refine_dir(cache_dir: str | Path, spec: RefineSpec) -> Path:
@@ -96,7 +99,8 @@ def decode_pair(decoder, geometry, optical: np.ndarray, origin, spec: RefineSpec
     sigma = float(np.exp(rng.uniform(np.log(spec.sigma_min), np.log(spec.sigma_max))))
     row0, col0 = int(origin[0]), int(origin[1])
     raw = simulate_raw(optical.astype(np.float32), sigma, rng, row0, col0)
-    result = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0, CFA_PATTERN)
+    result = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0, CFA_PATTERN,
+                            noise_profile=NoiseProfile.additive(sigma))
     feats = refinement_features(result, decoder.config.stride_px)
     return {"raw": raw, "features": feats.astype(np.float16), "sigma": np.float32(sigma)}
 

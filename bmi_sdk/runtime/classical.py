@@ -46,6 +46,7 @@ def decode_frame(decoder: ClassicalDecoder, frame, camera: BuiltCamera, progress
     """Decode a ``devices.RawFrame`` taken by ``camera`` (refused, naming why, when it cannot be)."""
     check_decodable(frame, camera.lens_name, "the decoder's camera has", "the classical decoder")
     out = decoder.decode(frame.data, frame.black_level_dn, frame.white_level_dn, frame.geometry,
-                         row0=frame.roi.y_px, col0=frame.roi.x_px, cfa=frame.cfa, progress=progress)
+                         row0=frame.roi.y_px, col0=frame.roi.x_px, cfa=frame.cfa, progress=progress,
+                         noise_profile=frame.noise_profile)
     stats = dict(out.stats, camera_sha256=camera.sha256(), calibration_id=camera.calibration_id)
     return ClassicalResult(out.aif, out.depth_m, out.depth_sigma_m, out.valid, stats, out)

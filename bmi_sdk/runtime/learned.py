@@ -50,6 +50,7 @@ def model_classical_config(model: Model, threads: int | None = None) -> Classica
     if model.decoder != "learned":
         raise ValueError(f"model {model.path.name} is a {model.decoder} model, not a learned refinement")
     knobs = dict(model.manifest["classical_config"])
+    knobs.setdefault("noise_model", "estimate")  # manifests from before NoiseProfile: trained on estimated noise
     knobs["slopes"] = tuple(knobs.get("slopes", (2.0,)))
     return replace(ClassicalConfig(**knobs), threads=threads)
 
