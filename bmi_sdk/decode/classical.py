@@ -80,9 +80,9 @@ class ClassicalConfig:
     slopes: tuple = (2.0,)
     block_windows: int = 16
     # σ model fitted by `bmi bench decoder` (seed 777, 12 tiles per region, the other defaults as here)
-    sigma_laplace_scale: float = 2.43
-    sigma_spread_scale: float = 4.40
-    sigma_floor_inv_per_m: float = 0.047
+    sigma_laplace_scale: float = 2.58
+    sigma_spread_scale: float = 3.74
+    sigma_floor_inv_per_m: float = 0.0
     fill_windows: float = 0.0
     aif_step: int = 4
     noise_sigma: float | None = None  # a given constant σ (units of full scale) overrides both noise models
