@@ -52,6 +52,7 @@ from .kernels import ZoneKernels
 
 
 NOISE_MODELS = ("profile", "estimate")
+WINDOW_MODELS = ("tapered", "untapered")
 
 
 def frame_noise(config: "ClassicalConfig", planes: np.ndarray, profile: NoiseProfile | None) -> tuple[NoiseProfile, str]:
@@ -87,6 +88,8 @@ class ClassicalConfig:
     aif_step: int = 4
     noise_sigma: float | None = None  # a given constant σ (units of full scale) overrides both noise models
     noise_model: str = "profile"  # "profile": the frame's NoiseProfile when it has one; "estimate": from the picture
+    window_model: str = "tapered"  # "untapered": the evidence model before the taper's smoothing (``evidence``), which
+    #                                learned models trained on its channels name in their manifests
     threads: int | None = None  # FFT threads (default: all cores; 1 on a one-thread Dask worker)
 
     def __post_init__(self):
@@ -98,6 +101,8 @@ class ClassicalConfig:
             raise ValueError("block_windows, coarse_step and aif_step must be >= 1")
         if not self.slopes:
             raise ValueError("at least one prior slope is needed")
+        if self.window_model not in WINDOW_MODELS:
+            raise ValueError(f"window_model must be one of {WINDOW_MODELS}, got {self.window_model!r}")
         if self.noise_model not in NOISE_MODELS:
             raise ValueError(f"noise_model must be one of {NOISE_MODELS}, got {self.noise_model!r}")
         if self.noise_sigma is not None and not self.noise_sigma > 0:
@@ -132,7 +137,8 @@ class ClassicalDecoder:
             raise ValueError(f"{psf_map.kernel_px}-px kernels do not fit {config.window_px}-px windows")
         self.config = config
         self.candidates = candidates
-        self.zones = ZoneKernels(psf_map, candidates, config.slopes, config.window_px)
+        self.zones = ZoneKernels(psf_map, candidates, config.slopes, config.window_px,
+                                 tapered=config.window_model == "tapered")
         self.threads = config.threads or os.cpu_count() or 1
 
     @classmethod
@@ -141,14 +147,13 @@ class ClassicalDecoder:
         return cls(psf_map, inverse_depth_candidates(psf_map.tensor.depth_m, config.candidates), config)
 
     # -- evidence ---------------------------------------------------------------------------------
-    @staticmethod
-    def _block_nll(spectra: list, models: np.ndarray, noise_vars: list, taper_energy: float) -> np.ndarray:
+    def _block_nll(self, spectra: list, models: np.ndarray, noise_vars: list, taper_energy: float) -> np.ndarray:
         """(windows, D) NLL summed over the planes, each plane's prior slope profiled out; ``models`` is
         ``ZoneKernels.models`` (planes, slopes, D, n, m), ``noise_vars`` each plane's per-window noise variance."""
         total = None
         for p, power in enumerate(spectra):
-            best = np.min([plane_nll(power, models[p, a], noise_vars[p], taper_energy) for a in range(models.shape[1])],
-                          axis=0)
+            best = np.min([plane_nll(power, models[p, a], noise_vars[p], taper_energy, self.zones.tapered)
+                           for a in range(models.shape[1])], axis=0)
             total = best if total is None else total + best
         return total                                               # (windows, D)
 

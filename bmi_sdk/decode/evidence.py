@@ -107,18 +107,21 @@ def folded_model(kernels: np.ndarray, n_plane: int, slope: float = 2.0, tapered:
     return folded[..., :, :n_plane // 2 + 1]
 
 
-def rfft_multiplicity(n_plane: int) -> np.ndarray:
+def rfft_multiplicity(n_plane: int, tapered: bool = True) -> np.ndarray:
     """(n, n//2+1) how many full-spectrum bins each rfft bin stands for (1 on the self-conjugate columns).
 
     DC and its eight neighbours get 0: the window's mean is removed, and through the taper that removal takes
     about half the expected power of the neighbouring bins (measured against a Monte Carlo periodogram,
     ``tests/test_decode.py``), which no stationary model holds; from two bins out the model matches to 1–2 %.
+    ``tapered=False`` (the untapered model's evidence) leaves out DC only.
     """
     m = np.full((n_plane, n_plane // 2 + 1), 2.0)
     m[:, 0] = 1.0
     if n_plane % 2 == 0:
         m[:, -1] = 1.0
-    m[[0, 1, -1], :2] = 0.0
+    if tapered:
+        m[[0, 1, -1], :2] = 0.0
+    m[0, 0] = 0.0
     return m
 
 
@@ -184,7 +187,8 @@ class Evidence:
         return 1.0 / np.maximum(inv, 1e-6), sigma_inv, best
 
 
-def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: float) -> np.ndarray:
+def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: float,
+              tapered: bool = True) -> np.ndarray:
     """(windows, D) NLL of one plane's window spectra, β profiled out (module doc).
 
     ``power`` (windows, n, m) float32; ``model`` (D, n, m) = Σ_aliases |K_d|² S per candidate;
@@ -192,11 +196,12 @@ def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: flo
     ``sensor.NoiseProfile``). Each window is measured in units of its own noise power s: with
     P' = P / s and β' = β / s, P / V + log V = P' / (β' A + 1) + log(β' A + 1) + log s, so one grid of
     β' and one matrix product serve windows of every noise level, exactly; the log s term is the
-    same for every candidate of a window and is kept, so the NLL is the true one.
+    same for every candidate of a window and is kept, so the NLL is the true one. ``tapered``: the bins
+    ``rfft_multiplicity`` uses with a ``folded_model`` of the same flag.
     """
     nw = power.shape[0]
     n_cand = model.shape[0]
-    mult = rfft_multiplicity(model.shape[1])
+    mult = rfft_multiplicity(model.shape[1], tapered)
     keep = mult > 0
     a = model.reshape(n_cand, -1)[:, keep.ravel()] * taper_energy        # (D, F)
     mult = mult[keep]

@@ -50,7 +50,9 @@ def model_classical_config(model: Model, threads: int | None = None) -> Classica
     if model.decoder != "learned":
         raise ValueError(f"model {model.path.name} is a {model.decoder} model, not a learned refinement")
     knobs = dict(model.manifest["classical_config"])
-    knobs.setdefault("noise_model", "estimate")  # manifests from before NoiseProfile: trained on estimated noise
+    # manifests from before these knobs: trained on channels of estimated noise and the untapered window model
+    knobs.setdefault("noise_model", "estimate")
+    knobs.setdefault("window_model", "untapered")
     knobs["slopes"] = tuple(knobs.get("slopes", (2.0,)))
     return replace(ClassicalConfig(**knobs), threads=threads)
 
