@@ -46,7 +46,9 @@ def _knob_rows(bench, renders, nominal_map) -> list[list]:
     variants += [("slopes 1.6–3.2 (5)", replace(base, slopes=(1.6, 2.0, 2.4, 2.8, 3.2))),
                  ("confidence fill 1.5 windows", replace(base, fill_windows=1.5)),
                  ("AiF on every 2nd candidate", replace(base, aif_step=2)),
-                 ("AiF on every candidate", replace(base, aif_step=1))]
+                 ("AiF on every candidate", replace(base, aif_step=1)),
+                 ("AiF model error 0 (sensor noise only)", replace(base, aif_model_error=0.0)),
+                 ("AiF model error 0.2", replace(base, aif_model_error=0.2))]
     rows = []
     for name, config in variants:
         decoder = ClassicalTiles(nominal_map, config)

@@ -26,7 +26,9 @@ Steps (each in its own module):
    small near objects, ``bmi bench decoder``).
 6. 1/d and σ are interpolated bilinearly to every pixel; ``aif`` deconvolves each block with the
    kernels of its pixels' depths, on every ``aif_step``-th candidate (a deconvolution costs two
-   FFTs per channel; neighbouring candidates' kernels differ little).
+   FFTs per channel; neighbouring candidates' kernels differ little). The Wiener filter's noise is the
+   sensor's plus a kernel-error term, ``aif_model_error`` × the block's mean signal: with the sensor's
+   noise alone a noiseless frame is inverse-filtered, and every depth error rings (``bmi bench decoder``).
 """
 
 from __future__ import annotations
@@ -86,6 +88,8 @@ class ClassicalConfig:
     sigma_floor_inv_per_m: float = 0.0
     fill_windows: float = 0.0
     aif_step: int = 4
+    aif_model_error: float = 0.1  # the AiF's kernel is never exact (depth error, blend between candidates): its
+    #                               Wiener filter counts (ε · block mean signal)² as noise besides the sensor's
     noise_sigma: float | None = None  # a given constant σ (units of full scale) overrides both noise models
     noise_model: str = "profile"  # "profile": the frame's NoiseProfile when it has one; "estimate": from the picture
     window_model: str = "tapered"  # "untapered": the evidence model before the taper's smoothing (``evidence``), which
@@ -97,6 +101,8 @@ class ClassicalConfig:
             raise ValueError(f"window_px must be a multiple of 4 and >= 16, got {self.window_px}")
         if self.stride_px % 2 or self.stride_px < 2:
             raise ValueError(f"stride_px must be even and >= 2, got {self.stride_px}")
+        if not self.aif_model_error >= 0:
+            raise ValueError(f"aif_model_error must be >= 0, got {self.aif_model_error}")
         if self.block_windows < 1 or self.coarse_step < 1 or self.aif_step < 1:
             raise ValueError("block_windows, coarse_step and aif_step must be >= 1")
         if not self.slopes:
@@ -285,7 +291,8 @@ class ClassicalDecoder:
                 zone = ZoneKernels.zone_at(geometry, row0 + (r + r1) / 2, col0 + (c + c1) / 2)
                 inv_core = np.where(core_valid, inv_px[r:r1, c:c1], np.nanmedian(inv_px[r:r1, c:c1][core_valid]))
                 core = (slice(halo, halo + r1 - r), slice(halo, halo + c1 - c))
-                block_sigma = float(np.sqrt(noise.variance(np.mean(rgb[core]))))  # the block's mean signal's noise
+                signal = float(np.mean(rgb[core]))
+                block_sigma = float(np.sqrt(noise.variance(signal) + (cfg.aif_model_error * signal) ** 2))
                 aif = wiener_blend(rgb, inv_core, cand_inv, lambda idx, z=zone: self.zones.kernels(z, aif_cands[idx]),
                                    block_sigma, core, self.threads)
                 falloff = relative_illumination(geometry, row0 + r, col0 + c, r1 - r, c1 - c)

@@ -53,6 +53,7 @@ def model_classical_config(model: Model, threads: int | None = None) -> Classica
     # manifests from before these knobs: trained on channels of estimated noise and the untapered window model
     knobs.setdefault("noise_model", "estimate")
     knobs.setdefault("window_model", "untapered")
+    knobs.setdefault("aif_model_error", 0.0)
     knobs["slopes"] = tuple(knobs.get("slopes", (2.0,)))
     return replace(ClassicalConfig(**knobs), threads=threads)
 
