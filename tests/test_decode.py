@@ -21,8 +21,7 @@ from bmi_sdk.lenses import lens_geometry, lens_tensor
 from bmi_sdk.nn.data import simulate_raw
 from bmi_sdk.optics.perturb import Perturbation
 from bmi_sdk.render import PsfMap, render_coded
-from bmi_sdk.scenes import Scene, generate_scene
-from bmi_sdk.scenes.procedural import pink_noise
+from bmi_sdk.scenes import generate_scene
 from bmi_sdk.sensor import NoiseProfile, relative_illumination
 
 BLACK, WHITE = 256, 4095
@@ -184,22 +183,19 @@ def test_spread_and_upsampling_of_the_window_grid():
 
 
 def _plane_frame(depth_m: float, field_deg: float, size: int = 160, sigma: float = 0.005, texture: str = "scene"):
-    """A fronto-parallel plane at ``depth_m`` rendered at ``field_deg`` (φ 30°): ``texture`` "scene" is a procedural
-    scene's picture (objects, shadows, soft specular glows), "pink" a 1/f² field per channel (the prior's own
-    statistics, the issue's textured plane)."""
+    """A fronto-parallel plane at ``depth_m`` rendered at ``field_deg`` (φ 30°), textured by ``bench.decoder``'s
+    ``plane_texture`` ("scene": a procedural scene's picture; "pink": a 1/f² field, the issue's textured plane)."""
+    from bmi_sdk.bench.decoder import plane_texture
+
     tensor = lens_tensor("bmi_monocentric")
-    rng = np.random.default_rng(3)
-    scene = generate_scene(size + 48, size + 48, rng)
-    if texture == "pink":
-        rgb = np.stack([pink_noise((size + 48, size + 48), rng) for _ in range(3)], axis=-1) * 0.15 + 0.4
-        scene = Scene(np.clip(rgb, 0.01, 1.0).astype(np.float32), scene.range_m, "pink plane")
+    rgb = plane_texture(size + 48, texture, np.random.default_rng(3))
     r, c = GEOMETRY.pixel_of_field(field_deg, 30.0)
     row0, col0 = int(r - size / 2) // 2 * 2, int(c - size / 2) // 2 * 2
     psf_map = PsfMap(tensor, GEOMETRY, mode="tensor")
-    optical = render_coded(scene.rgb, np.full((size + 48, size + 48), depth_m, np.float32), tensor, GEOMETRY,
+    optical = render_coded(rgb, np.full((size + 48, size + 48), depth_m, np.float32), tensor, GEOMETRY,
                            row0 - 24, col0 - 24, psf_map=psf_map)[24:-24, 24:-24]
     optical *= relative_illumination(GEOMETRY, row0, col0, size, size)[..., None]
-    return simulate_raw(optical, sigma, np.random.default_rng(4), row0, col0), row0, col0, psf_map, scene
+    return simulate_raw(optical, sigma, np.random.default_rng(4), row0, col0), row0, col0, psf_map, rgb
 
 
 @pytest.fixture(scope="module")
@@ -229,8 +225,8 @@ def test_a_noiseless_frames_aif_is_not_inverse_filtered(nominal_decoder):
     term (``aif_model_error``) keeps it above 20 dB."""
     from bmi_sdk.metrics import image_metrics
 
-    raw, row0, col0, psf_map, scene = _plane_frame(2.0, 10.0, sigma=0.0, texture="pink")
-    truth = scene.rgb[24:-24, 24:-24]
+    raw, row0, col0, psf_map, rgb = _plane_frame(2.0, 10.0, sigma=0.0, texture="pink")
+    truth = rgb[24:-24, 24:-24]
     psnr = {}
     for eps in (0.0, ClassicalConfig().aif_model_error):
         decoder = ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig(aif_model_error=eps))
