@@ -30,6 +30,7 @@ refined by a parabola in 1/d, and the parabola's curvature gives the 1σ of
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from scipy import fft as sfft
@@ -91,20 +92,37 @@ def folded_model(kernels: np.ndarray, n_plane: int, slope: float = 2.0, tapered:
     n_full = 2 * n_os
     if k > 2 * n_plane:
         raise ValueError(f"a {k}-px kernel does not fit a {2 * n_plane}-px window")
-    padded = np.zeros(kernels.shape[:-2] + (n_full, n_full), np.float64)
+    padded = np.zeros(kernels.shape[:-2] + (n_full, n_full), np.float32)
     padded[..., :k, :k] = kernels
+    otf = sfft.rfft2(padded)                                               # a shift only changes phase
     f = sfft.fftfreq(n_full)
-    power = np.abs(sfft.fft2(padded)) ** 2 * power_law_prior(f, f, 1.0 / (2 * n_plane), slope)  # a shift only changes phase
+    power = (otf.real ** 2 + otf.imag ** 2) * power_law_prior(f, f[:n_full // 2 + 1], 1.0 / (2 * n_plane), slope)
+    power = _full_from_half(power, n_full)                                 # (..., n_full, n_full)
     folded = power[..., :n_os, :] + power[..., n_os:, :]
     folded = folded[..., :, :n_os] + folded[..., :, n_os:]                 # (..., n_os, n_os) full plane spectrum
     if tapered:
         folded[..., 0, 0] = 0.0  # the window's mean is removed
-        taper = np.zeros((n_os, n_os))
-        taper[:n_plane, :n_plane] = hann_taper(n_plane)
-        window = np.abs(sfft.fft2(taper)) ** 2 / (n_os ** 2 * float((taper ** 2).sum()))  # sums to 1
-        folded = sfft.ifft2(sfft.fft2(folded) * sfft.fft2(window)).real
+        folded = sfft.irfft2(sfft.rfft2(folded) * _spectral_window_ft(n_plane, os_), s=(n_os, n_os))
         folded = folded[..., ::os_, ::os_]
-    return folded[..., :, :n_plane // 2 + 1]
+    return np.asarray(folded[..., :, :n_plane // 2 + 1], np.float64)
+
+
+def _full_from_half(half: np.ndarray, n: int) -> np.ndarray:
+    """(..., n, n) the whole 2-D spectrum of a real signal from its rfft half (..., n, n//2+1): P(−f) = P(f)."""
+    rest = half[..., :, 1:n - n // 2][..., :, ::-1]                         # columns n//2+1 .. n−1
+    rest = np.roll(rest[..., ::-1, :], 1, axis=-2)                          # rows mirrored: −u
+    return np.concatenate([half, rest], axis=-1)
+
+
+@lru_cache(maxsize=8)
+def _spectral_window_ft(n_plane: int, oversample: int) -> np.ndarray:
+    """rfft2 of the Hann taper's spectral window |DTFT t|² (unit sum) on the n·oversample grid: multiplying a
+    spectrum's rfft2 by it convolves the spectrum with the window (circularly; the window decays as 1/f⁶)."""
+    n_os = n_plane * oversample
+    taper = np.zeros((n_os, n_os))
+    taper[:n_plane, :n_plane] = hann_taper(n_plane)
+    window = np.abs(sfft.fft2(taper)) ** 2
+    return sfft.rfft2(window / window.sum())
 
 
 def rfft_multiplicity(n_plane: int, tapered: bool = True) -> np.ndarray:
