@@ -309,7 +309,7 @@ def test_eval_exact_conditions_resolve_and_render_the_perturbed_lens(monkeypatch
     assert evaluate.EXACT["tilt_1arcmin"].tilt_arcmin == (1.0, 0.0)
 
     def passthrough(_path, _tile_px, _threads):  # the demosaiced raw as the all-in-focus guess, 2 m everywhere
-        def decode(raw, geometry, row0, col0):
+        def decode(raw, geometry, row0, col0, noise):
             seen = evaluate.raw_to_rgb(raw, evaluate.BLACK_LEVEL_DN, evaluate.WHITE_LEVEL_DN,
                                        evaluate.window_cfa("RGGB", row0, col0))
             return seen, np.full(raw.shape, 2.0, np.float32), None

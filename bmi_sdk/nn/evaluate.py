@@ -227,7 +227,9 @@ class ClassicalTiles:
 def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition: str) -> list[dict]:
     """Rows {condition, decoder, region, metrics…} for one condition over pre-rendered tiles.
 
-    ``model``: a ``NetworkTiles`` or a ``ClassicalTiles`` (raw tile in). Decoders that report a depth 1σ
+    ``model``: a ``NetworkTiles`` or a ``ClassicalTiles``, called as ``model(raw, geometry, row0, col0, noise)`` with
+    the tile's raw frame and the ``NoiseProfile`` of the noise it was given (decoders that read noise use it, as
+    they would a frame's DNG tag). Decoders that report a depth 1σ
     (classical, learned) add ``sigma_z_rms`` and ``sigma_z_std`` to their rows: the RMS and the standard
     deviation of z = (depth error / reported 1σ) over all valid pixels of the region (1 for an honest σ).
     """
