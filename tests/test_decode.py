@@ -34,7 +34,8 @@ def test_fold_is_the_spectrum_of_the_four_bayer_planes():
     n = 16
     z = rng.standard_normal((2 * n, 2 * n))
     planes = sum(np.abs(np.fft.rfft2(z[r::2, c::2])) ** 2 for r in (0, 1) for c in (0, 1))
-    assert np.allclose(planes, fold_power(np.abs(np.fft.fft2(z)) ** 2, n) / 4, rtol=1e-10, atol=1e-9)
+    folded = fold_power(np.abs(np.fft.fft2(z)) ** 2, n)[:, :n // 2 + 1]
+    assert np.allclose(planes, folded / 4, rtol=1e-10, atol=1e-9)
 
 
 def test_tapered_model_is_the_expected_periodogram_of_a_blurred_1_over_f2_field():

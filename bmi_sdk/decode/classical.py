@@ -44,9 +44,8 @@ from scipy import ndimage
 
 from ..geometry import SensorGeometry
 from ..model_io import raw_to_rgb, reflect_indices, window_cfa
-from ..sensor import relative_illumination
+from ..sensor import NoiseProfile, relative_illumination
 from .aif import wiener_blend
-from ..sensor import NoiseProfile
 from .bayer import estimate_noise_sigma, normalised_planes
 from .candidates import Candidates, inverse_depth_candidates
 from .evidence import Evidence, hann_taper, plane_nll, window_spectra

@@ -59,15 +59,14 @@ def power_law_prior(f_row: np.ndarray, f_col: np.ndarray, floor_cycles: float, s
 
 
 def fold_power(power_full: np.ndarray, n_plane: int) -> np.ndarray:
-    """(..., n, n//2+1): a 2n × 2n full-resolution power spectrum folded onto a plane's rfft bins.
+    """(..., n, n): a 2n × 2n full-resolution power spectrum folded onto a plane's DFT bins.
 
     A plane samples every second full-resolution pixel, so plane bin (u, v) receives full-resolution
     bins (u + a n, v + b n), a, b ∈ {0, 1} (the aliases), each with weight ¼ in expectation; the
     constant is absorbed into the prior level β.
     """
     folded = power_full[..., :n_plane, :] + power_full[..., n_plane:, :]
-    folded = folded[..., :, :n_plane] + folded[..., :, n_plane:]
-    return folded[..., :, :n_plane // 2 + 1]
+    return folded[..., :, :n_plane] + folded[..., :, n_plane:]
 
 
 TAPER_OVERSAMPLE = 2
@@ -97,9 +96,7 @@ def folded_model(kernels: np.ndarray, n_plane: int, slope: float = 2.0, tapered:
     otf = sfft.rfft2(padded)                                               # a shift only changes phase
     f = sfft.fftfreq(n_full)
     power = (otf.real ** 2 + otf.imag ** 2) * power_law_prior(f, f[:n_full // 2 + 1], 1.0 / (2 * n_plane), slope)
-    power = _full_from_half(power, n_full)                                 # (..., n_full, n_full)
-    folded = power[..., :n_os, :] + power[..., n_os:, :]
-    folded = folded[..., :, :n_os] + folded[..., :, n_os:]                 # (..., n_os, n_os) full plane spectrum
+    folded = fold_power(_full_from_half(power, n_full), n_os)              # (..., n_os, n_os) the plane's spectrum
     if tapered:
         folded[..., 0, 0] = 0.0  # the window's mean is removed
         folded = sfft.irfft2(sfft.rfft2(folded) * _spectral_window_ft(n_plane, os_), s=(n_os, n_os))
@@ -233,7 +230,7 @@ def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: flo
     hi = np.log(float(excess.max() / gain.min()) * BETA_MARGIN[1])
     n_beta = int(np.clip(np.ceil((hi - lo) / np.log(BETA_RATIO)) + 1, 3, MAX_BETA_LEVELS))
     # float32 (a few 1e-3 nats on NLLs of ~1e3), and C-contiguous weights: a transposed operand makes the
-    # product ~10x slower (measured, docs/benchmarks.md "Evidence arithmetic")
+    # product ~10x slower (docs/benchmarks.md, "The camera's noise, the tapered window model, …")
     beta = np.exp(np.linspace(lo, hi, n_beta)).astype(np.float32)
     v = (beta[None, :, None] * a.astype(np.float32)[:, None, :] + np.float32(1.0)).reshape(n_cand * n_beta, -1)
     mult32 = mult.astype(np.float32)
