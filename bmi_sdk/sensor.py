@@ -214,11 +214,10 @@ class SensorModel:
         if not span > 0:
             raise ValueError(f"black_level_dn must be below the white level {self.white_level_dn}, got {black_level_dn}")
         g = self.conversion_gain_dn_per_e * analog_gain
-        rounding = 1.0 / 12.0
         if self.additive_sigma is not None:
             sigma_dn = self.additive_sigma * self.electrons_per_us * exposure_us * g
-            return NoiseProfile(0.0, (sigma_dn ** 2 + rounding) / span ** 2)
-        return NoiseProfile(g / span, ((g * self.read_noise_e) ** 2 + rounding) / span ** 2)
+            return NoiseProfile.additive(sigma_dn / span, self.white_level_dn, black_level_dn)
+        return NoiseProfile(g / span, ((g * self.read_noise_e) ** 2 + 1.0 / 12.0) / span ** 2)
 
     # -- the chain, step by step -------------------------------------------
     def mean_electrons(self, irradiance: np.ndarray, exposure_us: float) -> np.ndarray:
