@@ -37,6 +37,16 @@ def normalised_planes(raw: np.ndarray, black_level_dn: float, white_level_dn: fl
     return np.stack([x[r::2, c::2] for r, c in PLANE_OFFSETS])
 
 
+FULL_SCALE_TOLERANCE = 1e-6
+"""A normalised sample this close to full scale is the white level itself (one DN is ~2.6e-4 of full scale)."""
+
+
+def clipped_samples(planes: np.ndarray) -> np.ndarray:
+    """Boolean mask of ``normalised_planes`` samples at or above the white level: censored observations (the true
+    signal is somewhere above), which no Gaussian noise model describes."""
+    return planes >= np.float32(1.0 - FULL_SCALE_TOLERANCE)
+
+
 NOISE_BLOCK_PX = 16
 NOISE_PERCENTILE = 10.0
 

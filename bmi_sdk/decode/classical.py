@@ -10,13 +10,17 @@ Steps (each in its own module):
    processed in blocks of ``block_windows``² windows; each block is one zone (θ, φ of its centre)
    whose kernels come from ``kernels.ZoneKernels``. Blocks whose pixels all lie outside the image
    circle are skipped.
-3. ``evidence``: a coarse pass over every ``coarse_step``-th candidate; the fine pass scores, for
+3. ``evidence``: a plane's windows holding a sample at the white level get no evidence from that
+   plane (a censored sample fits no noise model; the report counts them), and windows clipped in
+   every plane take their neighbours' 1/d (``fill_blind_windows``). A coarse pass over every
+   ``coarse_step``-th candidate; the fine pass scores, for
    the whole block, the union of every window's best coarse candidate ± one coarse step. The
    report counts the candidate evaluations done (coarse + fine) against the exhaustive count.
-4. Refinement (parabola in 1/d) and the 1σ of 1/d. The Laplace σ_L of the likelihood alone is
-   far too small (the Gaussian image prior is only a model: a window that mixes two depths, or
-   a texture whose spectrum is not 1/f², fits one candidate "confidently" and wrongly), so the
-   reported σ is σ² = (a σ_L)² + (b s)² + c², s the spread (std) of 1/d over the 3 × 3
+4. Refinement (parabola in 1/d) and the 1σ of 1/d. The Laplace σ_L is the likelihood's curvature
+   times the taper's inflation (``evidence.taper_variance_inflation``): on data drawn from the
+   model itself that is the estimate's real spread. On scenes it is too small (the Gaussian image
+   prior is only a model: a window that mixes two depths, or a texture whose spectrum is not
+   1/f², fits one candidate "confidently" and wrongly), so the reported σ is σ² = (a σ_L)² + (b s)² + c², s the spread (std) of 1/d over the 3 × 3
    neighbouring windows (large across depth edges and in clutter), with (a, b, c) =
    (``sigma_laplace_scale``, ``sigma_spread_scale``, ``sigma_floor_inv_per_m``) fitted by maximum
    likelihood on scenes apart from the benchmark (``bmi bench decoder``).
@@ -46,9 +50,10 @@ from ..geometry import SensorGeometry
 from ..model_io import raw_to_rgb, reflect_indices, window_cfa
 from ..sensor import NoiseProfile, relative_illumination
 from .aif import wiener_blend
-from .bayer import estimate_noise_sigma, normalised_planes
+from .bayer import clipped_samples, estimate_noise_sigma, normalised_planes
 from .candidates import Candidates, inverse_depth_candidates
-from .evidence import Evidence, hann_taper, plane_nll, window_spectra
+from .evidence import (Evidence, hann_taper, plane_nll, taper_variance_inflation, window_spectra,
+                       windows_touching)
 from .kernels import ZoneKernels
 
 
@@ -82,9 +87,9 @@ class ClassicalConfig:
     slopes: tuple = (2.0,)
     block_windows: int = 16
     # σ model fitted by `bmi bench decoder` (seed 777, 12 tiles per region, the other defaults as here)
-    sigma_laplace_scale: float = 2.58
+    sigma_laplace_scale: float = 1.0   # the fit's lower bound: the inflated curvature already is the spread
     sigma_spread_scale: float = 3.74
-    sigma_floor_inv_per_m: float = 0.0
+    sigma_floor_inv_per_m: float = 0.020
     fill_windows: float = 0.0
     aif_step: int = 4
     aif_model_error: float = 0.1  # the AiF's kernel is never exact (depth error, blend between candidates): its
@@ -145,6 +150,10 @@ class ClassicalDecoder:
         self.zones = ZoneKernels(psf_map, candidates, config.slopes, config.window_px,
                                  tapered=config.window_model == "tapered")
         self.threads = config.threads or os.cpu_count() or 1
+        # the tapered estimate scatters further than its likelihood's curvature says (``evidence``); the legacy
+        # untapered evidence reports the bare curvature its trained refinements read
+        self.laplace_inflation = (np.sqrt(taper_variance_inflation(hann_taper(config.window_px // 2)))
+                                  if config.window_model == "tapered" else 1.0)
 
     @classmethod
     def for_psf_map(cls, psf_map, config: ClassicalConfig = ClassicalConfig()) -> "ClassicalDecoder":
@@ -152,13 +161,17 @@ class ClassicalDecoder:
         return cls(psf_map, inverse_depth_candidates(psf_map.tensor.depth_m, config.candidates), config)
 
     # -- evidence ---------------------------------------------------------------------------------
-    def _block_nll(self, spectra: list, models: np.ndarray, noise_vars: list, taper_energy: float) -> np.ndarray:
+    def _block_nll(self, spectra: list, models: np.ndarray, noise_vars: list, taper_energy: float,
+                   clipped: list) -> np.ndarray:
         """(windows, D) NLL summed over the planes, each plane's prior slope profiled out; ``models`` is
-        ``ZoneKernels.models`` (planes, slopes, D, n, m), ``noise_vars`` each plane's per-window noise variance."""
+        ``ZoneKernels.models`` (planes, slopes, D, n, m), ``noise_vars`` each plane's per-window noise variance,
+        ``clipped`` each plane's windows holding a sample at the white level: that plane gives them no evidence
+        (a clipped plateau's sharp rim reads as a sharp kernel, confidently and wrongly)."""
         total = None
         for p, power in enumerate(spectra):
             best = np.min([plane_nll(power, models[p, a], noise_vars[p], taper_energy, self.zones.tapered)
                            for a in range(models.shape[1])], axis=0)
+            best[clipped[p]] = 0.0
             total = best if total is None else total + best
         return total                                               # (windows, D)
 
@@ -180,6 +193,8 @@ class ClassicalDecoder:
         sp = cfg.stride_px // 2
         pad = n // 2
         padded = np.stack([np.pad(p, ((pad, pad + sp), (pad, pad + sp)), mode="reflect") for p in planes])
+        clipped_padded = np.stack([np.pad(c, ((pad, pad + sp), (pad, pad + sp)), mode="reflect")
+                                   for c in clipped_samples(planes)])
         timings["planes_s"] = time.perf_counter() - t_start
         frame_valid = geometry.valid_mask(row0, col0, height, width)  # once: per block it cost ~10 % of a frame
         taper = hann_taper(n)
@@ -192,9 +207,10 @@ class ClassicalDecoder:
         n_cand = len(self.candidates)
         coarse = coarse_indices(n_cand, cfg.coarse_step)
         evidence = np.full((grid_rows, grid_cols, len(coarse)), np.nan, np.float32)
+        blind = np.zeros((grid_rows, grid_cols), bool)  # windows clipped in every plane: no evidence of their own
         evaluations = {"full": 0, "done": 0}
         blocks = [(br, bc) for br in range(0, grid_rows, cfg.block_windows) for bc in range(0, grid_cols, cfg.block_windows)]
-        skipped = 0
+        skipped = windows_clipped = 0
         bar = None
         if progress:
             from tqdm import tqdm
@@ -217,10 +233,13 @@ class ClassicalDecoder:
             windows = [window_spectra(padded[p][ps], n, sp, taper, self.threads) for p in range(4)]
             spectra = [w[0] for w in windows]
             noise_vars = [noise.variance(w[1]) for w in windows]
+            clipped = [windows_touching(clipped_padded[p][ps], n, sp) for p in range(4)]
+            windows_clipped += int(np.logical_or.reduce(clipped).sum())
+            blind[br:br + nr, bc:bc + nc] = np.logical_and.reduce(clipped).reshape(nr, nc)
             t1 = time.perf_counter()
             models = self.zones.models(zone, coarse)
             t2 = time.perf_counter()
-            coarse_nll = self._block_nll(spectra, models, noise_vars, taper_energy)
+            coarse_nll = self._block_nll(spectra, models, noise_vars, taper_energy, clipped)
             evidence[br:br + nr, bc:bc + nc] = (coarse_nll - coarse_nll.min(axis=1, keepdims=True)).reshape(nr, nc, -1)
             best = np.unique(coarse[np.argmin(coarse_nll, axis=1)])
             reach = np.arange(-cfg.coarse_step, cfg.coarse_step + 1)
@@ -228,10 +247,10 @@ class ClassicalDecoder:
             t3 = time.perf_counter()
             models = self.zones.models(zone, which)
             t4 = time.perf_counter()
-            nll = self._block_nll(spectra, models, noise_vars, taper_energy)
+            nll = self._block_nll(spectra, models, noise_vars, taper_energy, clipped)
             depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
             inv[br:br + nr, bc:bc + nc] = 1.0 / depth_b
-            sig[br:br + nr, bc:bc + nc] = sigma_b
+            sig[br:br + nr, bc:bc + nc] = sigma_b * self.laplace_inflation
             evaluations["full"] += nr * nc * n_cand
             evaluations["done"] += nr * nc * (len(coarse) + len(which))
             timings["evidence_s"] += (t1 - t0) + (t3 - t2) + (time.perf_counter() - t4)
@@ -243,6 +262,7 @@ class ClassicalDecoder:
         spread = local_spread(inv)
         sig = np.sqrt((cfg.sigma_laplace_scale * sigma_laplace) ** 2 + (cfg.sigma_spread_scale * spread) ** 2
                       + cfg.sigma_floor_inv_per_m ** 2)
+        inv, sig = fill_blind_windows(inv, sig, blind)
         inv, sig = confidence_fill(inv, sig, cfg.fill_windows)
         timings["fill_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -261,6 +281,8 @@ class ClassicalDecoder:
                  "noise_source": noise_source, "noise_profile": noise.to_dict(),
                  "candidates_depth_m": [round(float(d), 4) for d in self.candidates.depth_m],
                  "blocks_run": len(blocks) - skipped, "blocks_skipped": skipped,
+                 "windows_with_clipped_samples": windows_clipped,
+                 "windows_without_evidence": int(blind.sum()),
                  "candidate_evaluations": evaluations["done"],
                  "candidate_evaluations_exhaustive": evaluations["full"],
                  "kernel_sets_computed": self.zones.kernel_sets_computed, "timings_s": timings}
@@ -354,6 +376,22 @@ def confidence_fill(inv: np.ndarray, sig: np.ndarray, radius_windows: float) -> 
     pooled_sig = np.sqrt(1.0 / safe + spread)
     keep = tot_w > 0
     return np.where(keep, mean, np.nan), np.where(keep, np.minimum(pooled_sig, np.where(ok, sig, np.inf)), np.nan)
+
+
+BLIND_FILL_WINDOWS = 2.0
+"""Gaussian radius (windows) over which a window clipped in every plane borrows its neighbours' 1/d."""
+
+
+def fill_blind_windows(inv: np.ndarray, sig: np.ndarray, blind: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """1/d and σ of windows with no evidence (``blind``: clipped in every plane) pooled from their neighbours with
+    evidence (``confidence_fill``: inverse-variance weights, σ inflated by the neighbours' disagreement). Blind
+    windows beyond the pooling's reach keep their flat evidence's result: any depth, with a σ of ~10⁶."""
+    if not blind.any():
+        return inv, sig
+    pooled, pooled_sig = confidence_fill(np.where(blind, np.nan, inv), np.where(blind, np.nan, sig),
+                                         BLIND_FILL_WINDOWS)
+    take = blind & np.isfinite(pooled)
+    return np.where(take, pooled, inv), np.where(take, pooled_sig, sig)
 
 
 def upsample_grid(grid: np.ndarray, stride_px: int, height: int, width: int) -> np.ndarray:

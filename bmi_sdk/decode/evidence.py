@@ -5,11 +5,20 @@ local spectrum Y(ω) = DFT(t · (y − mean)), a candidate kernel with OTF K_d a
 an image prior of power spectrum β S(f), S = 1 / |f|² (natural images), the
 negative log-likelihood of the observed window under depth d is
 
-    L(d, β) = Σ_ω≠0  P(ω) / V_d(ω) + log V_d(ω),    P = |Y|²,
+    L(d, β) = ½ Σ_ω≠0  P(ω) / V_d(ω) + log V_d(ω),    P = |Y|²,
     V_d(ω) = β Σt² · Σ_aliases |K_d(f)|² S(f)  +  σ² Σt²
 
 (Levin, Fergus, Durand & Freeman, "Image and depth from a conventional camera
-with a coded aperture", SIGGRAPH 2007). A Bayer plane is the full-resolution
+with a coded aperture", SIGGRAPH 2007, which writes the sum without the ½). The
+½ is exact: a real window's spectrum holds each complex value twice (ω and −ω
+are conjugates), so the full-spectrum sum counts every independent bin twice;
+the Gaussian log-likelihood of the samples, written in Fourier, is half of it.
+The likelihood's curvature gives the Laplace 1σ of 1/d; it is the tapered
+estimator's real spread only after the taper's variance inflation
+(``taper_variance_inflation``: a Hann window lets neighbouring bins share data,
+so the bins are not independent and the estimate scatters √(35/18)² = 1.94×
+further than the curvature says). A Monte Carlo test on fields drawn from the
+model itself holds both factors (``tests/test_decode.py``). A Bayer plane is the full-resolution
 image sampled every second pixel, so the model power of plane frequency ω is
 the sum of the four full-resolution frequencies that fold onto it (the
 aliases; the kernel's spectrum reaches well past the plane's Nyquist
@@ -47,6 +56,14 @@ def hann_taper(n: int) -> np.ndarray:
     """n × n separable Hann window (periodic form: no zero at both ends, all n samples carry data)."""
     w = 0.5 - 0.5 * np.cos(2.0 * np.pi * (np.arange(n) + 0.5) / n)
     return np.outer(w, w).astype(np.float32)
+
+
+def taper_variance_inflation(taper: np.ndarray) -> float:
+    """N Σt⁴ / (Σt²)², N the taper's samples: how much further a tapered window's spectral estimate scatters
+    than the curvature of its likelihood says (tapered Whittle estimation: R. Dahlhaus, "Spectral analysis with
+    tapered data", J. Time Ser. Anal. 4, 1983). 1 for no taper; (35/18)² = 3.78 for the 2-D periodic Hann."""
+    t = np.asarray(taper, np.float64)
+    return float(t.size * np.sum(t ** 4) / np.sum(t ** 2) ** 2)
 
 
 def power_law_prior(f_row: np.ndarray, f_col: np.ndarray, floor_cycles: float, slope: float = 2.0) -> np.ndarray:
@@ -160,6 +177,36 @@ def window_spectra(plane: np.ndarray, n_plane: int, stride_plane: int, taper: np
     return (spec.real ** 2 + spec.imag ** 2).astype(np.float32), noise_mean, (rows, cols)
 
 
+def inverse_depth_information(model: np.ndarray, inv_depth_per_m: np.ndarray, beta_rel: float,
+                              tapered: bool = True) -> np.ndarray:
+    """(D,) Fisher information about 1/d (m²) of one plane's window at each candidate depth, β a nuisance.
+
+    ``model`` (D, n, m) is ``folded_model`` × the taper energy and ``beta_rel`` the prior level in units of the
+    window's noise power, so V = β' A_d + 1 (``plane_nll``). With g = ∂ log V / ∂(1/d), h = ∂ log V / ∂ log β'
+    and the likelihood's ½ count (module doc), I = ½ Σ m g², ½ Σ m g h, ½ Σ m h² form the 2 × 2 information and
+    the nuisance is removed by its Schur complement. ∂A / ∂(1/d) is the central difference over the candidates.
+    The informations of the planes add; 1 / √I is the Cramér–Rao bound of the estimate from an untapered window,
+    which a tapered one exceeds by √``taper_variance_inflation``.
+    """
+    mult = rfft_multiplicity(model.shape[1], tapered) * 0.5
+    a = np.asarray(model, np.float64)
+    v = beta_rel * a + 1.0
+    g = beta_rel * np.gradient(a, np.asarray(inv_depth_per_m, np.float64), axis=0) / v
+    h = beta_rel * a / v
+    i_uu, i_ub, i_bb = ((mult * x * y).sum(axis=(1, 2)) for x, y in ((g, g), (g, h), (h, h)))
+    return i_uu - i_ub ** 2 / i_bb
+
+
+def windows_touching(mask: np.ndarray, n_plane: int, stride_plane: int) -> np.ndarray:
+    """(rows × cols,) bool: which of ``window_spectra``'s windows (same grid) hold at least one set sample."""
+    if not mask.any():
+        rows = (mask.shape[0] - n_plane) // stride_plane + 1
+        cols = (mask.shape[1] - n_plane) // stride_plane + 1
+        return np.zeros(rows * cols, bool)
+    view = np.lib.stride_tricks.sliding_window_view(mask, (n_plane, n_plane))[::stride_plane, ::stride_plane]
+    return view.any(axis=(2, 3)).ravel()
+
+
 @dataclass
 class Evidence:
     """NLL(window, candidate) summed over the planes, and what the refinement needs.
@@ -212,14 +259,15 @@ def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: flo
     P' = P / s and β' = β / s, P / V + log V = P' / (β' A + 1) + log(β' A + 1) + log s, so one grid of
     β' and one matrix product serve windows of every noise level, exactly; the log s term is the
     same for every candidate of a window and is kept, so the NLL is the true one. ``tapered``: the bins
-    ``rfft_multiplicity`` uses with a ``folded_model`` of the same flag.
+    ``rfft_multiplicity`` uses with a ``folded_model`` of the same flag, and the ½ of the module doc; the
+    untapered (legacy) evidence keeps the full-spectrum count that refinements trained on it read.
     """
     nw = power.shape[0]
     n_cand = model.shape[0]
     mult = rfft_multiplicity(model.shape[1], tapered)
     keep = mult > 0
     a = model.reshape(n_cand, -1)[:, keep.ravel()] * taper_energy        # (D, F)
-    mult = mult[keep]
+    mult = mult[keep] * (0.5 if tapered else 1.0)
     s = np.maximum(np.broadcast_to(np.asarray(noise_var, np.float64), (nw,)), 1e-12) * taper_energy  # (W,)
     p = power.reshape(nw, -1)[:, keep.ravel()] * (1.0 / s)[:, None].astype(np.float32)  # P' (W, F)
     # moment estimate of β' per window and candidate: Σ m P' ≈ β' Σ m A + Σ m
