@@ -69,6 +69,7 @@ def _run(args) -> int:
               f"noise σ {stats['noise_sigma']:.4f} ({stats['noise_source']})")
         print(f"classical blocks run {stats['blocks_run']}, skipped {stats['blocks_skipped']}; network tiles run "
               f"{report['tiles_run']}, skipped {report['tiles_skipped']}; peak memory {report['peak_rss_mb']:.0f} MB")
+        _print_clipped(stats)
         print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_z.npy, depth_sigma.npy, confidence.png, depth_mm.png, "
               f"points.ply ({report['ply_points']} points, with σ), report.json")
         return 0
@@ -80,6 +81,7 @@ def _run(args) -> int:
         print(f"blocks run {stats['blocks_run']}, skipped {stats['blocks_skipped']} (outside the image circle); "
               f"candidate evaluations {stats['candidate_evaluations']} (coarse + fine) against "
               f"{stats['candidate_evaluations_exhaustive']} exhaustive; peak memory {report['peak_rss_mb']:.0f} MB")
+        _print_clipped(stats)
         print("stages: " + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in stats["timings_s"].items()))
         print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_z.npy, depth_sigma.npy, confidence.png, depth_mm.png, "
               f"points.ply ({report['ply_points']} points, with σ), report.json")
@@ -146,3 +148,10 @@ def register(subparsers) -> None:
                    help="decode a frame flagged as the camera's test pattern (refused by default)")
     add_scheduler_argument(p)
     p.set_defaults(handler=_run)
+
+
+def _print_clipped(stats: dict) -> None:
+    """Say how many evidence windows held samples at the white level (they are read without those planes)."""
+    if stats.get("windows_with_clipped_samples"):
+        print(f"evidence windows holding clipped samples {stats['windows_with_clipped_samples']} (read without "
+              f"those planes; {stats['windows_without_evidence']} clipped in every plane take their neighbours' depth)")

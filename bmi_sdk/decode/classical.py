@@ -87,9 +87,9 @@ class ClassicalConfig:
     slopes: tuple = (2.0,)
     block_windows: int = 16
     # σ model fitted by `bmi bench decoder` (seed 777, 12 tiles per region, the other defaults as here)
-    sigma_laplace_scale: float = 1.0   # the fit's lower bound: the inflated curvature already is the spread
-    sigma_spread_scale: float = 3.74
-    sigma_floor_inv_per_m: float = 0.020
+    sigma_laplace_scale: float = 1.0  # the fit's bound: the inflated curvature is already the spread
+    sigma_spread_scale: float = 3.64
+    sigma_floor_inv_per_m: float = 0.0234
     fill_windows: float = 0.0
     aif_step: int = 4
     aif_model_error: float = 0.1  # the AiF's kernel is never exact (depth error, blend between candidates): its
