@@ -7,6 +7,8 @@
 * Planes: a textured fronto-parallel plane (a procedural scene's texture at one range) at 1, 2,
   4, 6 and 8 m, rendered at 0° and 50° with the nominal tensor kernels, decoded with the same
   kernels: AbsRel per distance (the upper bound the issue's prototype measured).
+* The edge of a built camera: 1/f² planes at 55° for the nominal camera and one with a +0.5 % sensor radius, each
+  rendered and decoded with its own kernels, beside ``window_depth_bound`` (the Cramér–Rao bound of one window).
 * The σ model (``ClassicalConfig`` step 4): (a, b, c) fitted by maximum likelihood on
   ``FIT_TILES`` tiles per region drawn with seed ``FIT_SEED`` (not the benchmark's), and the RMS
   of (error / σ) it gives there; ``ClassicalConfig``'s defaults are these numbers.
