@@ -9,6 +9,8 @@
   kernels: AbsRel per distance (the upper bound the issue's prototype measured).
 * The edge of a built camera: 1/f² planes at 55° for the nominal camera and one with a +0.5 % sensor radius, each
   rendered and decoded with its own kernels, beside ``window_depth_bound`` (the Cramér–Rao bound of one window).
+* The tensor kernels' rotation (``rotation_rows``): one far plane read with the kernel models of zones that differ
+  in θ or in φ.
 * The σ model (``ClassicalConfig`` step 4): (a, b, c) fitted by maximum likelihood on
   ``FIT_TILES`` tiles per region drawn with seed ``FIT_SEED`` (not the benchmark's), and the RMS
   of (error / σ) it gives there; ``ClassicalConfig``'s defaults are these numbers.
@@ -80,93 +82,144 @@ def plane_texture(size_px: int, texture: str, rng: np.random.Generator) -> np.nd
     raise ValueError(f"unknown plane texture {texture!r}")
 
 
-def plane_absrel(nominal, geometry, decode, field_deg: float, depth_m: float, seed: int = 3,
-                 texture: str = "scene") -> float:
-    """AbsRel of the decoded depth over a ``plane_texture`` plane at ``depth_m`` centred at ``field_deg`` (φ = 30°).
+PLANE_MARGIN_PX = 24
 
-    ``decode(raw, row0, col0, noise)`` → (depth_m, valid) of the raw window at (row0, col0) of the sensor, whose
-    raw noise is ``noise`` (a ``sensor.NoiseProfile``).
-    """
+
+def plane_raw(tensor, geometry, field_deg: float, depth_m: float, seed: int = 3,
+              texture: str = "scene") -> tuple[np.ndarray, int, int]:
+    """(raw, row0, col0): a ``plane_texture`` plane at ``depth_m`` centred at ``field_deg`` (φ = 30°), rendered with
+    ``tensor``'s kernels (tensor mode), relative illumination applied, as the raw window at (row0, col0) of the
+    sensor with the standard noise (σ 0.005)."""
     from bmi_sdk.nn.data import STANDARD_SIGMA, simulate_raw
     from bmi_sdk.render import PsfMap, render_coded
     from bmi_sdk.sensor import relative_illumination
 
-    size = PLANE_PX + 2 * 24
+    m = PLANE_MARGIN_PX
+    size = PLANE_PX + 2 * m
     rgb = plane_texture(size, texture, np.random.default_rng(seed))
     r, c = geometry.pixel_of_field(field_deg, 30.0)
     row0, col0 = int(r - size / 2) // 2 * 2, int(c - size / 2) // 2 * 2
-    optical = render_coded(rgb, np.full((size, size), depth_m, np.float32), nominal, geometry, row0, col0,
-                           psf_map=PsfMap(nominal, geometry, mode="tensor"))
+    optical = render_coded(rgb, np.full((size, size), depth_m, np.float32), tensor, geometry, row0, col0,
+                           psf_map=PsfMap(tensor, geometry, mode="tensor"))
     optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
-    m = 24
     raw = simulate_raw(optical[m:-m, m:-m], STANDARD_SIGMA, np.random.default_rng(seed), row0 + m, col0 + m)
-    depth, ok = decode(raw, row0 + m, col0 + m, NoiseProfile.additive(STANDARD_SIGMA))
+    return raw, row0 + m, col0 + m
+
+
+def decoded_absrel(decode, raw: np.ndarray, row0: int, col0: int, depth_m: float) -> float:
+    """AbsRel of ``decode(raw, row0, col0, noise)`` → (depth_m, valid) against a plane at ``depth_m``, the raw
+    noise being the standard σ's ``sensor.NoiseProfile``."""
+    from bmi_sdk.nn.data import STANDARD_SIGMA
+
+    depth, ok = decode(raw, row0, col0, NoiseProfile.additive(STANDARD_SIGMA))
     ok = ok & np.isfinite(depth)
     return float(np.mean(np.abs(depth[ok] - depth_m) / depth_m))
+
+
+def plane_absrel(nominal, geometry, decode, field_deg: float, depth_m: float, seed: int = 3,
+                 texture: str = "scene") -> float:
+    """AbsRel of the decoded depth over ``plane_raw``'s plane (``decoded_absrel``)."""
+    raw, row0, col0 = plane_raw(nominal, geometry, field_deg, depth_m, seed, texture)
+    return decoded_absrel(decode, raw, row0, col0, depth_m)
 
 
 BUILT_FIELD_DEG = 55.0
 BUILT_SENSOR_RADIUS_PCT = 0.5
 
 
-def window_depth_bound(decoder, tensor, geometry, field_deg: float, depth_m: float, seed: int = 3) -> float:
-    """Cramér–Rao bound of σ_d / d for one tapered 64-px window of a ``pink`` plane at ``depth_m``, ``field_deg``.
+def window_depth_bound(decoder, raw: np.ndarray, row0: int, col0: int, field_deg: float, depth_m: float) -> float:
+    """Cramér–Rao bound of σ_d / d for one tapered window of a plane at ``depth_m`` (``plane_raw``) at ``field_deg``.
 
-    The four planes' ``evidence.inverse_depth_information`` at the decoder's candidate nearest ``depth_m`` (its
-    kernels: ``tensor`` must be the one it decodes with), each plane's prior level β' the median moment estimate of
-    the plane's rendered windows, inflated by the taper (``evidence.taper_variance_inflation``): what the window
+    The four planes' ``evidence.inverse_depth_information`` at the decoder's candidate nearest ``depth_m`` (the
+    decoder's kernels must be the ones the plane was rendered with), each plane's prior level β' the median moment
+    estimate of the plane's windows, inflated by the taper (``evidence.taper_variance_inflation``): what the window
     estimator can reach, whatever decodes it.
     """
     from bmi_sdk.decode.bayer import normalised_planes
     from bmi_sdk.decode.evidence import (hann_taper, inverse_depth_information, rfft_multiplicity,
                                          taper_variance_inflation, window_spectra)
     from bmi_sdk.decode.kernels import ZoneKernels
-    from bmi_sdk.nn.data import STANDARD_SIGMA, simulate_raw
-    from bmi_sdk.render import PsfMap, render_coded
+    from bmi_sdk.nn.data import STANDARD_SIGMA
 
-    size = PLANE_PX + 48
-    rgb = plane_texture(size, "pink", np.random.default_rng(seed))
-    r, c = geometry.pixel_of_field(field_deg, 30.0)
-    row0, col0 = int(r - size / 2) // 2 * 2, int(c - size / 2) // 2 * 2
-    optical = render_coded(rgb, np.full((size, size), depth_m, np.float32), tensor, geometry, row0, col0,
-                           psf_map=PsfMap(tensor, geometry, mode="tensor"))[24:-24, 24:-24]
-    raw = simulate_raw(optical, STANDARD_SIGMA, np.random.default_rng(seed), row0 + 24, col0 + 24)
-    planes = normalised_planes(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, row0 + 24, col0 + 24)
+    planes = normalised_planes(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, row0, col0)
     n = decoder.config.window_px // 2
     taper = hann_taper(n)
     taper_energy = float((taper ** 2).sum())
-    zones = decoder.zones
+    noise_power = NoiseProfile.additive(STANDARD_SIGMA).offset * taper_energy
     cand = decoder.candidates
-    zone = ZoneKernels.zone(field_deg, 30.0)
-    models = zones.models(zone, np.arange(len(cand)))[:, 0] * taper_energy    # (planes, D, n, m)
+    models = decoder.zones.models(ZoneKernels.zone(field_deg, 30.0), np.arange(len(cand)))[:, 0] * taper_energy
     true = int(np.argmin(np.abs(cand.depth_m - depth_m)))
     mult = rfft_multiplicity(n)
     info = 0.0
     for p in range(4):
-        power = window_spectra(planes[p], n, n // 2, taper)[0] / (STANDARD_SIGMA ** 2 * taper_energy)
+        power = window_spectra(planes[p], n, n // 2, taper)[0] / noise_power
         beta = np.median(((power * mult).sum(axis=(1, 2)) - mult.sum()) / (models[p, true] * mult).sum())
         info += inverse_depth_information(models[p], cand.inv_depth_per_m, max(float(beta), 1e-6))[true]
-    sigma_inv = np.sqrt(taper_variance_inflation(taper) / info)
-    return float(sigma_inv * cand.depth_m[true])
+    return float(np.sqrt(taper_variance_inflation(taper) / info) * cand.depth_m[true])
 
 
 def _built_camera_rows(nominal, geometry) -> list[list]:
     """Pink planes at the field edge: the nominal camera and one built with a sensor-radius error, each decoded
-    with its own kernels; AbsRel and the window bound per range."""
+    with its own kernels; AbsRel and the window bound (σ_d / d) per range."""
     from bmi_sdk.built_camera import BuiltCamera
     from bmi_sdk.decode import ClassicalConfig, ClassicalDecoder
     from bmi_sdk.optics.perturb import Perturbation
     from bmi_sdk.render import PsfMap
 
     built = BuiltCamera(perturbation=Perturbation(sensor_radius_error_pct=BUILT_SENSOR_RADIUS_PCT))
-    cameras = [(nominal, ClassicalDecoder.for_psf_map(PsfMap(nominal, geometry, mode="tensor"), ClassicalConfig()))]
-    cameras.append((built.psf_tensor(), ClassicalDecoder.for_psf_map(built.psf_map(mode="tensor"), ClassicalConfig())))
+    cameras = [(nominal, ClassicalDecoder.for_psf_map(PsfMap(nominal, geometry, mode="tensor"), ClassicalConfig())),
+               (built.psf_tensor(), ClassicalDecoder.for_psf_map(built.psf_map(mode="tensor"), ClassicalConfig()))]
     rows = []
     for d in (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0):
-        absrel = [plane_absrel(t, geometry, classical_depth(dec, geometry), BUILT_FIELD_DEG, d, texture="pink")
-                  for t, dec in cameras]
-        bound = [window_depth_bound(dec, t, geometry, BUILT_FIELD_DEG, d) / d for t, dec in cameras]
+        absrel, bound = [], []
+        for tensor, decoder in cameras:
+            raw, row0, col0 = plane_raw(tensor, geometry, BUILT_FIELD_DEG, d, texture="pink")
+            absrel.append(decoded_absrel(classical_depth(decoder, geometry), raw, row0, col0, d))
+            bound.append(window_depth_bound(decoder, raw, row0, col0, BUILT_FIELD_DEG, d) / d)
         rows.append([f"{d:g} m"] + absrel + bound)
+    return rows
+
+
+ROTATION_DEPTH_M = 7.8
+ROTATION_ZONES = ((0.0, 0.0), (1.2, 0.0), (1.2, 90.0), (3.0, 0.0), (3.0, 10.0), (1.2, 45.0), (3.0, 45.0))
+
+
+def rotation_rows(decoder, size_px: int = 512, seed: int = 3) -> list[list]:
+    """Median depth read from one plane against the kernel models of several zones (θ, φ).
+
+    A ``pink`` plane at ``ROTATION_DEPTH_M`` blurred (periodically, by FFT) with the on-axis zone's kernels of the
+    decoder's candidate nearest it, standard noise, read window by window (non-overlapping) with every zone's
+    models. Zones apart only in θ (up to 3°) hold nearly the same kernels; zones off the multiples of 90° in φ hold
+    tensor kernels rotated by bilinear interpolation (``render.psf_map.rotate_kernel``).
+    """
+    from scipy import fft as sfft
+
+    from bmi_sdk.decode.bayer import normalised_planes
+    from bmi_sdk.decode.evidence import Evidence, hann_taper, window_spectra
+    from bmi_sdk.nn.data import STANDARD_SIGMA, simulate_raw
+
+    cand = decoder.candidates
+    true = int(np.argmin(np.abs(cand.depth_m - ROTATION_DEPTH_M)))
+    kernels = decoder.zones.kernels((0.0, 0.0), np.array([true]))[:, 0]      # (C, K, K)
+    k = kernels.shape[-1]
+    otf = np.zeros((3, size_px, size_px))
+    otf[:, :k, :k] = kernels
+    otf = sfft.fft2(np.roll(otf, (-(k // 2), -(k // 2)), (1, 2)), axes=(1, 2))
+    rgb = plane_texture(size_px, "pink", np.random.default_rng(seed)).transpose(2, 0, 1)
+    optical = sfft.ifft2(sfft.fft2(rgb, axes=(1, 2)) * otf, axes=(1, 2)).real.transpose(1, 2, 0)
+    raw = simulate_raw(optical.astype(np.float32), STANDARD_SIGMA, np.random.default_rng(seed))
+    planes = normalised_planes(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
+    n = decoder.config.window_px // 2
+    taper = hann_taper(n)
+    spectra = [window_spectra(p, n, n, taper)[0] for p in planes]
+    noise = [np.full(len(spectra[0]), NoiseProfile.additive(STANDARD_SIGMA).offset)] * 4
+    no_clip = [np.zeros(len(spectra[0]), bool)] * 4
+    rows = []
+    for zone in ROTATION_ZONES:
+        models = decoder.zones.models(zone, np.arange(len(cand)))
+        nll = decoder._block_nll(spectra, models, noise, float((taper ** 2).sum()), no_clip)
+        depth, _, _ = Evidence(nll, cand.inv_depth_per_m).refine()
+        rows.append([f"θ {zone[0]:g}°, φ {zone[1]:g}°", float(np.median(depth))])
     return rows
 
 
@@ -299,6 +352,9 @@ def run(full: bool = False) -> str:
                 "tensor kernels; `window_depth_bound`: the Cramér–Rao bound of σ_d / d of one tapered window", ""]
     out.append(markdown_table(["range", "AbsRel nominal", "AbsRel built", "bound nominal", "bound built"],
                               _built_camera_rows(nominal, geometry)))
+    out += ["", f"The tensor kernels' rotation: a 1/f² plane at {ROTATION_DEPTH_M:g} m blurred by the on-axis kernels, "
+                "read window by window with the kernel models of other zones (`rotation_rows`)", ""]
+    out.append(markdown_table(["models of zone", "median depth m"], rotation_rows(decoder)))
     (a, b, c), z_rms, n_px = fit_sigma_model(nominal_map)
     out += ["", f"σ model fitted on {FIT_TILES} tiles per region, seed {FIT_SEED} ({n_px} pixels): "
                 f"a = {a:.3g}, b = {b:.3g}, c = {c:.3g} m⁻¹; RMS of (error / σ) there {z_rms:.3f}. "

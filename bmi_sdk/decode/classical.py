@@ -20,8 +20,9 @@ Steps (each in its own module):
    times the taper's inflation (``evidence.taper_variance_inflation``): on data drawn from the
    model itself that is the estimate's real spread. On scenes it is too small (the Gaussian image
    prior is only a model: a window that mixes two depths, or a texture whose spectrum is not
-   1/f², fits one candidate "confidently" and wrongly), so the reported σ is σ² = (a σ_L)² + (b s)² + c², s the spread (std) of 1/d over the 3 × 3
-   neighbouring windows (large across depth edges and in clutter), with (a, b, c) =
+   1/f², fits one candidate "confidently" and wrongly), so the reported σ is
+   σ² = (a σ_L)² + (b s)² + c², s the spread (std) of 1/d over the 3 × 3 neighbouring windows
+   (large across depth edges and in clutter), with (a, b, c) =
    (``sigma_laplace_scale``, ``sigma_spread_scale``, ``sigma_floor_inv_per_m``) fitted by maximum
    likelihood on scenes apart from the benchmark (``bmi bench decoder``).
 5. Optional confidence-weighted fill (``fill_windows`` > 0): 1/d is replaced by its
@@ -192,9 +193,13 @@ class ClassicalDecoder:
         n = cfg.window_px // 2
         sp = cfg.stride_px // 2
         pad = n // 2
-        padded = np.stack([np.pad(p, ((pad, pad + sp), (pad, pad + sp)), mode="reflect") for p in planes])
-        clipped_padded = np.stack([np.pad(c, ((pad, pad + sp), (pad, pad + sp)), mode="reflect")
-                                   for c in clipped_samples(planes)])
+        def pad_planes(x):  # windows centred on the grid reach half a window (+ a stride) past the frame
+            return np.stack([np.pad(p, ((pad, pad + sp), (pad, pad + sp)), mode="reflect") for p in x])
+
+        padded = pad_planes(planes)
+        clipped_mask = clipped_samples(planes)
+        # most frames hold none: no padded mask then (a full frame's would be 54 MB)
+        clipped_padded = pad_planes(clipped_mask) if clipped_mask.any() else None
         timings["planes_s"] = time.perf_counter() - t_start
         frame_valid = geometry.valid_mask(row0, col0, height, width)  # once: per block it cost ~10 % of a frame
         taper = hann_taper(n)
@@ -233,7 +238,8 @@ class ClassicalDecoder:
             windows = [window_spectra(padded[p][ps], n, sp, taper, self.threads) for p in range(4)]
             spectra = [w[0] for w in windows]
             noise_vars = [noise.variance(w[1]) for w in windows]
-            clipped = [windows_touching(clipped_padded[p][ps], n, sp) for p in range(4)]
+            clipped = ([windows_touching(clipped_padded[p][ps], n, sp) for p in range(4)] if clipped_padded is not None
+                       else [np.zeros(nr * nc, bool)] * 4)
             windows_clipped += int(np.logical_or.reduce(clipped).sum())
             blind[br:br + nr, bc:bc + nc] = np.logical_and.reduce(clipped).reshape(nr, nc)
             t1 = time.perf_counter()

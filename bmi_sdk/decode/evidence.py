@@ -5,7 +5,7 @@ local spectrum Y(ω) = DFT(t · (y − mean)), a candidate kernel with OTF K_d a
 an image prior of power spectrum β S(f), S = 1 / |f|² (natural images), the
 negative log-likelihood of the observed window under depth d is
 
-    L(d, β) = ½ Σ_ω≠0  P(ω) / V_d(ω) + log V_d(ω),    P = |Y|²,
+    L(d, β) = ½ Σ_ω≠0 [P(ω) / V_d(ω) + log V_d(ω)],    P = |Y|²,
     V_d(ω) = β Σt² · Σ_aliases |K_d(f)|² S(f)  +  σ² Σt²
 
 (Levin, Fergus, Durand & Freeman, "Image and depth from a conventional camera
@@ -16,10 +16,10 @@ the Gaussian log-likelihood of the samples, written in Fourier, is half of it.
 The likelihood's curvature gives the Laplace 1σ of 1/d; it is the tapered
 estimator's real spread only after the taper's variance inflation
 (``taper_variance_inflation``: a Hann window lets neighbouring bins share data,
-so the bins are not independent and the estimate scatters √(35/18)² = 1.94×
+so the bins are not independent and the estimate scatters 35/18 = 1.94×
 further than the curvature says). A Monte Carlo test on fields drawn from the
-model itself holds both factors (``tests/test_decode.py``). A Bayer plane is the full-resolution
-image sampled every second pixel, so the model power of plane frequency ω is
+model itself holds both factors (``tests/test_decode.py``). A Bayer plane is the
+full-resolution image sampled every second pixel, so the model power of plane frequency ω is
 the sum of the four full-resolution frequencies that fold onto it (the
 aliases; the kernel's spectrum reaches well past the plane's Nyquist
 frequency). The noise σ is white on the raw samples, which is why the
@@ -50,6 +50,8 @@ BETA_MARGIN = (0.25, 16.0)
 """The β grid spans the windows' moment estimates times these factors: a wrong (too blurred) kernel
 explains fine detail only with a much larger β, so the grid reaches further up than down."""
 MAX_BETA_LEVELS = 48
+REAL_FIELD_WEIGHT = 0.5
+"""The likelihood's weight per full-spectrum bin (module doc): a real window holds each complex value twice."""
 
 
 def hann_taper(n: int) -> np.ndarray:
@@ -188,7 +190,7 @@ def inverse_depth_information(model: np.ndarray, inv_depth_per_m: np.ndarray, be
     The informations of the planes add; 1 / √I is the Cramér–Rao bound of the estimate from an untapered window,
     which a tapered one exceeds by √``taper_variance_inflation``.
     """
-    mult = rfft_multiplicity(model.shape[1], tapered) * 0.5
+    mult = rfft_multiplicity(model.shape[1], tapered) * REAL_FIELD_WEIGHT
     a = np.asarray(model, np.float64)
     v = beta_rel * a + 1.0
     g = beta_rel * np.gradient(a, np.asarray(inv_depth_per_m, np.float64), axis=0) / v
@@ -267,7 +269,7 @@ def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: flo
     mult = rfft_multiplicity(model.shape[1], tapered)
     keep = mult > 0
     a = model.reshape(n_cand, -1)[:, keep.ravel()] * taper_energy        # (D, F)
-    mult = mult[keep] * (0.5 if tapered else 1.0)
+    mult = mult[keep] * (REAL_FIELD_WEIGHT if tapered else 1.0)
     s = np.maximum(np.broadcast_to(np.asarray(noise_var, np.float64), (nw,)), 1e-12) * taper_energy  # (W,)
     p = power.reshape(nw, -1)[:, keep.ravel()] * (1.0 / s)[:, None].astype(np.float32)  # P' (W, F)
     # moment estimate of β' per window and candidate: Σ m P' ≈ β' Σ m A + Σ m
