@@ -255,16 +255,18 @@ def test_spread_and_upsampling_of_the_window_grid():
     assert up[0, 16] == pytest.approx(3.0, abs=1e-6) and up[0, 0] == pytest.approx(1.0 + 2.0 * 0.5 / 16, abs=1e-6)
 
 
-def _plane_frame(depth_m: float, field_deg: float, size: int = 160, sigma: float = 0.005, texture: str = "scene"):
+def _plane_frame(depth_m: float, field_deg: float, size: int = 160, sigma: float = 0.005, texture: str = "scene",
+                 psf_mode: str = "tensor"):
     """A fronto-parallel plane at ``depth_m`` rendered at ``field_deg`` (φ 30°), textured by ``bench.decoder``'s
-    ``plane_texture`` ("scene": a procedural scene's picture; "pink": a 1/f² field, the issue's textured plane)."""
+    ``plane_texture`` ("scene": a procedural scene's picture; "pink": a 1/f² field, the issue's textured plane),
+    with the rotated tensor kernels or a lens's exact ones (``psf_mode``)."""
     from bmi_sdk.bench.decoder import plane_texture
 
     tensor = lens_tensor("bmi_monocentric")
     rgb = plane_texture(size + 48, texture, np.random.default_rng(3))
     r, c = GEOMETRY.pixel_of_field(field_deg, 30.0)
     row0, col0 = int(r - size / 2) // 2 * 2, int(c - size / 2) // 2 * 2
-    psf_map = PsfMap(tensor, GEOMETRY, mode="tensor")
+    psf_map = PsfMap(tensor, GEOMETRY, mode=psf_mode)
     optical = render_coded(rgb, np.full((size + 48, size + 48), depth_m, np.float32), tensor, GEOMETRY,
                            row0 - 24, col0 - 24, psf_map=psf_map)[24:-24, 24:-24]
     optical *= relative_illumination(GEOMETRY, row0, col0, size, size)[..., None]
@@ -290,6 +292,21 @@ def test_a_textured_plane_decodes_within_five_percent(nominal_decoder, depth_m, 
     assert out.stats["blocks_run"] == 1 and out.stats["noise_source"] == "profile"
     assert out.stats["noise_sigma"] == pytest.approx(0.005, rel=0.01)
     assert out.aif.shape == (160, 160, 3) and np.all(np.isfinite(out.aif))
+
+
+def test_a_lens_s_far_plane_is_read_with_the_camera_s_exact_kernels(nominal_decoder):
+    """A lens's frames hold exact kernels (the simulated device renders them). The camera's decoder
+    (``runtime.classical_decoder``) reads them with exact kernels too: a 6 m plane at 50°, φ 30°, reads within
+    12 %. The tensor's kernels, rotated to φ by bilinear interpolation, are smoothed where a far kernel is sharp,
+    and read the same frame ~3× worse."""
+    from bmi_sdk.runtime.classical import classical_decoder
+
+    raw, row0, col0, _, _ = _plane_frame(6.0, 50.0, texture="pink", psf_mode="exact")
+    absrel = {}
+    for name, decoder in (("exact", classical_decoder(BuiltCamera())), ("tensor", nominal_decoder)):
+        out = decoder.decode(raw, BLACK, WHITE, GEOMETRY, row0, col0, noise_profile=NoiseProfile.additive(0.005))
+        absrel[name] = float(np.mean(np.abs(out.depth_m[out.valid] - 6.0) / 6.0))
+    assert absrel["exact"] < 0.12 and absrel["tensor"] > 2 * absrel["exact"]
 
 
 def test_a_noiseless_frames_aif_is_not_inverse_filtered(nominal_decoder):
@@ -389,7 +406,7 @@ def test_a_built_camera_is_hashed_by_everything_that_makes_its_kernels():
     nominal = BuiltCamera()
     built = BuiltCamera(perturbation=Perturbation(decenter_um=(10.0, 0.0)))
     assert nominal.is_nominal and not built.is_nominal and nominal.sha256() != built.sha256()
-    assert nominal.psf_map().mode == "tensor" and built.psf_map().mode == "exact"
+    assert nominal.psf_map().mode == "exact" and built.psf_map().mode == "exact"
     assert built.psf_map().perturbation == built.perturbation
 
 

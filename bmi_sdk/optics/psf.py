@@ -86,11 +86,11 @@ def _rotated_pupil(fit: PupilFit, u_off: np.ndarray, v_off: np.ndarray, rotation
     uu, vv = np.meshgrid(u_off, v_off, indexing="ij")
     ell = fit.l_centre + uu * np.cos(phi) + vv * np.sin(phi)
     emm = fit.m_centre - uu * np.sin(phi) + vv * np.cos(phi)
-    w = fit.evaluate_points("w_waves", ell, emm)
-    amp = np.maximum(fit.evaluate_points("amplitude", ell, emm), 0.0)
+    w, amp, *apertures = fit.evaluate_points_many(("w_waves", "amplitude", *fit.apertures), ell, emm)
+    amp = np.maximum(amp, 0.0)
     transmission = np.ones_like(w)
-    for name in fit.apertures:
-        transmission *= _soft_aperture(fit.evaluate_points(name, ell, emm))
+    for aperture in apertures:
+        transmission *= _soft_aperture(aperture)
     return transmission * amp * np.exp(-2j * np.pi * w)
 
 

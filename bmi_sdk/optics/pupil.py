@@ -74,10 +74,29 @@ class PupilFit:
 
     def evaluate_points(self, name: str, ell: np.ndarray, emm: np.ndarray) -> np.ndarray:
         """Fitted quantity at arbitrary (L, M) points (any shape, not separable)."""
+        return self.evaluate_points_many((name,), ell, emm)[0]
+
+    def evaluate_points_many(self, names, ell: np.ndarray, emm: np.ndarray) -> list[np.ndarray]:
+        """Several fitted quantities at the same arbitrary (L, M) points: the powers of η are made once and every
+        quantity's inner sums Σ_j c_ij η^j are one matrix product; the sum over ξ^i is Horner's rule (a rotated
+        pupil's PSF spends most of its time here)."""
         shape = np.broadcast(ell, emm).shape
-        xi = self._powers(((np.broadcast_to(ell, shape)) - self.l_centre).ravel() / self.l_half)
-        eta = self._powers(((np.broadcast_to(emm, shape)) - self.m_centre).ravel() / self.m_half)
-        return np.einsum("pi,pi->p", xi, eta @ self.coeffs[name].T).reshape(shape)
+        xi = ((np.broadcast_to(ell, shape)) - self.l_centre).ravel() / self.l_half
+        eta = ((np.broadcast_to(emm, shape)) - self.m_centre).ravel() / self.m_half
+        n = self.degree + 1
+        eta_powers = np.empty((n, eta.size))
+        eta_powers[0] = 1.0
+        for j in range(1, n):
+            np.multiply(eta_powers[j - 1], eta, out=eta_powers[j])
+        inner = np.concatenate([self.coeffs[name] for name in names]) @ eta_powers  # (names · n, points)
+        out = []
+        for k in range(len(names)):
+            acc = inner[k * n + n - 1].copy()
+            for i in range(n - 2, -1, -1):
+                acc *= xi
+                acc += inner[k * n + i]
+            out.append(acc.reshape(shape))
+        return out
 
     def evaluate(self, name: str, l_grid: np.ndarray, m_grid: np.ndarray) -> np.ndarray:
         """Fitted quantity on the separable grid (len(l_grid), len(m_grid))."""

@@ -122,18 +122,25 @@ class PsfCacheWarning(UserWarning):
     """A cached PSF shard failed its checks and is being recomputed."""
 
 
-def _shard_digest(psf: np.ndarray, filled: np.ndarray) -> str:
+def _shard_digest(psf: np.ndarray, filled: np.ndarray, depth_index: np.ndarray | None = None) -> str:
     """SHA-256 of a shard's arrays (shape, dtype and bytes), recorded in the shard when it is written."""
     h = hashlib.sha256()
-    for a in (np.ascontiguousarray(psf, dtype="<f4"), np.ascontiguousarray(filled, dtype=bool)):
+    arrays = [np.ascontiguousarray(psf, dtype="<f4"), np.ascontiguousarray(filled, dtype=bool)]
+    if depth_index is not None:
+        arrays.append(np.ascontiguousarray(depth_index, dtype="<i8"))
+    for a in arrays:
         h.update(repr(a.shape).encode())
         h.update(a.tobytes())
     return h.hexdigest()
 
 
-def read_kernel_shard(path: Path, psf_shape: tuple) -> tuple[np.ndarray, np.ndarray, bool]:
-    """(psf, filled, legacy) of a cache shard (kernels (C, n, K, K), filled (C, n)), or ``ValueError`` saying what
-    is wrong with it.
+def read_kernel_shard(path: Path, psf_shape: tuple) -> tuple[np.ndarray, np.ndarray, bool, np.ndarray | None]:
+    """(psf, filled, legacy, depth_index) of a cache shard (kernels (C, n, K, K), filled (C, n)), or ``ValueError``
+    saying what is wrong with it.
+
+    ``psf_shape[1]`` None: a sparse shard that holds only some depths of the grid, ``depth_index`` naming each
+    kernel column's (``write_kernel_shard(depth_index=...)``); otherwise a dense one with every depth of the grid
+    (``depth_index`` None).
 
     Checks: a readable npz (zip CRCs catch truncation and bit flips), the
     expected arrays and shapes, the SHA-256 recorded at write time (``legacy``:
@@ -146,13 +153,20 @@ def read_kernel_shard(path: Path, psf_shape: tuple) -> tuple[np.ndarray, np.ndar
             arrays = {k: z[k] for k in z.files}
     except Exception as exc:  # zipfile, zlib and numpy raise many types for a damaged file
         raise ValueError(f"unreadable: {type(exc).__name__}: {exc}") from None
-    if "psf" not in arrays or "filled" not in arrays:
-        raise ValueError(f"arrays {sorted(arrays)}, expected psf and filled")
+    sparse = psf_shape[1] is None
+    needed = {"psf", "filled"} | ({"depth_index", "sha256"} if sparse else set())
+    if not needed <= set(arrays):
+        raise ValueError(f"arrays {sorted(arrays)}, expected {sorted(needed)}")
     psf, filled = arrays["psf"], arrays["filled"]
-    if psf.shape != psf_shape or filled.shape != psf_shape[:2] or filled.dtype != bool:
+    depth_index = arrays["depth_index"] if sparse else None
+    expected = (psf_shape[0], psf.shape[1] if sparse else psf_shape[1]) + tuple(psf_shape[2:])
+    if psf.shape != expected or filled.shape != expected[:2] or filled.dtype != bool:
         raise ValueError(f"psf {psf.shape}, filled {filled.shape} {filled.dtype}; expected {psf_shape}")
+    if sparse and (depth_index.shape != psf.shape[1:2] or depth_index.dtype.kind != "i"
+                   or len(set(depth_index.tolist())) != len(depth_index) or np.any(depth_index < 0)):
+        raise ValueError(f"depth_index {depth_index.dtype} {depth_index.shape} does not name distinct depths")
     legacy = "sha256" not in arrays
-    if not legacy and str(arrays["sha256"]) != _shard_digest(psf, filled):
+    if not legacy and str(arrays["sha256"]) != _shard_digest(psf, filled, depth_index):
         raise ValueError("content does not match the SHA-256 recorded when it was written")
     kernels = psf[filled].astype(np.float64)
     if not np.isfinite(kernels).all():
@@ -160,11 +174,12 @@ def read_kernel_shard(path: Path, psf_shape: tuple) -> tuple[np.ndarray, np.ndar
     sums = kernels.sum(axis=(-2, -1))
     if kernels.size and not np.allclose(sums, 1.0, atol=1e-3):
         raise ValueError(f"kernel sums {sums.min():.4g}..{sums.max():.4g}, expected 1")
-    return psf, filled, legacy
+    return psf, filled, legacy, depth_index
 
 
 def usable_kernel_shard(path: Path, psf_shape: tuple, stacklevel: int = 2):
-    """``read_kernel_shard``'s (psf, filled, legacy), or None: when there is no shard, and when it fails its checks.
+    """``read_kernel_shard``'s (psf, filled, legacy, depth_index), or None: when there is no shard, and when it
+    fails its checks.
 
     A failing shard (truncated, edited, non-finite, another shape) is never used: a ``PsfCacheWarning``
     names it (``stacklevel`` counts from the caller), and its entries are recomputed and written again.
@@ -179,11 +194,13 @@ def usable_kernel_shard(path: Path, psf_shape: tuple, stacklevel: int = 2):
         return None
 
 
-def write_kernel_shard(path: Path, psf: np.ndarray, filled: np.ndarray) -> None:
-    """Write a cache shard atomically, with the SHA-256 ``read_kernel_shard`` checks."""
+def write_kernel_shard(path: Path, psf: np.ndarray, filled: np.ndarray, depth_index: np.ndarray | None = None) -> None:
+    """Write a cache shard atomically, with the SHA-256 ``read_kernel_shard`` checks; ``depth_index``: a sparse
+    shard's depth of each kernel column."""
     path.parent.mkdir(parents=True, exist_ok=True)
+    extra = {} if depth_index is None else {"depth_index": np.asarray(depth_index, dtype=np.int64)}
     with atomic_path(path, suffix=".npz") as tmp:
-        np.savez(tmp, psf=psf, filled=filled, sha256=np.array(_shard_digest(psf, filled)))
+        np.savez(tmp, psf=psf, filled=filled, sha256=np.array(_shard_digest(psf, filled, depth_index)), **extra)
 
 
 def _field_kernels(_state, job) -> np.ndarray:
@@ -311,7 +328,7 @@ class PsfTensor:
         shard = usable_kernel_shard(self._shard_path(i), expected + (self.spec.kernel_px,) * 2, stacklevel=3)
         if shard is None:
             return
-        psf, filled, legacy = shard
+        psf, filled, legacy, _ = shard
         self.data[:, i][filled] = psf[filled]
         self.filled[:, i] |= filled
         if legacy:  # written before shards carried a hash: record one now that its values passed the checks

@@ -151,7 +151,7 @@ class PsfMap:
     def exact_key(self) -> str:
         """Identity of this map's exact kernels: the tensor's (lens, errors, spec), the errors named here, the
         sensor geometry and the centre convention; names the disk cache of its zone kernels."""
-        identity = {"tensor": self.tensor.key, "geometry": self.geometry.to_dict(),
+        identity = {"shards": "sparse", "tensor": self.tensor.key, "geometry": self.geometry.to_dict(),
                     "perturbation": None if self.perturbation is None else self.perturbation.to_dict(),
                     "centre_calibrated": bool(self.centre_calibrated and self.perturbation is not None)}
         return "exact-" + hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:20]
@@ -164,22 +164,21 @@ class PsfMap:
         if self.exact_cache_dir is None or key in self._zones_read:
             return
         self._zones_read.add(key)
-        shape = (self.n_channels, len(self.tensor.spec.depth_m), self.kernel_px, self.kernel_px)
-        shard = usable_kernel_shard(self._zone_path(key), shape, stacklevel=4)
+        shard = usable_kernel_shard(self._zone_path(key), (self.n_channels, None, self.kernel_px, self.kernel_px),
+                                    stacklevel=4)
         if shard is None:
             return
-        psf, filled, _ = shard
-        for j in np.nonzero(filled.all(axis=0))[0]:
-            self._exact.setdefault(key + (int(j),), psf[:, j])
+        psf, filled, _, depth_index = shard
+        for n, j in enumerate(depth_index):
+            if filled[:, n].all() and j < len(self.tensor.spec.depth_m):
+                self._exact.setdefault(key + (int(j),), psf[:, n].copy())  # a copy: a view would keep the shard
 
     def _write_zone(self, key: tuple) -> None:
-        n_depth = len(self.tensor.spec.depth_m)
-        psf = np.zeros((self.n_channels, n_depth, self.kernel_px, self.kernel_px), dtype=np.float32)
-        filled = np.zeros((self.n_channels, n_depth), dtype=bool)
-        for j in range(n_depth):
-            if key + (j,) in self._exact:
-                psf[:, j], filled[:, j] = self._exact[key + (j,)], True
-        write_kernel_shard(self._zone_path(key), psf, filled)
+        """A sparse shard of the depths this field position holds (a full frame has ~430 zones, each needing ~20
+        of the grid's depths: writing the whole grid would take 4× the disk)."""
+        held = sorted(j for j in range(len(self.tensor.spec.depth_m)) if key + (j,) in self._exact)
+        psf = np.stack([self._exact[key + (j,)] for j in held], axis=1)
+        write_kernel_shard(self._zone_path(key), psf, np.ones(psf.shape[:2], dtype=bool), np.asarray(held))
 
     @property
     def n_channels(self) -> int:
