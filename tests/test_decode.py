@@ -147,31 +147,15 @@ def test_the_window_bound_is_the_relative_spread_of_a_far_planes_window_depths()
     50° zone's exact kernels of the candidate nearest 7.8 m, standard noise, cut into 64 independent windows, each
     read by the evidence alone; their relative depth errors scatter by the bound to within 25 %. The decoder reads
     far planes at the bound (a bench table once divided the bound by d again, and the docs read 5× excess)."""
-    from scipy import fft as sfft
-
-    from bmi_sdk.bench.decoder import plane_texture, window_depth_bound
-    from bmi_sdk.decode.evidence import hann_taper, window_spectra
+    from bmi_sdk.bench.decoder import blurred_plane_raw, window_depth_bound, window_depths
     from bmi_sdk.decode.kernels import ZoneKernels
 
     decoder = ClassicalDecoder.for_psf_map(PsfMap(lens_tensor("bmi_monocentric"), GEOMETRY, mode="exact"),
                                            ClassicalConfig())
-    cand, zone, size = decoder.candidates, ZoneKernels.zone(50.0, 30.0), 512
+    cand, zone = decoder.candidates, ZoneKernels.zone(50.0, 30.0)
     true = int(np.argmin(np.abs(cand.depth_m - 7.8)))
-    kernels = decoder.zones.kernels(zone, np.array([true]))[:, 0]
-    k = kernels.shape[-1]
-    otf = np.zeros((3, size, size))
-    otf[:, :k, :k] = kernels
-    otf = sfft.fft2(np.roll(otf, (-(k // 2), -(k // 2)), (1, 2)), axes=(1, 2))
-    rgb = plane_texture(size, "pink", np.random.default_rng(3)).transpose(2, 0, 1)
-    optical = sfft.ifft2(sfft.fft2(rgb, axes=(1, 2)) * otf, axes=(1, 2)).real.transpose(1, 2, 0)
-    raw = simulate_raw(optical.astype(np.float32), 0.005, np.random.default_rng(3))
-    n = decoder.config.window_px // 2
-    taper = hann_taper(n)
-    spectra = [window_spectra(p, n, n, taper)[0] for p in normalised_planes(raw, BLACK, WHITE)]
-    noise = [np.full(len(spectra[0]), NoiseProfile.additive(0.005).offset)] * 4
-    nll = decoder._block_nll(spectra, decoder.zones.models(zone, np.arange(len(cand))), noise,
-                             float((taper ** 2).sum()), [np.zeros(len(spectra[0]), bool)] * 4)
-    depth, _, _ = Evidence(nll, cand.inv_depth_per_m).refine()
+    raw = blurred_plane_raw(decoder.zones.kernels(zone, np.array([true]))[:, 0], 512, seed=3)
+    depth = window_depths(decoder, raw, [zone])[0]
     relative_spread = np.std(depth / cand.depth_m[true] - 1.0)
     bound = window_depth_bound(decoder, raw, 0, 0, 50.0, float(cand.depth_m[true]))
     assert len(depth) == 64 and 0.75 < relative_spread / bound < 1.33

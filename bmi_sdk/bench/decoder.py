@@ -212,43 +212,55 @@ ROTATION_DEPTH_M = 7.8
 ROTATION_ZONES = ((0.0, 0.0), (1.2, 0.0), (1.2, 90.0), (3.0, 0.0), (3.0, 10.0), (1.2, 45.0), (3.0, 45.0))
 
 
-def rotation_rows(decoder, size_px: int = 512, seed: int = 3) -> list[list]:
-    """Median depth read from one plane against the kernel models of several zones (θ, φ).
-
-    A ``pink`` plane at ``ROTATION_DEPTH_M`` blurred (periodically, by FFT) with the on-axis zone's kernels of the
-    decoder's candidate nearest it, standard noise, read window by window (non-overlapping) with every zone's
-    models. Zones apart only in θ (up to 3°) hold nearly the same kernels; zones off the multiples of 90° in φ hold
-    tensor kernels rotated by bilinear interpolation (``render.psf_map.rotate_kernel``).
-    """
+def blurred_plane_raw(kernels: np.ndarray, size_px: int = 512, seed: int = 3) -> np.ndarray:
+    """A ``pink`` plane blurred periodically (by FFT) with one (C, K, K) kernel set, as a raw frame with the standard
+    noise: a plane whose kernels are exactly one zone's, with no render zones or image edge."""
     from scipy import fft as sfft
 
-    from bmi_sdk.decode.bayer import normalised_planes
-    from bmi_sdk.decode.evidence import Evidence, hann_taper, window_spectra
     from bmi_sdk.nn.data import STANDARD_SIGMA, simulate_raw
 
-    cand = decoder.candidates
-    true = int(np.argmin(np.abs(cand.depth_m - ROTATION_DEPTH_M)))
-    kernels = decoder.zones.kernels((0.0, 0.0), np.array([true]))[:, 0]      # (C, K, K)
     k = kernels.shape[-1]
     otf = np.zeros((3, size_px, size_px))
     otf[:, :k, :k] = kernels
     otf = sfft.fft2(np.roll(otf, (-(k // 2), -(k // 2)), (1, 2)), axes=(1, 2))
     rgb = plane_texture(size_px, "pink", np.random.default_rng(seed)).transpose(2, 0, 1)
     optical = sfft.ifft2(sfft.fft2(rgb, axes=(1, 2)) * otf, axes=(1, 2)).real.transpose(1, 2, 0)
-    raw = simulate_raw(optical.astype(np.float32), STANDARD_SIGMA, np.random.default_rng(seed))
-    planes = normalised_planes(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
+    return simulate_raw(optical.astype(np.float32), STANDARD_SIGMA, np.random.default_rng(seed))
+
+
+def window_depths(decoder, raw: np.ndarray, zones) -> list[np.ndarray]:
+    """Depth of each non-overlapping window of ``raw`` (standard noise) read by the evidence alone with each zone's
+    kernel models, every candidate scored: one array per zone (the window spectra are taken once)."""
+    from bmi_sdk.decode.bayer import normalised_planes
+    from bmi_sdk.decode.evidence import Evidence, hann_taper, window_spectra
+    from bmi_sdk.nn.data import STANDARD_SIGMA
+
     n = decoder.config.window_px // 2
     taper = hann_taper(n)
-    spectra = [window_spectra(p, n, n, taper)[0] for p in planes]
+    spectra = [window_spectra(p, n, n, taper)[0] for p in normalised_planes(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)]
     noise = [np.full(len(spectra[0]), NoiseProfile.additive(STANDARD_SIGMA).offset)] * 4
     no_clip = [np.zeros(len(spectra[0]), bool)] * 4
-    rows = []
-    for zone in ROTATION_ZONES:
+    cand = decoder.candidates
+    depths = []
+    for zone in zones:
         models = decoder.zones.models(zone, np.arange(len(cand)))
         nll = decoder._block_nll(spectra, models, noise, float((taper ** 2).sum()), no_clip)
-        depth, _, _ = Evidence(nll, cand.inv_depth_per_m).refine()
-        rows.append([f"θ {zone[0]:g}°, φ {zone[1]:g}°", float(np.median(depth))])
-    return rows
+        depths.append(Evidence(nll, cand.inv_depth_per_m).refine()[0])
+    return depths
+
+
+def rotation_rows(decoder, size_px: int = 512, seed: int = 3) -> list[list]:
+    """Median depth read from one plane against the kernel models of several zones (θ, φ).
+
+    A ``blurred_plane_raw`` at ``ROTATION_DEPTH_M`` (the on-axis zone's kernels of the decoder's candidate nearest
+    it), read window by window with every zone's models (``window_depths``). Zones apart only in θ (up to 3°) hold
+    nearly the same kernels; zones off the multiples of 90° in φ hold tensor kernels rotated by bilinear
+    interpolation (``render.psf_map.rotate_kernel``).
+    """
+    true = int(np.argmin(np.abs(decoder.candidates.depth_m - ROTATION_DEPTH_M)))
+    raw = blurred_plane_raw(decoder.zones.kernels((0.0, 0.0), np.array([true]))[:, 0], size_px, seed)
+    return [[f"θ {zone[0]:g}°, φ {zone[1]:g}°", float(np.median(depth))]
+            for zone, depth in zip(ROTATION_ZONES, window_depths(decoder, raw, ROTATION_ZONES))]
 
 
 def classical_depth(decoder, geometry):

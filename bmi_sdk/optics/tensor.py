@@ -134,12 +134,13 @@ def _shard_digest(psf: np.ndarray, filled: np.ndarray, depth_index: np.ndarray |
     return h.hexdigest()
 
 
-def read_kernel_shard(path: Path, psf_shape: tuple) -> tuple[np.ndarray, np.ndarray, bool, np.ndarray | None]:
+def read_kernel_shard(path: Path, psf_shape: tuple,
+                      sparse: bool = False) -> tuple[np.ndarray, np.ndarray, bool, np.ndarray | None]:
     """(psf, filled, legacy, depth_index) of a cache shard (kernels (C, n, K, K), filled (C, n)), or ``ValueError``
     saying what is wrong with it.
 
-    ``psf_shape[1]`` None: a sparse shard that holds only some depths of the grid, ``depth_index`` naming each
-    kernel column's (``write_kernel_shard(depth_index=...)``); otherwise a dense one with every depth of the grid
+    ``sparse``: the shard holds only some of the grid's ``psf_shape[1]`` depths, ``depth_index`` naming each
+    kernel column's (``write_kernel_shard(depth_index=...)``); otherwise it holds every depth of the grid
     (``depth_index`` None).
 
     Checks: a readable npz (zip CRCs catch truncation and bit flips), the
@@ -153,7 +154,6 @@ def read_kernel_shard(path: Path, psf_shape: tuple) -> tuple[np.ndarray, np.ndar
             arrays = {k: z[k] for k in z.files}
     except Exception as exc:  # zipfile, zlib and numpy raise many types for a damaged file
         raise ValueError(f"unreadable: {type(exc).__name__}: {exc}") from None
-    sparse = psf_shape[1] is None
     needed = {"psf", "filled"} | ({"depth_index", "sha256"} if sparse else set())
     if not needed <= set(arrays):
         raise ValueError(f"arrays {sorted(arrays)}, expected {sorted(needed)}")
@@ -163,8 +163,10 @@ def read_kernel_shard(path: Path, psf_shape: tuple) -> tuple[np.ndarray, np.ndar
     if psf.shape != expected or filled.shape != expected[:2] or filled.dtype != bool:
         raise ValueError(f"psf {psf.shape}, filled {filled.shape} {filled.dtype}; expected {psf_shape}")
     if sparse and (depth_index.shape != psf.shape[1:2] or depth_index.dtype.kind != "i"
-                   or len(set(depth_index.tolist())) != len(depth_index) or np.any(depth_index < 0)):
-        raise ValueError(f"depth_index {depth_index.dtype} {depth_index.shape} does not name distinct depths")
+                   or len(set(depth_index.tolist())) != len(depth_index) or np.any(depth_index < 0)
+                   or np.any(depth_index >= psf_shape[1])):
+        raise ValueError(f"depth_index {depth_index.dtype} {depth_index.shape} does not name distinct depths of the "
+                         f"grid's {psf_shape[1]}")
     legacy = "sha256" not in arrays
     if not legacy and str(arrays["sha256"]) != _shard_digest(psf, filled, depth_index):
         raise ValueError("content does not match the SHA-256 recorded when it was written")
@@ -177,7 +179,7 @@ def read_kernel_shard(path: Path, psf_shape: tuple) -> tuple[np.ndarray, np.ndar
     return psf, filled, legacy, depth_index
 
 
-def usable_kernel_shard(path: Path, psf_shape: tuple, stacklevel: int = 2):
+def usable_kernel_shard(path: Path, psf_shape: tuple, stacklevel: int = 2, sparse: bool = False):
     """``read_kernel_shard``'s (psf, filled, legacy, depth_index), or None: when there is no shard, and when it
     fails its checks.
 
@@ -187,7 +189,7 @@ def usable_kernel_shard(path: Path, psf_shape: tuple, stacklevel: int = 2):
     if not path.exists():
         return None
     try:
-        return read_kernel_shard(path, psf_shape)
+        return read_kernel_shard(path, psf_shape, sparse)
     except ValueError as exc:
         warnings.warn(f"PSF cache shard {path} is unusable ({exc}); recomputing it", PsfCacheWarning,
                       stacklevel=stacklevel + 1)

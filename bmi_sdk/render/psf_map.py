@@ -164,13 +164,13 @@ class PsfMap:
         if self.exact_cache_dir is None or key in self._zones_read:
             return
         self._zones_read.add(key)
-        shard = usable_kernel_shard(self._zone_path(key), (self.n_channels, None, self.kernel_px, self.kernel_px),
-                                    stacklevel=4)
+        shape = (self.n_channels, len(self.tensor.spec.depth_m), self.kernel_px, self.kernel_px)
+        shard = usable_kernel_shard(self._zone_path(key), shape, stacklevel=4, sparse=True)
         if shard is None:
             return
         psf, filled, _, depth_index = shard
         for n, j in enumerate(depth_index):
-            if filled[:, n].all() and j < len(self.tensor.spec.depth_m):
+            if filled[:, n].all():
                 self._exact.setdefault(key + (int(j),), psf[:, n].copy())  # a copy: a view would keep the shard
 
     def _write_zone(self, key: tuple) -> None:
