@@ -8,8 +8,9 @@ Steps (each in its own module):
 2. Windows of ``window_px`` (full-resolution footprint) every ``stride_px``, on a grid anchored to
    the sensor: window centres sit at rows and columns k·stride − ½ of the frame. The grid is
    processed in blocks of ``block_windows``² windows; each block is one zone (θ, φ of its centre)
-   whose kernels come from ``kernels.ZoneKernels``. Blocks whose pixels all lie outside the image
-   circle are skipped.
+   whose kernels come from ``kernels.ZoneKernels``, or (``theta_step_deg``) each window reads the
+   zones of a θ grid around its own θ, for a built camera whose kernels change within a block's 2°
+   of field. Blocks whose pixels all lie outside the image circle are skipped.
 3. ``evidence``: a plane's windows holding a sample at the white level get no evidence from that
    plane (a censored sample fits no noise model; the report counts them), and windows clipped in
    every plane take their neighbours' 1/d (``fill_blind_windows``). A coarse pass over every
@@ -55,7 +56,7 @@ from .bayer import clipped_samples, estimate_noise_sigma, normalised_planes
 from .candidates import Candidates, inverse_depth_candidates
 from .evidence import (Evidence, hann_taper, plane_nll, taper_variance_inflation, window_spectra,
                        windows_touching)
-from .kernels import ZoneKernels
+from .kernels import ZONE_STEP_DEG, ZoneKernels
 
 
 NOISE_MODELS = ("profile", "estimate")
@@ -87,6 +88,8 @@ class ClassicalConfig:
     coarse_step: int = 4
     slopes: tuple = (2.0,)
     block_windows: int = 16
+    theta_step_deg: float | None = None  # None: a block's windows read its centre's zone; else each window reads
+    #                                      the zones of a θ grid of this step around its own θ (``ZoneKernels.field_reads``)
     # σ model fitted by `bmi bench decoder` (seed 777, 12 tiles per region, the other defaults as here)
     sigma_laplace_scale: float = 1.0  # the fit's bound: the inflated curvature is already the spread
     sigma_spread_scale: float = 3.64
@@ -112,6 +115,10 @@ class ClassicalConfig:
             raise ValueError("block_windows, coarse_step and aif_step must be >= 1")
         if not self.slopes:
             raise ValueError("at least one prior slope is needed")
+        if self.theta_step_deg is not None and not (
+                self.theta_step_deg > 0 and float(self.theta_step_deg / ZONE_STEP_DEG).is_integer()):
+            raise ValueError(f"theta_step_deg must be a positive multiple of the zone step {ZONE_STEP_DEG}°, "
+                             f"got {self.theta_step_deg}")
         if self.window_model not in WINDOW_MODELS:
             raise ValueError(f"window_model must be one of {WINDOW_MODELS}, got {self.window_model!r}")
         if self.noise_model not in NOISE_MODELS:
@@ -176,6 +183,20 @@ class ClassicalDecoder:
             total = best if total is None else total + best
         return total                                               # (windows, D)
 
+    def _field_nll(self, spectra: list, reads: list, models: list, noise_vars: list, taper_energy: float,
+                   clipped: list) -> np.ndarray:
+        """(windows, D) NLL of a block's windows, each read with the zones ``ZoneKernels.field_reads`` gives it
+        (``models`` one ``_block_nll`` model stack per read): the weighted sum of the zones' NLLs, which is the
+        NLL under the kernels interpolated to the window's θ to first order in the zones' spacing."""
+        if len(reads) == 1:
+            return self._block_nll(spectra, models[0], noise_vars, taper_energy, clipped)
+        total = np.zeros((len(spectra[0]), models[0].shape[2]))
+        for (_, idx, weight), zone_models in zip(reads, models):
+            pick = lambda planes: [p[idx] for p in planes]  # noqa: E731
+            total[idx] += weight[:, None] * self._block_nll(pick(spectra), zone_models, pick(noise_vars),
+                                                            taper_energy, pick(clipped))
+        return total
+
     def decode(self, raw: np.ndarray, black_level_dn: float, white_level_dn: float, geometry: SensorGeometry,
                row0: int = 0, col0: int = 0, cfa: str = "RGGB", progress: bool = False,
                noise_profile: NoiseProfile | None = None) -> DecodeResult:
@@ -234,6 +255,9 @@ class ClassicalDecoder:
             t0 = time.perf_counter()
             zone = ZoneKernels.zone_at(geometry, row0 + (br + (nr - 1) / 2) * cfg.stride_px,
                                        col0 + (bc + (nc - 1) / 2) * cfg.stride_px)
+            win_rows, win_cols = np.meshgrid(row0 + (br + np.arange(nr)) * cfg.stride_px,
+                                             col0 + (bc + np.arange(nc)) * cfg.stride_px, indexing="ij")
+            reads = ZoneKernels.field_reads(geometry, win_rows.ravel(), win_cols.ravel(), zone, cfg.theta_step_deg)
             ps = slice(br * sp, br * sp + (nr - 1) * sp + n), slice(bc * sp, bc * sp + (nc - 1) * sp + n)
             windows = [window_spectra(padded[p][ps], n, sp, taper, self.threads) for p in range(4)]
             spectra = [w[0] for w in windows]
@@ -243,17 +267,17 @@ class ClassicalDecoder:
             windows_clipped += int(np.logical_or.reduce(clipped).sum())
             blind[br:br + nr, bc:bc + nc] = np.logical_and.reduce(clipped).reshape(nr, nc)
             t1 = time.perf_counter()
-            models = self.zones.models(zone, coarse)
+            models = [self.zones.models(z, coarse) for z, _, _ in reads]
             t2 = time.perf_counter()
-            coarse_nll = self._block_nll(spectra, models, noise_vars, taper_energy, clipped)
+            coarse_nll = self._field_nll(spectra, reads, models, noise_vars, taper_energy, clipped)
             evidence[br:br + nr, bc:bc + nc] = (coarse_nll - coarse_nll.min(axis=1, keepdims=True)).reshape(nr, nc, -1)
             best = np.unique(coarse[np.argmin(coarse_nll, axis=1)])
             reach = np.arange(-cfg.coarse_step, cfg.coarse_step + 1)
             which = np.unique(np.clip(best[:, None] + reach[None, :], 0, n_cand - 1))
             t3 = time.perf_counter()
-            models = self.zones.models(zone, which)
+            models = [self.zones.models(z, which) for z, _, _ in reads]
             t4 = time.perf_counter()
-            nll = self._block_nll(spectra, models, noise_vars, taper_energy, clipped)
+            nll = self._field_nll(spectra, reads, models, noise_vars, taper_energy, clipped)
             depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
             inv[br:br + nr, bc:bc + nc] = 1.0 / depth_b
             sig[br:br + nr, bc:bc + nc] = sigma_b * self.laplace_inflation
