@@ -147,14 +147,13 @@ def test_the_window_bound_is_the_relative_spread_of_a_far_planes_window_depths()
     50° zone's exact kernels of the candidate nearest 7.8 m, standard noise, cut into 64 independent windows, each
     read by the evidence alone; their relative depth errors scatter by the bound to within 25 %. The decoder reads
     far planes at the bound (a bench table once divided the bound by d again, and the docs read 5× excess)."""
-    from bmi_sdk.bench.decoder import blurred_plane_raw, window_depth_bound, window_depths
+    from bmi_sdk.bench.decoder import window_depth_bound, window_depths, zone_plane_raw
     from bmi_sdk.decode.kernels import ZoneKernels
 
     decoder = ClassicalDecoder.for_psf_map(PsfMap(lens_tensor("bmi_monocentric"), GEOMETRY, mode="exact"),
                                            ClassicalConfig())
     cand, zone = decoder.candidates, ZoneKernels.zone(50.0, 30.0)
-    true = int(np.argmin(np.abs(cand.depth_m - 7.8)))
-    raw = blurred_plane_raw(decoder.zones.kernels(zone, np.array([true]))[:, 0], 512, seed=3)
+    raw, true = zone_plane_raw(decoder, zone, 7.8, 512, seed=3)
     depth = window_depths(decoder, raw, [zone])[0]
     relative_spread = np.std(depth / cand.depth_m[true] - 1.0)
     bound = window_depth_bound(decoder, raw, 0, 0, 50.0, float(cand.depth_m[true]))
@@ -538,24 +537,29 @@ def test_aif_windows_have_lengths_the_fft_factors_well():
 
 def test_each_window_reads_the_zones_around_its_own_theta_weighted_linearly():
     """A built camera's kernels change with θ within a block, so a window can read the zones of a θ grid around its
-    own θ: two zones, weights summing to 1 that interpolate θ exactly; θ step off reads the block's centre zone."""
+    own θ: two zones, weights summing to 1 that interpolate θ exactly, windows in ``window_spectra``'s row-major
+    order; θ step off reads the block's centre zone. Near the axis, at the field edge and on a block's grid."""
     from bmi_sdk.decode.kernels import ZoneKernels
 
     geometry = lens_geometry("bmi_monocentric")
-    thetas = np.array([0.3, 54.3, 55.0, 55.9, 59.99])
-    pixels = np.array([geometry.pixel_of_field(t, 30.0) for t in thetas])
-    reads = ZoneKernels.field_reads(geometry, pixels[:, 0], pixels[:, 1], (55.0, 30.0), 1.0)
-    weight = np.zeros(len(thetas))
-    theta_read = np.zeros(len(thetas))
-    for (zone_theta, zone_phi), idx, w in reads:
-        assert zone_theta == round(zone_theta) and zone_phi == (0.0 if zone_theta == 0 else 30.0)
-        np.add.at(weight, idx, w)
-        np.add.at(theta_read, idx, w * zone_theta)
-    np.testing.assert_allclose(weight, 1.0, atol=1e-12)
-    np.testing.assert_allclose(theta_read, thetas, atol=1e-6)
-    assert sum(len(idx) for _, idx, _ in reads) <= 2 * len(thetas)
-    (only,) = ZoneKernels.field_reads(geometry, pixels[:, 0], pixels[:, 1], (55.0, 30.0), None)
-    assert only[0] == (55.0, 30.0) and np.array_equal(only[1], np.arange(len(thetas))) and np.all(only[2] == 1)
+    r, c = geometry.pixel_of_field(55.0, 30.0)
+    grids = [([p[0]], [p[1]]) for p in (geometry.pixel_of_field(t, 30.0) for t in (0.3, 54.3, 59.99))]
+    grids.append((r + 16.0 * np.arange(3), c + 16.0 * np.arange(4)))
+    for rows, cols in grids:
+        grid_rows, grid_cols = np.meshgrid(rows, cols, indexing="ij")
+        thetas = geometry.field_angles(grid_rows.ravel(), grid_cols.ravel())[0]
+        reads = ZoneKernels.field_reads(geometry, rows, cols, (55.0, 30.0), 1.0)
+        weight = np.zeros(len(thetas))
+        theta_read = np.zeros(len(thetas))
+        for (zone_theta, zone_phi), idx, w in reads:
+            assert zone_theta == round(zone_theta) and zone_phi == (0.0 if zone_theta == 0 else 30.0)
+            np.add.at(weight, idx, w)
+            np.add.at(theta_read, idx, w * zone_theta)
+        np.testing.assert_allclose(weight, 1.0, atol=1e-12)
+        np.testing.assert_allclose(theta_read, thetas, atol=1e-6)
+        assert sum(len(idx) for _, idx, _ in reads) <= 2 * len(thetas)
+        (only,) = ZoneKernels.field_reads(geometry, rows, cols, (55.0, 30.0), None)
+        assert only[0] == (55.0, 30.0) and np.array_equal(only[1], np.arange(len(thetas))) and np.all(only[2] == 1)
     with pytest.raises(ValueError, match="theta_step_deg"):
         ClassicalConfig(theta_step_deg=0.3)
 

@@ -252,10 +252,10 @@ OUTLIER_FRACTION = 0.25
 
 
 def window_outlier_rows(nominal_map, built_map, size_px: int = 512, seed: int = 4) -> list[list]:
-    """A ``blurred_plane_raw`` per camera and range (one zone's kernels at ``BUILT_FIELD_DEG``, φ 30°, the candidate
-    nearest each range), read window by window (``window_depths``): AbsRel and the fraction of windows off by more
-    than ``OUTLIER_FRACTION``. A camera focused inside the range (the +0.5 % sensor radius moves the edge's focus to
-    ~3 m) is defocused both ways around it, and windows there can read the wrong side."""
+    """A ``zone_plane_raw`` per camera and range (the kernels of the zone at ``BUILT_FIELD_DEG``, φ 30°), read window
+    by window (``window_depths``): AbsRel and the fraction of windows off by more than ``OUTLIER_FRACTION``. A camera
+    focused inside the range (the +0.5 % sensor radius moves the edge's focus to ~3 m) is defocused both ways around
+    it, and windows there can read the wrong side."""
     from bmi_sdk.decode import ClassicalConfig, ClassicalDecoder
 
     zone = (BUILT_FIELD_DEG, 30.0)
@@ -264,8 +264,7 @@ def window_outlier_rows(nominal_map, built_map, size_px: int = 512, seed: int = 
         decoder = ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig())
         cand = decoder.candidates
         for d in OUTLIER_DEPTHS_M:
-            i = int(np.argmin(np.abs(cand.depth_m - d)))
-            raw = blurred_plane_raw(decoder.zones.kernels(zone, np.array([i]))[:, 0], size_px, seed)
+            raw, i = zone_plane_raw(decoder, zone, d, size_px, seed)
             err = np.abs(window_depths(decoder, raw, [zone])[0] / cand.depth_m[i] - 1.0)
             rows.append([name, f"{cand.depth_m[i]:.2g} m", float(err.mean()), float(np.mean(err > OUTLIER_FRACTION))])
     return rows
@@ -289,6 +288,14 @@ def blurred_plane_raw(kernels: np.ndarray, size_px: int = 512, seed: int = 3) ->
     rgb = plane_texture(size_px, "pink", np.random.default_rng(seed)).transpose(2, 0, 1)
     optical = sfft.ifft2(sfft.fft2(rgb, axes=(1, 2)) * otf, axes=(1, 2)).real.transpose(1, 2, 0)
     return simulate_raw(optical.astype(np.float32), STANDARD_SIGMA, np.random.default_rng(seed))
+
+
+def zone_plane_raw(decoder, zone: tuple[float, float], depth_m: float, size_px: int = 512,
+                   seed: int = 3) -> tuple[np.ndarray, int]:
+    """(raw, candidate index): a ``blurred_plane_raw`` blurred by ``zone``'s kernels of the decoder's candidate nearest
+    ``depth_m`` (a plane whose depth the decoder holds exactly)."""
+    true = int(np.argmin(np.abs(decoder.candidates.depth_m - depth_m)))
+    return blurred_plane_raw(decoder.zones.kernels(zone, np.array([true]))[:, 0], size_px, seed), true
 
 
 def window_depths(decoder, raw: np.ndarray, zones) -> list[np.ndarray]:
@@ -315,13 +322,11 @@ def window_depths(decoder, raw: np.ndarray, zones) -> list[np.ndarray]:
 def rotation_rows(decoder, size_px: int = 512, seed: int = 3) -> list[list]:
     """Median depth read from one plane against the kernel models of several zones (θ, φ).
 
-    A ``blurred_plane_raw`` at ``ROTATION_DEPTH_M`` (the on-axis zone's kernels of the decoder's candidate nearest
-    it), read window by window with every zone's models (``window_depths``). Zones apart only in θ (up to 3°) hold
-    nearly the same kernels; zones off the multiples of 90° in φ hold tensor kernels rotated by bilinear
+    A ``zone_plane_raw`` at ``ROTATION_DEPTH_M`` (the on-axis zone's kernels), read window by window with every
+    zone's models (``window_depths``). Zones apart only in θ (up to 3°) hold nearly the same kernels; zones off the multiples of 90° in φ hold tensor kernels rotated by bilinear
     interpolation (``render.psf_map.rotate_kernel``).
     """
-    true = int(np.argmin(np.abs(decoder.candidates.depth_m - ROTATION_DEPTH_M)))
-    raw = blurred_plane_raw(decoder.zones.kernels((0.0, 0.0), np.array([true]))[:, 0], size_px, seed)
+    raw, _ = zone_plane_raw(decoder, (0.0, 0.0), ROTATION_DEPTH_M, size_px, seed)
     return [[f"θ {zone[0]:g}°, φ {zone[1]:g}°", float(np.median(depth))]
             for zone, depth in zip(ROTATION_ZONES, window_depths(decoder, raw, ROTATION_ZONES))]
 

@@ -255,9 +255,9 @@ class ClassicalDecoder:
             t0 = time.perf_counter()
             zone = ZoneKernels.zone_at(geometry, row0 + (br + (nr - 1) / 2) * cfg.stride_px,
                                        col0 + (bc + (nc - 1) / 2) * cfg.stride_px)
-            win_rows, win_cols = np.meshgrid(row0 + (br + np.arange(nr)) * cfg.stride_px,
-                                             col0 + (bc + np.arange(nc)) * cfg.stride_px, indexing="ij")
-            reads = ZoneKernels.field_reads(geometry, win_rows.ravel(), win_cols.ravel(), zone, cfg.theta_step_deg)
+            reads = ZoneKernels.field_reads(geometry, row0 + (br + np.arange(nr)) * cfg.stride_px,
+                                            col0 + (bc + np.arange(nc)) * cfg.stride_px, zone, cfg.theta_step_deg)
+            window_reads = sum(len(idx) for _, idx, _ in reads)  # nr · nc, or more where windows blend zones
             ps = slice(br * sp, br * sp + (nr - 1) * sp + n), slice(bc * sp, bc * sp + (nc - 1) * sp + n)
             windows = [window_spectra(padded[p][ps], n, sp, taper, self.threads) for p in range(4)]
             spectra = [w[0] for w in windows]
@@ -281,8 +281,8 @@ class ClassicalDecoder:
             depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
             inv[br:br + nr, bc:bc + nc] = 1.0 / depth_b
             sig[br:br + nr, bc:bc + nc] = sigma_b * self.laplace_inflation
-            evaluations["full"] += nr * nc * n_cand
-            evaluations["done"] += nr * nc * (len(coarse) + len(which))
+            evaluations["full"] += window_reads * n_cand
+            evaluations["done"] += window_reads * (len(coarse) + len(which))
             timings["evidence_s"] += (t1 - t0) + (t3 - t2) + (time.perf_counter() - t4)
             timings["kernels_s"] += (t2 - t1) + (t4 - t3)
         if bar is not None:

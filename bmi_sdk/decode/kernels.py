@@ -49,8 +49,9 @@ class ZoneKernels:
     @staticmethod
     def field_reads(geometry, rows_px: np.ndarray, cols_px: np.ndarray, centre_zone: tuple[float, float],
                     theta_step_deg: float | None) -> list[tuple[tuple[float, float], np.ndarray, np.ndarray]]:
-        """The zones a block's windows (centred at sensor pixels ``rows_px``, ``cols_px``) are read with, and how
-        much: [(zone, window indices, weights)], the weights of each window summing to 1.
+        """The zones a block's windows are read with, and how much: [(zone, window indices, weights)], the weights of
+        each window summing to 1. The windows are centred at the sensor pixels of the grid ``rows_px`` × ``cols_px``
+        (row-major, as ``evidence.window_spectra`` orders them).
 
         ``theta_step_deg`` None: every window reads the block's ``centre_zone``. Otherwise each window reads the two
         zones of a θ grid of that step around its own θ, weighted linearly (at the φ of the block's centre): a
@@ -58,9 +59,11 @@ class ZoneKernels:
         θ-dependent amount; +0.5 % reads a 6.4 m plane 1° off its zone as 5.5 or 7.7 m, ``bmi bench decoder``),
         while a block spans about 2° of field.
         """
+        count = len(rows_px) * len(cols_px)
         if theta_step_deg is None:
-            return [(centre_zone, np.arange(len(rows_px)), np.ones(len(rows_px)))]
-        theta, _ = geometry.field_angles(np.asarray(rows_px, float), np.asarray(cols_px, float))
+            return [(centre_zone, np.arange(count), np.ones(count))]
+        rows, cols = np.meshgrid(np.asarray(rows_px, float), np.asarray(cols_px, float), indexing="ij")
+        theta, _ = geometry.field_angles(rows.ravel(), cols.ravel())
         theta = np.clip(np.nan_to_num(theta, nan=geometry.max_field_deg), 0.0, geometry.max_field_deg)
         lower = np.floor(theta / theta_step_deg)
         frac = theta / theta_step_deg - lower
