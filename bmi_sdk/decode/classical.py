@@ -15,8 +15,10 @@ Steps (each in its own module):
    plane (a censored sample fits no noise model; the report counts them), and windows clipped in
    every plane take their neighbours' 1/d (``fill_blind_windows``). A coarse pass over every
    ``coarse_step``-th candidate; the fine pass scores, for
-   the whole block, the union of every window's best coarse candidate ± one coarse step. The
-   report counts the candidate evaluations done (coarse + fine) against the exhaustive count.
+   the whole block, the union of every window's best coarse candidate ± one coarse step, less the
+   candidates the coarse pass scored (their scores are reused: both passes share the coarse pass's
+   β grid, so their NLLs form one curve). The report counts the candidate evaluations done
+   (coarse + fine) against the exhaustive count.
 4. Refinement (parabola in 1/d) and the 1σ of 1/d. The Laplace σ_L is the likelihood's curvature
    times the taper's inflation (``evidence.taper_variance_inflation``): on data drawn from the
    model itself that is the estimate's real spread. On scenes it is too small (the Gaussian image
@@ -170,31 +172,36 @@ class ClassicalDecoder:
 
     # -- evidence ---------------------------------------------------------------------------------
     def _block_nll(self, spectra: list, models: np.ndarray, noise_vars: list, taper_energy: float,
-                   clipped: list) -> np.ndarray:
+                   clipped: list, grid_models: np.ndarray | None = None) -> np.ndarray:
         """(windows, D) NLL summed over the planes, each plane's prior slope profiled out; ``models`` is
         ``ZoneKernels.models`` (planes, slopes, D, n, m), ``noise_vars`` each plane's per-window noise variance,
         ``clipped`` each plane's windows holding a sample at the white level: that plane gives them no evidence
-        (a clipped plateau's sharp rim reads as a sharp kernel, confidently and wrongly)."""
+        (a clipped plateau's sharp rim reads as a sharp kernel, confidently and wrongly). ``grid_models``: the
+        models that place the β grid (``evidence.plane_nll``), default ``models``."""
+        grid = models if grid_models is None else grid_models
         total = None
         for p, power in enumerate(spectra):
-            best = np.min([plane_nll(power, models[p, a], noise_vars[p], taper_energy, self.zones.tapered)
+            best = np.min([plane_nll(power, models[p, a], noise_vars[p], taper_energy, self.zones.tapered,
+                                     grid_model=grid[p, a])
                            for a in range(models.shape[1])], axis=0)
             best[clipped[p]] = 0.0
             total = best if total is None else total + best
         return total                                               # (windows, D)
 
     def _field_nll(self, spectra: list, reads: list, models: list, noise_vars: list, taper_energy: float,
-                   clipped: list) -> np.ndarray:
+                   clipped: list, grid_models: list | None = None) -> np.ndarray:
         """(windows, D) NLL of a block's windows, each read with the zones ``ZoneKernels.field_reads`` gives it
-        (``models`` one ``_block_nll`` model stack per read): the weighted sum of the zones' NLLs, which is the
-        NLL under the kernels interpolated to the window's θ to first order in the zones' spacing."""
+        (``models`` one ``_block_nll`` model stack per read, ``grid_models`` the stacks that place each read's β
+        grid): the weighted sum of the zones' NLLs, which is the NLL under the kernels interpolated to the
+        window's θ to first order in the zones' spacing."""
+        grid_models = grid_models or [None] * len(reads)
         if len(reads) == 1:
-            return self._block_nll(spectra, models[0], noise_vars, taper_energy, clipped)
+            return self._block_nll(spectra, models[0], noise_vars, taper_energy, clipped, grid_models[0])
         total = np.zeros((len(spectra[0]), models[0].shape[2]))
-        for (_, idx, weight), zone_models in zip(reads, models):
+        for (_, idx, weight), zone_models, zone_grid in zip(reads, models, grid_models):
             pick = lambda planes: [p[idx] for p in planes]  # noqa: E731
             total[idx] += weight[:, None] * self._block_nll(pick(spectra), zone_models, pick(noise_vars),
-                                                            taper_energy, pick(clipped))
+                                                            taper_energy, pick(clipped), zone_grid)
         return total
 
     def decode(self, raw: np.ndarray, black_level_dn: float, white_level_dn: float, geometry: SensorGeometry,
@@ -267,22 +274,29 @@ class ClassicalDecoder:
             windows_clipped += int(np.logical_or.reduce(clipped).sum())
             blind[br:br + nr, bc:bc + nc] = np.logical_and.reduce(clipped).reshape(nr, nc)
             t1 = time.perf_counter()
-            models = [self.zones.models(z, coarse) for z, _, _ in reads]
+            coarse_models = [self.zones.models(z, coarse) for z, _, _ in reads]
             t2 = time.perf_counter()
-            coarse_nll = self._field_nll(spectra, reads, models, noise_vars, taper_energy, clipped)
+            coarse_nll = self._field_nll(spectra, reads, coarse_models, noise_vars, taper_energy, clipped)
             evidence[br:br + nr, bc:bc + nc] = (coarse_nll - coarse_nll.min(axis=1, keepdims=True)).reshape(nr, nc, -1)
             best = np.unique(coarse[np.argmin(coarse_nll, axis=1)])
             reach = np.arange(-cfg.coarse_step, cfg.coarse_step + 1)
             which = np.unique(np.clip(best[:, None] + reach[None, :], 0, n_cand - 1))
+            # the fine pass scores only what the coarse pass has not, on the coarse pass's β grid, so that both
+            # passes' NLLs are one curve (a grid placed by other candidates moves NLLs by tenths of a nat)
+            fine = np.setdiff1d(which, coarse)
             t3 = time.perf_counter()
-            models = [self.zones.models(z, which) for z, _, _ in reads]
+            models = [self.zones.models(z, fine) for z, _, _ in reads] if len(fine) else []
             t4 = time.perf_counter()
-            nll = self._field_nll(spectra, reads, models, noise_vars, taper_energy, clipped)
+            nll = np.empty((nr * nc, len(which)))
+            nll[:, np.isin(which, coarse)] = coarse_nll[:, np.isin(coarse, which)]
+            if len(fine):
+                nll[:, np.isin(which, fine)] = self._field_nll(spectra, reads, models, noise_vars, taper_energy,
+                                                               clipped, coarse_models)
             depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
             inv[br:br + nr, bc:bc + nc] = 1.0 / depth_b
             sig[br:br + nr, bc:bc + nc] = sigma_b * self.laplace_inflation
             evaluations["full"] += window_reads * n_cand
-            evaluations["done"] += window_reads * (len(coarse) + len(which))
+            evaluations["done"] += window_reads * (len(coarse) + len(fine))
             timings["evidence_s"] += (t1 - t0) + (t3 - t2) + (time.perf_counter() - t4)
             timings["kernels_s"] += (t2 - t1) + (t4 - t3)
         if bar is not None:

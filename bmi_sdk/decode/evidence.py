@@ -252,7 +252,7 @@ class Evidence:
 
 
 def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: float,
-              tapered: bool = True) -> np.ndarray:
+              tapered: bool = True, grid_model: np.ndarray | None = None) -> np.ndarray:
     """(windows, D) NLL of one plane's window spectra, β profiled out (module doc).
 
     ``power`` (windows, n, m) float32; ``model`` (D, n, m) = Σ_aliases |K_d|² S per candidate;
@@ -263,6 +263,9 @@ def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: flo
     same for every candidate of a window and is kept, so the NLL is the true one. ``tapered``: the bins
     ``rfft_multiplicity`` uses with a ``folded_model`` of the same flag, and the ½ of the module doc; the
     untapered (legacy) evidence keeps the full-spectrum count that refinements trained on it read.
+    ``grid_model``: the candidates whose gains place the β grid (default ``model``'s own). The grid's
+    levels change the profiled NLL by up to a few tenths of a nat, so NLLs that are compared with each
+    other (a coarse pass's and the fine pass that completes it) must share one grid.
     """
     nw = power.shape[0]
     n_cand = model.shape[0]
@@ -274,7 +277,8 @@ def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: flo
     p = power.reshape(nw, -1)[:, keep.ravel()] * (1.0 / s)[:, None].astype(np.float32)  # P' (W, F)
     # moment estimate of β' per window and candidate: Σ m P' ≈ β' Σ m A + Σ m
     total = p @ mult                                                      # (W,)
-    gain = a @ mult                                                       # (D,)
+    grid_a = a if grid_model is None else grid_model.reshape(grid_model.shape[0], -1)[:, keep.ravel()] * taper_energy
+    gain = grid_a @ mult                                                  # (D,) of the grid's candidates
     excess = np.maximum(total - mult.sum(), 1e-3 * total + 1e-30)
     lo = np.log(max(float(excess.min() / gain.max()), 1e-30) * BETA_MARGIN[0])
     hi = np.log(float(excess.max() / gain.min()) * BETA_MARGIN[1])
