@@ -1,4 +1,5 @@
-"""`bmi psf export|build`: one pixel-integrated PSF, or the whole PSF tensor."""
+"""`bmi psf export|build|warm`: one pixel-integrated PSF, the whole PSF tensor, or a camera's decoder kernels traced
+ahead of its first frame."""
 
 from __future__ import annotations
 
@@ -80,6 +81,44 @@ def _build(args) -> int:
     return 0
 
 
+def _warm(args) -> int:
+    import json
+
+    from bmi_sdk.built_camera import BuiltCamera
+    from bmi_sdk.decode import ClassicalConfig
+    from bmi_sdk.runtime.classical import warm_kernels
+
+    if args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    roi = None
+    if args.frame is not None:  # the camera that took the frame, as `bmi infer` builds it
+        from devices.dng import load_raw
+        from bmi_sdk.runtime.job import camera_for
+
+        frame = load_raw(args.frame)
+        camera, _ = camera_for(frame, args.calibration)
+        roi = (frame.roi.y_px, frame.roi.x_px, *frame.data.shape)
+    elif args.calibration is not None:
+        from calibration.io import load_calibration
+
+        camera = BuiltCamera.from_calibration(load_calibration(args.calibration))
+    else:
+        camera = BuiltCamera(lens_name=args.lens)
+    if args.decoder == "learned":
+        from bmi_sdk.runtime.learned import model_classical_config
+        from bmi_sdk.runtime.model import LEARNED_MODEL, Model
+
+        config = model_classical_config(Model(args.model or LEARNED_MODEL))
+    else:
+        config = ClassicalConfig()
+    report = warm_kernels(camera, config, roi=roi, workers=args.workers, progress=not args.quiet)
+    print(json.dumps(report) if args.json else
+          f"camera {report['camera_sha256'][:12]}…: {report['zones']} zones, {report['kernel_sets_traced']} of "
+          f"{report['kernel_sets']} kernel sets traced ({report['kernel_sets'] - report['kernel_sets_traced']} "
+          f"already cached) in {report['wall_s']:.1f} s → {report['cache_dir']}")
+    return 0
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser("psf", help="export one PSF or build the PSF tensor",
                               description="Pixel-integrated PSFs computed from the exact traced wavefront.")
@@ -108,4 +147,21 @@ def register(subparsers) -> None:
                    help="integrate each channel over 13 wavelengths of the RGB response instead of one")
     b.add_argument("--float16", action="store_true", help="store float16 at rest (half the size)")
     b.set_defaults(handler=_build)
+    w = sub.add_parser("warm", help="trace a camera's decoder kernels into the PSF cache before its first frame",
+                       description="Traces every kernel a frame's classical (or learned) decode can read, at every "
+                                   "zone of the sensor (or of --frame's window), into the PSF cache "
+                                   "($BMI_CACHE_DIR/psf): the first full frame then decodes as fast as later ones. "
+                                   "A second run traces nothing.")
+    w.add_argument("--calibration", metavar="FILE", help="calibration from bmi calibrate (default: nominal PSFs)")
+    w.add_argument("--frame", metavar="RAW.dng",
+                   help="warm for this frame's camera and window, exactly as bmi infer builds them")
+    w.add_argument("--decoder", choices=("classical", "learned"), default="learned",
+                   help="whose knobs (candidates) to trace for: the learned model's classical stage (default) or "
+                        "the classical decoder's")
+    w.add_argument("--model", help="learned model whose manifest names its classical knobs (default: the packaged one)")
+    w.add_argument("--lens", default="bmi_monocentric", help="lens of a nominal camera (without --calibration)")
+    w.add_argument("--workers", type=int, default=1, help="processes tracing zones side by side (default 1)")
+    w.add_argument("--json", action="store_true", help="print the report as JSON")
+    w.add_argument("--quiet", action="store_true", help="no progress bar")
+    w.set_defaults(handler=_warm)
     p.set_defaults(handler=lambda args: p.print_help() or 2)

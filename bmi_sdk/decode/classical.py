@@ -213,6 +213,7 @@ class ClassicalDecoder:
         """
         cfg = self.config
         t_start = time.perf_counter()
+        traced_before = self.zones.psf_map.kernels_traced
         timings = dict.fromkeys(("planes_s", "evidence_s", "kernels_s", "fill_s", "upsample_s", "aif_s"), 0.0)
         height, width = raw.shape
         planes = normalised_planes(raw, black_level_dn, white_level_dn, row0, col0)
@@ -232,8 +233,7 @@ class ClassicalDecoder:
         frame_valid = geometry.valid_mask(row0, col0, height, width)  # once: per block it cost ~10 % of a frame
         taper = hann_taper(n)
         taper_energy = float((taper ** 2).sum())
-        grid_rows = -(-height // cfg.stride_px) + 1
-        grid_cols = -(-width // cfg.stride_px) + 1
+        grid_rows, grid_cols = window_grid_shape(cfg, height, width)
         inv = np.full((grid_rows, grid_cols), np.nan)
         sig = np.full((grid_rows, grid_cols), np.nan)
         cand_inv = self.candidates.inv_depth_per_m
@@ -242,26 +242,23 @@ class ClassicalDecoder:
         evidence = np.full((grid_rows, grid_cols, len(coarse)), np.nan, np.float32)
         blind = np.zeros((grid_rows, grid_cols), bool)  # windows clipped in every plane: no evidence of their own
         evaluations = {"full": 0, "done": 0}
-        blocks = [(br, bc) for br in range(0, grid_rows, cfg.block_windows) for bc in range(0, grid_cols, cfg.block_windows)]
+        blocks = evidence_blocks(cfg, height, width)
         skipped = windows_clipped = 0
         bar = None
         if progress:
             from tqdm import tqdm
 
             bar = tqdm(total=len(blocks), unit="block", desc="evidence")
-        for br, bc in blocks:
+        for block in blocks:
+            br, bc, nr, nc = block
             if bar is not None:
                 bar.update()
-            nr, nc = min(cfg.block_windows, grid_rows - br), min(cfg.block_windows, grid_cols - bc)
-            # full-resolution extent of the block's windows, clipped to the frame
-            r_lo, r_hi = max(br * cfg.stride_px - n, 0), min((br + nr - 1) * cfg.stride_px + n, height)
-            c_lo, c_hi = max(bc * cfg.stride_px - n, 0), min((bc + nc - 1) * cfg.stride_px + n, width)
-            if not frame_valid[r_lo:r_hi, c_lo:c_hi].any():
+            if not frame_valid[evidence_block_extent(cfg, block, height, width)].any():
                 skipped += 1
                 continue
             t0 = time.perf_counter()
-            zone = ZoneKernels.zone_at(geometry, row0 + (br + (nr - 1) / 2) * cfg.stride_px,
-                                       col0 + (bc + (nc - 1) / 2) * cfg.stride_px)
+            centre_row, centre_col = evidence_block_centre(cfg, block)
+            zone = ZoneKernels.zone_at(geometry, row0 + centre_row, col0 + centre_col)
             reads = ZoneKernels.field_reads(geometry, row0 + (br + np.arange(nr)) * cfg.stride_px,
                                             col0 + (bc + np.arange(nc)) * cfg.stride_px, zone, cfg.theta_step_deg)
             window_reads = sum(len(idx) for _, idx, _ in reads)  # nr · nc, or more where windows blend zones
@@ -329,7 +326,9 @@ class ClassicalDecoder:
                  "windows_without_evidence": int(blind.sum()),
                  "candidate_evaluations": evaluations["done"],
                  "candidate_evaluations_exhaustive": evaluations["full"],
-                 "kernel_sets_computed": self.zones.kernel_sets_computed, "timings_s": timings}
+                 "kernel_sets_computed": self.zones.kernel_sets_computed,
+                 "kernel_sets_traced": self.zones.psf_map.kernels_traced - traced_before,  # 0: all from cache
+                 "timings_s": timings}
         return DecodeResult(depth, depth_sigma, aif, valid, inv, sig, sigma_laplace, spread, evidence,
                             cand_inv[coarse], stats)
 
@@ -337,33 +336,87 @@ class ClassicalDecoder:
     def _aif(self, raw, black, white, cfa, inv_px, valid, geometry, row0, col0, noise: NoiseProfile) -> np.ndarray:
         cfg = self.config
         height, width = raw.shape
-        block = cfg.block_windows * cfg.stride_px
         halo = self.zones.psf_map.kernel_px + 8
         halo += halo % 2
         out = np.zeros((height, width, 3), np.float32)
         n_cand = len(self.candidates)
         aif_cands = coarse_indices(n_cand, cfg.aif_step)
         cand_inv = self.candidates.inv_depth_per_m[aif_cands]
-        for r in range(0, height, block):
-            for c in range(0, width, block):
-                r1, c1 = min(r + block, height), min(c + block, width)
-                core_valid = valid[r:r1, c:c1]
-                if not core_valid.any():
-                    continue
-                window = raw[np.ix_(reflect_indices(r - halo, fft_span_px(r1 - r, halo), height),
-                                    reflect_indices(c - halo, fft_span_px(c1 - c, halo), width))]
-                rgb = raw_to_rgb(window, black, white, window_cfa(cfa, row0 + r - halo, col0 + c - halo))
-                zone = ZoneKernels.zone_at(geometry, row0 + (r + r1) / 2, col0 + (c + c1) / 2)
-                inv_core = np.where(core_valid, inv_px[r:r1, c:c1], np.nanmedian(inv_px[r:r1, c:c1][core_valid]))
-                core = (slice(halo, halo + r1 - r), slice(halo, halo + c1 - c))
-                signal = float(np.mean(rgb[core]))
-                block_sigma = float(np.sqrt(noise.variance(signal) + (cfg.aif_model_error * signal) ** 2))
-                aif = wiener_blend(rgb, inv_core, cand_inv, lambda idx, z=zone: self.zones.kernels(z, aif_cands[idx]),
-                                   block_sigma, core, self.threads)
-                falloff = relative_illumination(geometry, row0 + r, col0 + c, r1 - r, c1 - c)
-                out[r:r1, c:c1] = np.where(core_valid[..., None] & (falloff[..., None] > 0),
-                                           aif / np.maximum(falloff, 1e-6)[..., None], 0.0)
+        for r, r1, c, c1 in aif_blocks(cfg, height, width):
+            core_valid = valid[r:r1, c:c1]
+            if not core_valid.any():
+                continue
+            window = raw[np.ix_(reflect_indices(r - halo, fft_span_px(r1 - r, halo), height),
+                                reflect_indices(c - halo, fft_span_px(c1 - c, halo), width))]
+            rgb = raw_to_rgb(window, black, white, window_cfa(cfa, row0 + r - halo, col0 + c - halo))
+            zone = ZoneKernels.zone_at(geometry, row0 + (r + r1) / 2, col0 + (c + c1) / 2)
+            inv_core = np.where(core_valid, inv_px[r:r1, c:c1], np.nanmedian(inv_px[r:r1, c:c1][core_valid]))
+            core = (slice(halo, halo + r1 - r), slice(halo, halo + c1 - c))
+            signal = float(np.mean(rgb[core]))
+            block_sigma = float(np.sqrt(noise.variance(signal) + (cfg.aif_model_error * signal) ** 2))
+            aif = wiener_blend(rgb, inv_core, cand_inv, lambda idx, z=zone: self.zones.kernels(z, aif_cands[idx]),
+                               block_sigma, core, self.threads)
+            falloff = relative_illumination(geometry, row0 + r, col0 + c, r1 - r, c1 - c)
+            out[r:r1, c:c1] = np.where(core_valid[..., None] & (falloff[..., None] > 0),
+                                       aif / np.maximum(falloff, 1e-6)[..., None], 0.0)
         return out
+
+    def frame_zones(self, geometry: SensorGeometry, height: int, width: int, row0: int = 0,
+                    col0: int = 0) -> dict[tuple[float, float], np.ndarray]:
+        """{zone: candidate indices} whose kernels decoding an H × W window at (row0, col0) can ask for: every
+        candidate at each evidence block's zone, the AiF's candidates at each AiF block's zone, for the blocks
+        that reach into the image circle (what ``runtime.classical.warm_kernels`` traces ahead of a frame).
+        Each window's own θ (``theta_step_deg``) reads further zones, which this does not list."""
+        cfg = self.config
+        frame_valid = geometry.valid_mask(row0, col0, height, width)
+        wanted: dict[tuple[float, float], set] = {}
+        every = range(len(self.candidates))
+        for block in evidence_blocks(cfg, height, width):
+            if frame_valid[evidence_block_extent(cfg, block, height, width)].any():
+                centre_row, centre_col = evidence_block_centre(cfg, block)
+                wanted.setdefault(ZoneKernels.zone_at(geometry, row0 + centre_row, col0 + centre_col),
+                                  set()).update(every)
+        aif_cands = coarse_indices(len(self.candidates), cfg.aif_step)
+        for r, r1, c, c1 in aif_blocks(cfg, height, width):
+            if frame_valid[r:r1, c:c1].any():
+                wanted.setdefault(ZoneKernels.zone_at(geometry, row0 + (r + r1) / 2, col0 + (c + c1) / 2),
+                                  set()).update(aif_cands.tolist())
+        return {zone: np.array(sorted(idx)) for zone, idx in sorted(wanted.items())}
+
+
+def window_grid_shape(config: ClassicalConfig, height: int, width: int) -> tuple[int, int]:
+    """Rows and columns of an H × W frame's window grid (windows a stride apart, reaching past the last pixel)."""
+    return -(-height // config.stride_px) + 1, -(-width // config.stride_px) + 1
+
+
+def evidence_blocks(config: ClassicalConfig, height: int, width: int) -> list[tuple[int, int, int, int]]:
+    """(first window row, first window column, window rows, window columns) of each block of an H × W frame's
+    window grid: ``block_windows``² windows a stride apart, the first centred on pixel 0."""
+    grid_rows, grid_cols = window_grid_shape(config, height, width)
+    step = config.block_windows
+    return [(br, bc, min(step, grid_rows - br), min(step, grid_cols - bc))
+            for br in range(0, grid_rows, step) for bc in range(0, grid_cols, step)]
+
+
+def evidence_block_extent(config: ClassicalConfig, block: tuple, height: int, width: int) -> tuple[slice, slice]:
+    """The pixels an evidence block's windows cover, clipped to the H × W frame."""
+    br, bc, nr, nc = block
+    half = config.window_px // 2
+    return (slice(max(br * config.stride_px - half, 0), min((br + nr - 1) * config.stride_px + half, height)),
+            slice(max(bc * config.stride_px - half, 0), min((bc + nc - 1) * config.stride_px + half, width)))
+
+
+def evidence_block_centre(config: ClassicalConfig, block: tuple) -> tuple[float, float]:
+    """(row, col) frame pixel of an evidence block's centre: its zone's field position."""
+    br, bc, nr, nc = block
+    return (br + (nr - 1) / 2) * config.stride_px, (bc + (nc - 1) / 2) * config.stride_px
+
+
+def aif_blocks(config: ClassicalConfig, height: int, width: int) -> list[tuple[int, int, int, int]]:
+    """(r, r1, c, c1) of the AiF's blocks: squares of a window block's pixel size (``block_windows`` strides)."""
+    size = config.block_windows * config.stride_px
+    return [(r, min(r + size, height), c, min(c + size, width))
+            for r in range(0, height, size) for c in range(0, width, size)]
 
 
 def fft_span_px(core_px: int, halo_px: int) -> int:

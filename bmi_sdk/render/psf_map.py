@@ -147,6 +147,7 @@ class PsfMap:
         self._exact: dict[tuple, np.ndarray] = {}
         self.exact_cache_dir = None if cache_dir is None or mode != "exact" else Path(cache_dir) / self.exact_key()
         self._zones_read: set[tuple] = set()
+        self.kernels_traced = 0  # exact (θ, φ, depth) kernel sets traced here, not read from memory or disk
 
     def exact_key(self) -> str:
         """Identity of this map's exact kernels: the tensor's (lens, errors, spec), the errors named here, the
@@ -212,6 +213,7 @@ class PsfMap:
             kernels = spectral.channel_kernels(mono, spec.channels, clip_negative=self.perturbation is not None)
             for n, dj in enumerate(missing):
                 self._exact[key + (dj,)] = kernels[:, n].astype(np.float32)
+            self.kernels_traced += len(missing)
             if self.exact_cache_dir is not None:
                 self._write_zone(key)
         return np.stack([self._exact[key + (int(j),)] for j in depth_indices], axis=1)

@@ -42,6 +42,57 @@ def classical_decoder(camera: BuiltCamera, config: ClassicalConfig = ClassicalCo
     return ClassicalDecoder.for_psf_map(camera.psf_map(disk_cache=True), config)
 
 
+@dataclass(frozen=True)
+class _ZoneTracer:
+    """Builds, once per process, the decoder whose disk-cached ``PsfMap`` a warm-up fills (``warm_kernels``)."""
+
+    camera: BuiltCamera
+    config: ClassicalConfig
+
+    def __call__(self) -> ClassicalDecoder:
+        return classical_decoder(self.camera, self.config)
+
+
+def _trace_zone(decoder: ClassicalDecoder, job: tuple) -> int:
+    """Trace (or read) the kernels of one zone's candidates into the disk cache; returns the kernel sets traced."""
+    zone, which = job
+    before = decoder.zones.psf_map.kernels_traced
+    decoder.zones.kernels(zone, which)
+    return decoder.zones.psf_map.kernels_traced - before
+
+
+def warm_kernels(camera: BuiltCamera, config: ClassicalConfig = ClassicalConfig(), roi: tuple | None = None,
+                 workers: int = 1, progress: bool = False) -> dict:
+    """Trace ahead of a capture every kernel a frame's decode can read, into the disk cache (``bmi psf warm``).
+
+    A camera's first full frame otherwise spends most of its time tracing (432 zones, ~115 s of a 184 s
+    decode on this 2-core machine; docs/benchmarks.md); its later frames, and any process after a warm-up,
+    read the kernels. ``roi`` = (row0, col0, height, width) of the sensor (default the whole sensor). The
+    zones are those ``ClassicalDecoder.frame_zones`` lists, every candidate of the evidence and the AiF's,
+    so any scene's decode finds them. ``workers`` > 1 traces zones in that many single-threaded processes
+    (each writes its own zones' shards). Returns what was done: zones, kernel sets traced (0 when the cache
+    was already warm), the cache folder and the wall time.
+    """
+    import time
+
+    from ..parallel import map_jobs
+
+    geometry = camera.sensor()
+    row0, col0, height, width = roi or (0, 0, geometry.height_px, geometry.width_px)
+    if height <= 0 or width <= 0 or row0 < 0 or col0 < 0 or row0 + height > geometry.height_px \
+            or col0 + width > geometry.width_px:
+        raise ValueError(f"region (row0 {row0}, col0 {col0}, {height} × {width} px) is not inside the "
+                         f"{geometry.height_px} × {geometry.width_px} sensor")
+    decoder = classical_decoder(camera, config)
+    zones = decoder.frame_zones(geometry, height, width, row0, col0)
+    start = time.perf_counter()
+    traced = sum(map_jobs(_trace_zone, list(zones.items()), workers, state=_ZoneTracer(camera, config),
+                          desc="tracing zone kernels", unit="zone", progress=progress))
+    return {"camera_sha256": camera.sha256(), "calibration_id": camera.calibration_id, "zones": len(zones),
+            "kernel_sets": int(sum(len(w) for w in zones.values())), "kernel_sets_traced": int(traced),
+            "cache_dir": str(decoder.zones.psf_map.exact_cache_dir), "wall_s": time.perf_counter() - start}
+
+
 def decode_frame(decoder: ClassicalDecoder, frame, camera: BuiltCamera, progress: bool = False) -> ClassicalResult:
     """Decode a ``devices.RawFrame`` taken by ``camera`` (refused, naming why, when it cannot be)."""
     check_decodable(frame, camera.lens_name, "the decoder's camera has", "the classical decoder")
