@@ -200,3 +200,41 @@ def test_classical_knobs_with_another_decoder_are_refused_not_ignored(tmp_path):
                           str(tmp_path / "o"), "--decoder", "learned", "--window-px", "48"], capture_output=True, text=True)
     assert run.returncode == 1 and "--window-px" in run.stderr and "--decoder classical" in run.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_each_training_pair_draws_its_own_camera_within_the_papers_ranges():
+    """``CacheSpec(camera_errors=f)``: sample i's camera is drawn from its own seeded stream (the same camera every
+    time, another for another index or seed), every term within f × the paper's range; f = 0 is the nominal
+    camera, and a fraction outside [0, 1] is refused."""
+    from bmi_sdk.nn.data import CacheSpec
+    from bmi_sdk.optics.perturb import PAPER_RANGES, Perturbation
+
+    spec = CacheSpec(camera_errors=0.5, seed=3)
+    cameras = [spec.camera(i).perturbation for i in range(200)]
+    assert spec.camera(7).perturbation == cameras[7] != cameras[8]
+    assert CacheSpec(camera_errors=0.5, seed=4).camera(7).perturbation != cameras[7]
+    assert CacheSpec(seed=3).camera(7).perturbation == Perturbation() and CacheSpec().camera(0).is_nominal
+    for name, bound in PAPER_RANGES.items():
+        size = np.array([np.linalg.norm(np.atleast_1d(getattr(p, name))) for p in cameras])
+        assert size.max() <= 0.5 * bound + 1e-12 and size.max() > 0.4 * bound  # the range is filled, not exceeded
+    assert min(p.stray_light_fraction for p in cameras) >= 0  # glare adds light
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="camera_errors"):
+            CacheSpec(camera_errors=bad)
+
+
+def test_a_pair_of_a_sampled_camera_is_decoded_with_that_cameras_exact_kernels():
+    """The refinement's decode of a pair reads the kernels it was rendered with: the shared nominal decoder for a
+    nominal cache; for a sampled camera, the exact kernels of the errors stored with the pair, centre calibrated
+    (as ``render_sample`` renders it), with the refinement's decoder knobs."""
+    from bmi_sdk.nn.data import CacheSpec
+    from bmi_sdk.nn.refine_data import RefineSpec, ShardDecoder, pair_decoder
+
+    decoding = ShardDecoder("bmi_monocentric", RefineSpec(decoder={"candidates": 12}))()
+    assert pair_decoder(decoding, None) is decoding["decoder"]
+    camera = CacheSpec(camera_errors=1.0).camera(2)
+    decoder = pair_decoder(decoding, camera.perturbation.to_vector().astype(np.float32))
+    psf_map = decoder.zones.psf_map
+    assert psf_map.mode == "exact" and psf_map.centre_calibrated
+    assert np.allclose(psf_map.perturbation.to_vector(), camera.perturbation.to_vector(), atol=1e-6)
+    assert decoder.config == decoding["config"] and len(decoder.candidates) == len(decoding["decoder"].candidates)

@@ -32,6 +32,10 @@ def register(subparsers) -> None:
                    help="linear learning-rate warm-up (default 0; 200 with --decoder learned)")
     p.add_argument("--refine-sigma", type=float, nargs=2, default=(0.003, 0.012), metavar=("MIN", "MAX"),
                    help="--decoder learned: noise σ range of the decoded training frames (log-uniform)")
+    p.add_argument("--camera-errors", type=float, default=0.0, metavar="FRACTION",
+                   help="each pair's camera draws hardware errors within FRACTION of the paper's ranges (shift 0.5 px, "
+                        "scale 5 %%, decenter 10 um, tilt 1', stray light 3 %%, sensor radius 2 %%) and is rendered, and "
+                        "(--decoder learned) decoded, with its own exact kernels (default 0: the nominal camera)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sigma", type=float, default=None,
                    help="training noise σ, fraction of full scale (default 0.005, the paper's standard); "
@@ -60,7 +64,8 @@ def _run(args) -> int:
     if args.crop % 4:
         raise ValueError(f"--crop must be a multiple of 4, got {args.crop}")
     torch.set_num_threads(args.threads)
-    spec = CacheSpec(lens=args.lens, samples=args.samples, crop_px=args.crop, seed=args.seed)
+    spec = CacheSpec(lens=args.lens, samples=args.samples, crop_px=args.crop, seed=args.seed,
+                     camera_errors=args.camera_errors)
     sigma = STANDARD_SIGMA if args.sigma is None else args.sigma
     refine, init_from = None, args.init_from
     if args.decoder == "learned":
@@ -73,7 +78,8 @@ def _run(args) -> int:
     config = TrainConfig(preset=args.preset, steps=args.steps, batch_size=args.batch, lr=args.lr, sigma=sigma,
                          sigma_max=args.sigma_max, seed=args.seed, cache=spec, refine=refine, init_from=init_from,
                          warmup_steps=warmup)
-    cache = Path(args.cache or f".bmi_cache/train/{args.lens}-{args.samples}-{args.crop}-s{args.seed}")
+    errors = f"-e{args.camera_errors:g}" if args.camera_errors else ""
+    cache = Path(args.cache or f".bmi_cache/train/{args.lens}-{args.samples}-{args.crop}-s{args.seed}{errors}")
     t0 = time.perf_counter()
     build_cache(cache, spec, workers=args.render_workers, scheduler=args.scheduler)
     t_render = time.perf_counter() - t0

@@ -11,6 +11,12 @@ The pipeline of one pair (model_io is the contract it ends in):
   ``raw_to_rgb`` → ``network_input`` channels. Targets: the scene's linear RGB
   (AiF) and range (m); the valid mask is θ ≤ 60° and a finite range.
 
+Sampled cameras (``CacheSpec.camera_errors`` > 0, the learned refinement's item of issue 13): each sample
+draws its own hardware errors (``Perturbation.random``, within a fraction of the paper's ranges) and is
+rendered with that camera's exact kernels; the errors are stored with the sample, so its classical decode
+(``refine_data``) reads the matching kernels. The scene and window of sample i are those of the nominal
+cache of the same seed.
+
 Rendering a 192² window costs ~0.7 s, a training step on a CPU preset
 ~0.2 s, so the renders are cached (npz shards, written atomically, a build
 resumes where it stopped) and everything after the cache — crop, flips,
@@ -52,6 +58,8 @@ from bmi_sdk.sensor import (BLACK_LEVEL_DN, CFA_PATTERN, WHITE_LEVEL_DN, adc_dn,
                             relative_illumination)
 
 STANDARD_SIGMA = 0.005
+CAMERA_ERROR_STREAM = 53
+"""Third seed word of a sample's camera-error draw (``CacheSpec.camera``), apart from its scene's stream."""
 SHARD_SAMPLES = 32
 CACHE_SCHEMA = "bmi-train-cache/1"
 FAR_FILL_M = 10.0
@@ -156,6 +164,25 @@ class CacheSpec:
     jitter_px: int = 8
     seed: int = 0
     source: str = "procedural"
+    camera_errors: float = 0.0  # > 0: each sample's camera draws hardware errors within this fraction of the paper's
+    #                             ranges (``Perturbation.random``) and is rendered with that camera's exact kernels
+
+    def __post_init__(self):
+        if not 0.0 <= self.camera_errors <= 1.0:
+            raise ValueError(f"camera_errors is a fraction of the paper's error ranges in [0, 1], "
+                             f"got {self.camera_errors}")
+
+    def camera(self, index: int):
+        """The ``BuiltCamera`` sample ``index`` is rendered through: the nominal lens, or (``camera_errors`` > 0) one
+        with errors drawn from its own seeded stream, so the sample's scene and window are those of the nominal
+        cache of the same seed."""
+        from bmi_sdk.built_camera import BuiltCamera
+        from bmi_sdk.optics.perturb import Perturbation
+
+        if not self.camera_errors:
+            return BuiltCamera(self.lens)
+        rng = np.random.default_rng([self.seed, index, CAMERA_ERROR_STREAM])
+        return BuiltCamera(self.lens, Perturbation.random(rng, self.camera_errors))
 
     @property
     def margin_px(self) -> int:
@@ -204,12 +231,21 @@ def render_sample(spec: CacheSpec, index: int, tensor, geometry: SensorGeometry,
     else:
         rgb, range_m, row0, col0 = _dataset_window(scenes, geometry, size, rng)
     render_range = np.where(np.isfinite(range_m), range_m, FAR_FILL_M).astype(np.float32)
-    optical = render_coded(rgb, render_range, tensor, geometry, row0=row0, col0=col0, psf_mode="tensor")
+    extra = {}
+    if spec.camera_errors:
+        # the camera's own exact kernels, its whole-image shift taken out (a calibrated optical centre), as
+        # `bmi eval` renders its built-camera conditions
+        camera = spec.camera(index)
+        psf_map = camera.psf_map(mode="exact", centre_calibrated=True)
+        optical = render_coded(rgb, render_range, psf_map.tensor, geometry, row0=row0, col0=col0, psf_map=psf_map)
+        extra["perturbation"] = camera.perturbation.to_vector().astype(np.float32)
+    else:
+        optical = render_coded(rgb, render_range, tensor, geometry, row0=row0, col0=col0, psf_mode="tensor")
     optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
     m = slice(spec.margin_px, spec.margin_px + spec.stored_px)
     return {"optical": optical[m, m].astype(np.float16), "rgb": rgb[m, m].astype(np.float16),
             "range_m": range_m[m, m].astype(np.float32),
-            "origin": np.array([row0 + spec.margin_px, col0 + spec.margin_px], dtype=np.int32)}
+            "origin": np.array([row0 + spec.margin_px, col0 + spec.margin_px], dtype=np.int32), **extra}
 
 
 def render_identity(lens_name: str) -> dict:
@@ -301,7 +337,8 @@ def build_cache(cache_dir: str | Path, spec: CacheSpec, scenes: Sequence | None 
     n_shards = math.ceil(spec.samples / shard_samples)
     todo = [s for s in range(n_shards) if not shard_path(cache_dir, s).exists()]
     if todo:
-        lens_tensor(spec.lens).ensure_all(progress=progress, workers=workers)  # every θ is touched: build once
+        if not spec.camera_errors:  # exact-kernel renders (sampled cameras) trace their kernels, not the tensor's
+            lens_tensor(spec.lens).ensure_all(progress=progress, workers=workers)  # every θ is touched: build once
         sizes = [len(shard_sample_range(spec, s, shard_samples)) for s in todo]
         jobs = [(cache_dir, spec, s, shard_samples) for s in todo]
         how = dict(state=ShardRenderer(spec.lens, scenes), desc=f"rendering {spec.lens} pairs", unit="pair",

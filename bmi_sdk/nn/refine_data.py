@@ -10,9 +10,11 @@ render cache. Per step: random crop at even offsets (the Bayer phase is kept), d
 raw crop, dihedral augmentation of the RGB, the classical channels, the targets and the field
 channels (``data.dihedral_field``).
 
-The decoder reads the nominal camera's kernels (``psf_mode="tensor"``, as the render cache was made).
-Sampling camera errors per pair, rendered and decoded with the matching kernels, is not done here
-(docs/decoder.md says why and what it costs).
+The decoder reads the kernels the pair was rendered with: the nominal camera's (``psf_mode="tensor"``,
+as a nominal render cache is made), or, in a cache of sampled cameras (``CacheSpec.camera_errors``), the
+exact kernels of the pair's own camera (its stored errors, centre calibrated, as it was rendered): one
+model then learns to read the classical channels of every calibrated camera, which is what ``bmi infer
+--calibration`` gives it.
 """
 
 from __future__ import annotations
@@ -87,7 +89,22 @@ class ShardDecoder:
 
         psf_map = PsfMap(lens_tensor(self.lens), lens_geometry(self.lens), mode="tensor")
         return {"decoder": ClassicalDecoder.for_psf_map(psf_map, self.spec.classical_config(self.threads)),
-                "geometry": lens_geometry(self.lens)}
+                "geometry": lens_geometry(self.lens), "lens": self.lens,
+                "config": self.spec.classical_config(self.threads)}
+
+
+def pair_decoder(decoding: dict, perturbation: np.ndarray | None):
+    """The classical decoder of one pair: the shared nominal one, or over the exact kernels (centre calibrated, as
+    the pair was rendered) of the camera whose errors ``perturbation`` (``Perturbation.to_vector``) the pair
+    stores."""
+    if perturbation is None:
+        return decoding["decoder"]
+    from bmi_sdk.built_camera import BuiltCamera
+    from bmi_sdk.decode import ClassicalDecoder
+    from bmi_sdk.optics.perturb import Perturbation
+
+    camera = BuiltCamera(decoding["lens"], Perturbation.from_vector(np.asarray(perturbation, np.float64)))
+    return ClassicalDecoder.for_psf_map(camera.psf_map(mode="exact", centre_calibrated=True), decoding["config"])
 
 
 def decode_pair(decoder, geometry, optical: np.ndarray, origin, spec: RefineSpec, index: int) -> dict:
@@ -116,7 +133,9 @@ def decode_shard(decoding: dict, job: tuple) -> int:
         return 0
     with np.load(Path(cache_dir) / shard_file, allow_pickle=False) as z:
         optical, origin = z["optical"], z["origin"]
-    items = [decode_pair(decoding["decoder"], decoding["geometry"], optical[k], origin[k], spec, first_index + k)
+        cameras = z["perturbation"] if "perturbation" in z.files else [None] * len(optical)
+    items = [decode_pair(pair_decoder(decoding, cameras[k]), decoding["geometry"], optical[k], origin[k], spec,
+                         first_index + k)
              for k in range(len(optical))]
     arrays = {k: np.stack([it[k] for it in items]) for k in items[0]}
     return len(items) if publish_once(out, lambda tmp: np.savez(tmp, **arrays), suffix=".npz") else 0
