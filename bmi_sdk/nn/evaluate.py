@@ -224,6 +224,13 @@ class ClassicalTiles:
         return out.aif, out.depth_m, out.depth_sigma_m
 
 
+def tile_raw(bench: Benchmark, item: dict, k: int, sigma: float) -> np.ndarray:
+    """The raw frame of rendered tile ``k`` (``Benchmark.renders``) at noise σ: the same draw for every decoder."""
+    m, t = bench.margin_px, bench.tile_px
+    rng = np.random.default_rng([bench.seed, 99, k, int(round(sigma * 1e6))])
+    return simulate_raw(item["optical_full"][m:m + t, m:m + t], sigma, rng, item["row0"], item["col0"])
+
+
 def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition: str) -> list[dict]:
     """Rows {condition, decoder, region, metrics…} for one condition over pre-rendered tiles.
 
@@ -234,14 +241,12 @@ def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition:
     deviation of z = (depth error / reported 1σ) over all valid pixels of the region (1 for an honest σ).
     """
     geometry = lens_geometry(bench.lens)
-    m, t = bench.margin_px, bench.tile_px
+    t = bench.tile_px
     noise = NoiseProfile.additive(sigma)  # the camera's noise is known (its photon transfer); decoders may use it
     per_region: dict[str, list] = {}
     z_sums: dict[str, list] = {}
     for k, item in enumerate(renders):
-        optical = item["optical_full"][m:m + t, m:m + t]
-        rng = np.random.default_rng([bench.seed, 99, k, int(round(sigma * 1e6))])
-        raw = simulate_raw(optical, sigma, rng, item["row0"], item["col0"])
+        raw = tile_raw(bench, item, k, sigma)
         valid = geometry.valid_mask(item["row0"], item["col0"], t, t) & np.isfinite(item["range_m"])
         aif_hwc, depth_m, depth_sigma_m = model(raw, geometry, item["row0"], item["col0"], noise)
         valid &= np.isfinite(depth_m)
