@@ -160,20 +160,27 @@ def test_the_window_bound_is_the_relative_spread_of_a_far_planes_window_depths()
     assert len(depth) == 64 and 0.75 < relative_spread / bound < 1.33
 
 
-def test_plane_nll_equals_the_brute_force_profile_over_beta():
-    """β profiled on the grid + parabola agrees with a dense brute-force minimum of the exact NLL (to 0.5 nats)
-    for the kernel that made the data; for a wrong kernel whose best β lies past the grid it is an upper bound."""
-    rng = np.random.default_rng(1)
-    n = 16
-    kernels = np.zeros((2, 19, 19))
-    for d, width in enumerate((7, 19)):  # a sharp and a wide separable kernel, centred
+def _hann_bank_spectra(widths, true_index: int, windows: int, n: int, seed: int):
+    """(models, window powers, taper energy, noise variance): centred separable Hann kernels of ``widths`` (19² px)
+    folded for n-sample windows, and the periodograms of ``windows`` windows drawn from the model of kernel
+    ``true_index`` (β 3e-3, noise variance 1e-4: exponential bins around the expected power)."""
+    kernels = np.zeros((len(widths), 19, 19))
+    for d, width in enumerate(widths):
         w = np.hanning(width + 2)[1:-1]
         lo = (19 - width) // 2
         kernels[d, lo:lo + width, lo:lo + width] = np.outer(w, w) / np.outer(w, w).sum()
     model = folded_model(kernels, n)
     taper_energy, noise_var = 100.0, 1e-4
-    v_true = 3e-3 * model[0] * taper_energy + noise_var * taper_energy
-    power = (v_true * rng.exponential(size=(5,) + v_true.shape)).astype(np.float32)
+    v_true = 3e-3 * model[true_index] * taper_energy + noise_var * taper_energy
+    power = (v_true * np.random.default_rng(seed).exponential(size=(windows,) + v_true.shape)).astype(np.float32)
+    return model, power, taper_energy, noise_var
+
+
+def test_plane_nll_equals_the_brute_force_profile_over_beta():
+    """β profiled on the grid + parabola agrees with a dense brute-force minimum of the exact NLL (to 0.5 nats)
+    for the kernel that made the data; for a wrong kernel whose best β lies past the grid it is an upper bound."""
+    n = 16
+    model, power, taper_energy, noise_var = _hann_bank_spectra((7, 19), true_index=0, windows=5, n=n, seed=1)
     got = plane_nll(power, model, noise_var, taper_energy)
     mult = rfft_multiplicity(n)
     for w in range(5):
@@ -190,18 +197,8 @@ def test_plane_nll_equals_the_brute_force_profile_over_beta():
 def test_a_candidates_nll_on_a_shared_beta_grid_does_not_depend_on_the_other_candidates_scored():
     """The fine pass scores a few candidates on the coarse pass's β grid (``grid_model``): each candidate's NLL
     is then exactly what it was when scored beside the coarse set, so the two passes' NLLs form one curve."""
-    rng = np.random.default_rng(5)
-    n = 16
-    widths = (5, 9, 13, 17, 19)
-    kernels = np.zeros((len(widths), 19, 19))
-    for d, width in enumerate(widths):
-        w = np.hanning(width + 2)[1:-1]
-        lo = (19 - width) // 2
-        kernels[d, lo:lo + width, lo:lo + width] = np.outer(w, w) / np.outer(w, w).sum()
-    model = folded_model(kernels, n)
-    taper_energy, noise_var = 100.0, 1e-4
-    v_true = 3e-3 * model[2] * taper_energy + noise_var * taper_energy
-    power = (v_true * rng.exponential(size=(6,) + v_true.shape)).astype(np.float32)
+    model, power, taper_energy, noise_var = _hann_bank_spectra((5, 9, 13, 17, 19), true_index=2, windows=6, n=16,
+                                                               seed=5)
     coarse = model[[0, 2, 4]]
     together = plane_nll(power, model, noise_var, taper_energy, grid_model=coarse)
     alone = [plane_nll(power, model[[d]], noise_var, taper_energy, grid_model=coarse)[:, 0] for d in range(5)]
