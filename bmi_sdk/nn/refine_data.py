@@ -88,9 +88,9 @@ class ShardDecoder:
         from bmi_sdk.render import PsfMap
 
         psf_map = PsfMap(lens_tensor(self.lens), lens_geometry(self.lens), mode="tensor")
-        return {"decoder": ClassicalDecoder.for_psf_map(psf_map, self.spec.classical_config(self.threads)),
-                "geometry": lens_geometry(self.lens), "lens": self.lens,
-                "config": self.spec.classical_config(self.threads)}
+        config = self.spec.classical_config(self.threads)
+        return {"decoder": ClassicalDecoder.for_psf_map(psf_map, config), "geometry": lens_geometry(self.lens),
+                "lens": self.lens, "config": config}
 
 
 def pair_decoder(decoding: dict, perturbation: np.ndarray | None):
