@@ -156,9 +156,9 @@ def infer_raw(model: Model, raw: np.ndarray, *, black_level_dn: float, white_lev
             rgb = raw_to_rgb(window, black_level_dn, white_level_dn, window_cfa(cfa, r - m, c - m))[m:-m, m:-m]
             t1 = time.perf_counter()
             x = network_input(rgb, geometry, row0 + r, col0 + c)
-            if extra is not None:
-                x = np.concatenate([x, extra[None, :, reflect_indices(r, tile, height)][..., reflect_indices(c, tile, width)]],
-                                   axis=1)
+            if extra is not None:  # one gather of the tile's pixels: indexing rows first copied full-width rows
+                rows, cols = reflect_indices(r, tile, height), reflect_indices(c, tile, width)
+                x = np.concatenate([x, extra[np.ix_(np.arange(len(extra)), rows, cols)][None]], axis=1)
             t2 = time.perf_counter()
             out_rgb, out_depth, *out_sigma = model.run(np.ascontiguousarray(x, np.float32))
             t3 = time.perf_counter()
