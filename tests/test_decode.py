@@ -644,3 +644,5 @@ def test_a_warmed_cache_serves_a_frames_decode_without_tracing(tmp_path, monkeyp
     assert decoder.zones.psf_map.kernels_traced == 0 and out.stats["kernel_sets_traced"] == 0
     with pytest.raises(ValueError, match="not inside the"):
         warm_kernels(camera, config, roi=(4400, 0, 200, 200))
+    with pytest.raises(ValueError, match="workers must be >= 1"):
+        warm_kernels(camera, config, roi=roi, workers=0)

@@ -88,8 +88,6 @@ def _warm(args) -> int:
     from bmi_sdk.decode import ClassicalConfig
     from bmi_sdk.runtime.classical import warm_kernels
 
-    if args.workers < 1:
-        raise ValueError(f"--workers must be >= 1, got {args.workers}")
     roi = None
     if args.frame is not None:  # the camera that took the frame, as `bmi infer` builds it
         from devices.dng import load_raw
@@ -108,7 +106,7 @@ def _warm(args) -> int:
         from bmi_sdk.runtime.learned import model_classical_config
         from bmi_sdk.runtime.model import LEARNED_MODEL, Model
 
-        config = model_classical_config(Model(args.model or LEARNED_MODEL))
+        config = model_classical_config(Model(args.model or LEARNED_MODEL, warmup=False))  # its manifest, not a run
     else:
         config = ClassicalConfig()
     report = warm_kernels(camera, config, roi=roi, workers=args.workers, progress=not args.quiet)

@@ -271,14 +271,17 @@ def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: flo
     n_cand = model.shape[0]
     mult = rfft_multiplicity(model.shape[1], tapered)
     keep = mult > 0
-    a = model.reshape(n_cand, -1)[:, keep.ravel()] * taper_energy        # (D, F)
+
+    def bins(m: np.ndarray) -> np.ndarray:  # (candidates, F): the kept bins of models, in units of the taper's energy
+        return m.reshape(m.shape[0], -1)[:, keep.ravel()] * taper_energy
+
+    a = bins(model)                                                       # (D, F)
     mult = mult[keep] * (REAL_FIELD_WEIGHT if tapered else 1.0)
     s = np.maximum(np.broadcast_to(np.asarray(noise_var, np.float64), (nw,)), 1e-12) * taper_energy  # (W,)
     p = power.reshape(nw, -1)[:, keep.ravel()] * (1.0 / s)[:, None].astype(np.float32)  # P' (W, F)
     # moment estimate of β' per window and candidate: Σ m P' ≈ β' Σ m A + Σ m
     total = p @ mult                                                      # (W,)
-    grid_a = a if grid_model is None else grid_model.reshape(grid_model.shape[0], -1)[:, keep.ravel()] * taper_energy
-    gain = grid_a @ mult                                                  # (D,) of the grid's candidates
+    gain = (a if grid_model is None else bins(grid_model)) @ mult          # (D,) of the grid's candidates
     excess = np.maximum(total - mult.sum(), 1e-3 * total + 1e-30)
     lo = np.log(max(float(excess.min() / gain.max()), 1e-30) * BETA_MARGIN[0])
     hi = np.log(float(excess.max() / gain.min()) * BETA_MARGIN[1])

@@ -77,6 +77,8 @@ def warm_kernels(camera: BuiltCamera, config: ClassicalConfig = ClassicalConfig(
 
     from ..parallel import map_jobs
 
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
     geometry = camera.sensor()
     row0, col0, height, width = roi or (0, 0, geometry.height_px, geometry.width_px)
     if height <= 0 or width <= 0 or row0 < 0 or col0 < 0 or row0 + height > geometry.height_px \
