@@ -294,6 +294,36 @@ def test_spread_and_upsampling_of_the_window_grid():
     assert up[0, 16] == pytest.approx(3.0, abs=1e-6) and up[0, 0] == pytest.approx(1.0 + 2.0 * 0.5 / 16, abs=1e-6)
 
 
+def test_the_refinement_channels_of_any_tile_are_the_whole_windows_channels_there():
+    """The learned decoder makes a frame's channels tile by tile (``FeatureTiles``): every tile, those that reach
+    past the frame and read it mirrored included, must hold bit for bit what the whole window's channels hold at
+    the same pixels, and a grid upsampled over part of a frame must equal that part of the whole upsampling."""
+    from bmi_sdk.decode.classical import DecodeResult
+    from bmi_sdk.decode.features import FeatureTiles, refinement_features
+    from bmi_sdk.model_io import reflect_indices
+
+    rng = np.random.default_rng(5)
+    h, w, stride = 100, 132, 16
+    grid_shape = (-(-h // stride) + 1, -(-w // stride) + 1)
+    grid = rng.random(grid_shape)
+    grid[0, :3] = np.nan  # a skipped block
+    full = upsample_grid(grid, stride, h, w)
+    assert np.array_equal(upsample_grid(grid, stride, 37, 51, 29, 70), full[29:66, 70:121])
+    valid = np.ones((h, w), bool)
+    valid[:9, :20] = False
+    depth = np.where(valid, 1.0 + 5.0 * rng.random((h, w)), np.nan).astype(np.float32)
+    evidence = (rng.random(grid_shape + (4,)) * 30.0).astype(np.float32)
+    evidence[1, 1] = np.nan
+    result = DecodeResult(depth, (0.1 * depth).astype(np.float32), rng.random((h, w, 3)).astype(np.float32) * 2.5,
+                          valid, grid, grid, grid, grid, evidence, np.arange(4.0))
+    whole = refinement_features(result, stride)
+    tiles = FeatureTiles(result, stride)
+    assert whole.shape == (tiles.count, h, w) and np.isfinite(whole).all() and (whole[:, ~valid] == 0).all()
+    for r, c, size in ((0, 0, 64), (-20, 90, 64), (60, -30, 48), (40, 40, 32)):
+        rows, cols = reflect_indices(r, size, h), reflect_indices(c, size, w)
+        assert np.array_equal(tiles.gather(rows, cols), whole[np.ix_(np.arange(tiles.count), rows, cols)])
+
+
 def _plane_frame(depth_m: float, field_deg: float, size: int = 160, sigma: float = 0.005, texture: str = "scene",
                  psf_mode: str = "tensor"):
     """A fronto-parallel plane at ``depth_m`` rendered at ``field_deg`` (φ 30°), textured by ``bench.decoder``'s

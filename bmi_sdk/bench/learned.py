@@ -46,7 +46,7 @@ def _full_frame(model_path, nominal, geometry) -> str:
     from bmi_sdk.runtime.learned import learned_decoder
     from bmi_sdk.runtime.model import Model
     from bmi_sdk.runtime.pipeline import infer_raw
-    from bmi_sdk.decode.features import refinement_features
+    from bmi_sdk.decode.features import FeatureTiles
     from bmi_sdk.scenes import generate_scene
     from bmi_sdk.sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, NoiseProfile, relative_illumination
 
@@ -62,7 +62,7 @@ def _full_frame(model_path, nominal, geometry) -> str:
     w0, c0 = time.perf_counter(), cpu_seconds()
     decoded = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry,
                              noise_profile=NoiseProfile.additive(STANDARD_SIGMA))
-    features = refinement_features(decoded, decoder.config.stride_px)
+    features = FeatureTiles(decoded, decoder.config.stride_px)
     w1, c1 = time.perf_counter(), cpu_seconds()
     result = infer_raw(model, raw, black_level_dn=BLACK_LEVEL_DN, white_level_dn=WHITE_LEVEL_DN, geometry=geometry,
                        extra=features)

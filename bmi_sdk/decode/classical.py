@@ -491,20 +491,27 @@ def fill_blind_windows(inv: np.ndarray, sig: np.ndarray, blind: np.ndarray) -> t
     return np.where(take, pooled, inv), np.where(take, pooled_sig, sig)
 
 
-def upsample_grid(grid: np.ndarray, stride_px: int, height: int, width: int) -> np.ndarray:
-    """Bilinear interpolation of a window grid (sample k at pixel k·stride − ½) to H × W pixels.
-
-    NaN samples (skipped blocks) are filled from their nearest finite neighbour first, so they do
-    not spread NaN into valid pixels next to the image-circle border.
-    """
+def fill_grid(grid: np.ndarray) -> np.ndarray:
+    """float32 copy of a window grid whose NaN samples (skipped blocks) take their nearest finite neighbour's
+    value, so interpolation does not spread NaN into valid pixels next to the image-circle border."""
     g = grid.astype(np.float32)
     bad = ~np.isfinite(g)
-    if bad.all():
-        return np.full((height, width), np.nan, np.float32)
-    if bad.any():
+    if bad.any() and not bad.all():
         idx = ndimage.distance_transform_edt(bad, return_distances=False, return_indices=True)
         g = g[tuple(idx)]
+    return g
+
+
+def upsample_grid(grid: np.ndarray, stride_px: int, height: int, width: int, row0: int = 0,
+                  col0: int = 0) -> np.ndarray:
+    """Bilinear interpolation of a window grid (sample k at frame pixel k·stride − ½) to the H × W pixels whose
+    top-left is frame pixel (row0, col0), after ``fill_grid``. Any part of a frame reads the values the whole
+    frame's interpolation gives there (the sample positions are multiples of 1/32 px, exact in OpenCV's fixed
+    point), which lets the learned decoder make its channels tile by tile (``features.FeatureTiles``)."""
+    g = fill_grid(grid)
+    if not np.isfinite(g).any():
+        return np.full((height, width), np.nan, np.float32)
     scale = 1.0 / stride_px
-    matrix = np.array([[scale, 0.0, 0.5 * scale], [0.0, scale, 0.5 * scale]], np.float32)
+    matrix = np.array([[scale, 0.0, (col0 + 0.5) * scale], [0.0, scale, (row0 + 0.5) * scale]], np.float32)
     return cv2.warpAffine(g, matrix, (width, height), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                           borderMode=cv2.BORDER_REPLICATE)

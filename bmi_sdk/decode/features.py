@@ -11,7 +11,8 @@ RGB and the field channels, ``model_io``) and, appended to it, what the physics 
            curve means no texture, a sharp one a confident depth)
   last 3   the classical all-in-focus RGB (linear, clipped to [0, 2])
 
-Window-grid quantities are interpolated bilinearly to pixels (``classical.upsample_grid``). The evidence
+Window-grid quantities are interpolated bilinearly to pixels (``classical.upsample_grid``). A full frame's
+channels are made tile by tile (``FeatureTiles``): held whole they are 13 × 27 M float32, 1.4 GB. The evidence
 curve needs the coarse candidates to be the same at training and at run time, so a learned model's
 manifest carries the ``ClassicalConfig`` it was trained with and the runtime decodes with it.
 """
@@ -22,7 +23,7 @@ import math
 
 import numpy as np
 
-from .classical import ClassicalDecoder, DecodeResult, coarse_indices, upsample_grid
+from .classical import ClassicalDecoder, DecodeResult, coarse_indices, fill_grid, upsample_grid
 
 FEATURE_DEPTH_REF_M = math.sqrt(0.7 * 10.0)
 """Reference range of the log-depth channel: the network's depth reference (nn.model.DEPTH_REF_M)."""
@@ -35,19 +36,42 @@ def extra_channels(decoder: ClassicalDecoder) -> int:
     return 2 + len(coarse_indices(len(decoder.candidates), decoder.config.coarse_step)) + 3
 
 
+class FeatureTiles:
+    """The channels (module doc) of one decoded window, made for any block of its pixels on demand.
+
+    ``gather(rows, cols)`` gives the C × len(rows) × len(cols) channels of those pixel rows and columns (index
+    arrays, as a tile with mirror-reflected edges asks for them), the same values the whole window's channels
+    hold there; only the evidence grids (small) are prepared up front.
+    """
+
+    def __init__(self, result: DecodeResult, stride_px: int):
+        self.result = result
+        self.stride_px = stride_px
+        self.shape = result.depth_m.shape
+        self._evidence = [fill_grid(np.log1p(np.maximum(result.grid_evidence[..., k], 0.0)))
+                          for k in range(result.grid_evidence.shape[-1])]
+        self.count = 2 + len(self._evidence) + 3
+
+    def gather(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """C × len(rows) × len(cols) float32 channels of the given frame rows and columns."""
+        r0, r1, c0, c1 = int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1
+        box = slice(r0, r1), slice(c0, c1)
+        res = self.result
+        valid = res.valid[box]
+        out = np.zeros((self.count, r1 - r0, c1 - c0), np.float32)
+        depth = np.where(valid, res.depth_m[box], FEATURE_DEPTH_REF_M)
+        rel_sigma = np.where(valid, res.depth_sigma_m[box] / depth, 1.0)
+        out[0] = np.clip(np.log(depth / FEATURE_DEPTH_REF_M), -3.0, 3.0)
+        out[1] = np.clip(np.log(np.maximum(rel_sigma, 1e-6)), -6.0, 3.0)
+        for k, grid in enumerate(self._evidence):
+            out[2 + k] = upsample_grid(grid, self.stride_px, r1 - r0, c1 - c0, r0, c0)
+        out[2 + len(self._evidence):] = np.clip(res.aif[box], 0.0, AIF_CLIP).transpose(2, 0, 1)
+        out[:, ~valid] = 0.0
+        np.nan_to_num(out, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+        return out[np.ix_(np.arange(self.count), rows - r0, cols - c0)]
+
+
 def refinement_features(result: DecodeResult, stride_px: int) -> np.ndarray:
-    """C × H × W float32 channels (module doc) of one decoded window."""
+    """C × H × W float32 channels (module doc) of one whole decoded window (a tile's; a frame's go per tile)."""
     height, width = result.depth_m.shape
-    valid = result.valid
-    n_ev = result.grid_evidence.shape[-1]
-    out = np.zeros((2 + n_ev + 3, height, width), np.float32)
-    depth = np.where(valid, result.depth_m, FEATURE_DEPTH_REF_M)
-    rel_sigma = np.where(valid, result.depth_sigma_m / depth, 1.0)
-    out[0] = np.clip(np.log(depth / FEATURE_DEPTH_REF_M), -3.0, 3.0)
-    out[1] = np.clip(np.log(np.maximum(rel_sigma, 1e-6)), -6.0, 3.0)
-    for k in range(n_ev):
-        grid = np.log1p(np.maximum(result.grid_evidence[..., k], 0.0))
-        out[2 + k] = upsample_grid(grid, stride_px, height, width)
-    out[2 + n_ev:] = np.clip(result.aif, 0.0, AIF_CLIP).transpose(2, 0, 1)
-    out[:, ~valid] = 0.0
-    return np.nan_to_num(out, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    return FeatureTiles(result, stride_px).gather(np.arange(height), np.arange(width))

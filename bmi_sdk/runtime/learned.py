@@ -16,7 +16,7 @@ import numpy as np
 
 from ..built_camera import BuiltCamera
 from ..decode import ClassicalConfig, ClassicalDecoder
-from ..decode.features import extra_channels, refinement_features
+from ..decode.features import FeatureTiles, extra_channels
 from ..model_io import INPUT_CHANNELS
 from .classical import classical_decoder, decode_frame
 from .model import Model
@@ -74,12 +74,13 @@ def decode_learned(model: Model, decoder: ClassicalDecoder, frame, camera: Built
     classical = decode_frame(decoder, frame, camera, progress=progress)
     t0 = time.perf_counter()
     stats = classical.stats
-    features = refinement_features(classical.decoded, decoder.config.stride_px)
+    features = FeatureTiles(classical.decoded, decoder.config.stride_px)
     stats["timings_s"] = dict(stats["timings_s"], features_s=time.perf_counter() - t0)
     net = infer_raw(model, frame.data, black_level_dn=frame.black_level_dn, white_level_dn=frame.white_level_dn,
                     cfa=frame.cfa, geometry=frame.geometry, row0=frame.roi.y_px, col0=frame.roi.x_px,
                     overlap_px=overlap_px, progress=progress, extra=features)
     valid = net.valid & classical.valid
-    sigma = np.where(valid, net.depth_sigma_m, np.nan).astype(np.float32)
-    depth = np.where(valid, net.depth_m, np.nan).astype(np.float32)
-    return LearnedResult(net.aif, depth, sigma, valid, net, stats)
+    invalid = ~valid  # in place: copies of a full frame's maps cost 216 MB at the run's peak
+    net.depth_m[invalid] = np.nan
+    net.depth_sigma_m[invalid] = np.nan
+    return LearnedResult(net.aif, net.depth_m, net.depth_sigma_m, valid, net, stats)

@@ -152,6 +152,19 @@ def confidence_image(depth_m: np.ndarray, depth_sigma_m: np.ndarray) -> np.ndarr
     return np.where(np.isfinite(conf), np.round(conf), 0).astype(np.uint8)
 
 
+def srgb_images(aif: np.ndarray, rows_per_block: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """(16-bit, 8-bit) BGR sRGB encodings of a linear H × W × 3 image, made per block of rows: the sRGB curve's
+    float temporaries of a whole 6000×4500 frame took 1.6 GB at once."""
+    h, w = aif.shape[:2]
+    bgr16 = np.empty((h, w, 3), np.uint16)
+    bgr8 = np.empty((h, w, 3), np.uint8)
+    for b0 in range(0, h, rows_per_block):
+        srgb = linear_to_srgb(aif[b0:b0 + rows_per_block])[..., ::-1]
+        bgr16[b0:b0 + rows_per_block] = srgb * 65535 + 0.5
+        bgr8[b0:b0 + rows_per_block] = srgb * 255 + 0.5
+    return bgr16, bgr8
+
+
 OUTPUT_NAMES = ("aif.npy", "aif.png", "aif_preview.png", "depth.npy", "depth_z.npy", "depth_mm.png",
                 "depth_preview.png", "points.ply")
 """The files ``write_outputs`` always writes."""
@@ -174,12 +187,13 @@ def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarr
     near_m, far_m = check_depth_range(depth_range_m) if depth_range_m is not None else (None, None)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    srgb = linear_to_srgb(aif)
-    save_npy(out / "aif.npy", aif.astype(np.float32))
-    _imwrite(out / "aif.png", (srgb[..., ::-1] * 65535 + 0.5).astype(np.uint16))
-    _imwrite(out / "aif_preview.png", _downscale((srgb[..., ::-1] * 255 + 0.5).astype(np.uint8), preview_px))
-    del srgb
-    save_npy(out / "depth.npy", depth_m.astype(np.float32))
+    save_npy(out / "aif.npy", np.asarray(aif, np.float32))
+    bgr16, bgr8 = srgb_images(aif)
+    _imwrite(out / "aif.png", bgr16)
+    del bgr16
+    _imwrite(out / "aif_preview.png", _downscale(bgr8, preview_px))
+    del bgr8
+    save_npy(out / "depth.npy", np.asarray(depth_m, np.float32))
     save_npy(out / "depth_z.npy", range_to_z_map(depth_m, geometry, row0, col0))
     mm = np.where(np.isfinite(depth_m), np.clip(np.round(depth_m * 1000), 1, 65535), 0).astype(np.uint16)
     _imwrite(out / "depth_mm.png", mm)

@@ -10,8 +10,9 @@ and add the weighted outputs into a band of ``tile_px`` rows. Rows no later
 tile can touch are normalised by the weight sum and moved into the output
 arrays, so the working memory is one band plus one tile whatever the frame
 size. The learned refinement's extra input channels (``extra``: the classical
-decoder's per-pixel channels of the whole window, ``decode.features``) are cut
-per tile with the same reflection, and its depth 1σ is blended like the depth. Tiles whose kept pixels all lie outside the image circle are skipped;
+decoder's per-pixel channels, ``decode.features.FeatureTiles``) are made per
+tile for the same reflected pixels, never for the whole frame at once (a full
+frame's would be 1.4 GB), and its depth 1σ is blended like the depth. Tiles whose kept pixels all lie outside the image circle are skipped;
 outside the circle the depth is NaN and the AiF image 0.
 """
 
@@ -83,21 +84,21 @@ def infer_frame(model: Model, frame, *, overlap_px: int | None = None, progress:
 
 def infer_raw(model: Model, raw: np.ndarray, *, black_level_dn: float, white_level_dn: float, cfa: str = "RGGB",
               geometry: SensorGeometry, row0: int = 0, col0: int = 0, overlap_px: int | None = None,
-              progress: bool = False, extra: np.ndarray | None = None) -> InferenceResult:
+              progress: bool = False, extra=None) -> InferenceResult:
     """Decode an H × W Bayer window whose top-left pixel sits at (row0, col0) of the full sensor.
 
-    ``extra``: C × H × W float32 channels appended to every tile's input (a model with
-    ``input_channels`` = 6 + C, the learned refinement); None for the end-to-end network.
+    ``extra``: a ``decode.features.FeatureTiles`` of this window, whose C channels are appended to every tile's
+    input (a model with ``input_channels`` = 6 + C, the learned refinement); None for the end-to-end network.
     """
     if raw.ndim != 2:
         raise ValueError(f"a raw frame is H × W, got shape {raw.shape}")
     height, width = raw.shape
     if height % 2 or width % 2:
         raise ValueError(f"raw frame {height}×{width} is not whole RGGB cells (even sizes)")
-    n_extra = 0 if extra is None else extra.shape[0]
-    if model.input_channels != INPUT_CHANNELS + n_extra or (extra is not None and extra.shape[1:] != raw.shape):
+    n_extra = 0 if extra is None else extra.count
+    if model.input_channels != INPUT_CHANNELS + n_extra or (extra is not None and tuple(extra.shape) != raw.shape):
         raise ValueError(f"model {model.path.name} reads {model.input_channels} channels; the frame gives "
-                         f"{INPUT_CHANNELS} + {n_extra}" + ("" if extra is None else f" of shape {extra.shape[1:]}"))
+                         f"{INPUT_CHANNELS} + {n_extra}" + ("" if extra is None else f" of shape {extra.shape}"))
     with_sigma = len(model.output_names) == 3
     plan = TilePlan.for_model(height, width, model.tile_px, model.receptive_field_px, model.largest_psf_px,
                               step_px=model.size_multiple, overlap_px=overlap_px)
@@ -156,9 +157,9 @@ def infer_raw(model: Model, raw: np.ndarray, *, black_level_dn: float, white_lev
             rgb = raw_to_rgb(window, black_level_dn, white_level_dn, window_cfa(cfa, r - m, c - m))[m:-m, m:-m]
             t1 = time.perf_counter()
             x = network_input(rgb, geometry, row0 + r, col0 + c)
-            if extra is not None:  # one gather of the tile's pixels: indexing rows first copied full-width rows
+            if extra is not None:
                 rows, cols = reflect_indices(r, tile, height), reflect_indices(c, tile, width)
-                x = np.concatenate([x, extra[np.ix_(np.arange(len(extra)), rows, cols)][None]], axis=1)
+                x = np.concatenate([x, extra.gather(rows, cols)[None]], axis=1)
             t2 = time.perf_counter()
             out_rgb, out_depth, *out_sigma = model.run(np.ascontiguousarray(x, np.float32))
             t3 = time.perf_counter()
