@@ -41,15 +41,25 @@ def markdown_table(header: list[str], rows: list[list]) -> str:
 
 
 def update_section(title: str, body: str, path: Path = DOCS) -> None:
-    """Replace (or append) the ``## title`` section of docs/benchmarks.md atomically."""
+    """Write a bench's generated text into the ``## title`` section of docs/benchmarks.md, atomically.
+
+    The text sits between two comment lines naming the title, and only what lies between them is replaced:
+    notes and dated measurements written by hand in the same section are kept (``--write-docs`` once
+    replaced the whole section, and with it every dated record). A section written before the markers gets
+    the generated text at its top, above what it held; a missing section is appended.
+    """
     command = "bmi " + " ".join(a for a in sys.argv[1:] if a != "--write-docs")
-    section = f"## {title}\n\nMade by `{command}` on {machine_line()}.\n\n{body.strip()}\n"
+    begin, end = f"<!-- generated: {title} -->", f"<!-- end generated: {title} -->"
+    block = f"{begin}\nMade by `{command}` on {machine_line()}.\n\n{body.strip()}\n{end}\n"
     text = path.read_text() if path.exists() else "# Benchmarks\n\nEvery number here comes from the command above it.\n"
-    pattern = re.compile(rf"^## {re.escape(title)}\n.*?(?=^## |\Z)", re.S | re.M)
-    if pattern.search(text):
-        text = pattern.sub(lambda _: section + "\n", text)
+    generated = re.compile(rf"^{re.escape(begin)}\n.*?^{re.escape(end)}\n", re.S | re.M)
+    heading = re.compile(rf"^## {re.escape(title)}\n\n?", re.M)
+    if generated.search(text):
+        text = generated.sub(lambda _: block, text, count=1)
+    elif heading.search(text):
+        text = heading.sub(lambda m: f"## {title}\n\n{block}\n", text, count=1)
     else:
-        text = text.rstrip("\n") + "\n\n" + section
+        text = text.rstrip("\n") + f"\n\n## {title}\n\n{block}"
     write_bytes(path, text.encode())
 
 
