@@ -74,6 +74,36 @@ def test_a_warm_started_refinement_computes_the_shipped_network():
     np.testing.assert_allclose((sigma / depth).numpy(), 0.2, rtol=1e-5)
 
 
+def test_a_refinement_warm_started_from_a_refinement_keeps_its_trained_sigma_head():
+    """Warm-starting from the shipped refinement copies its σ head too (it was reset to log 0.2, so a
+    continued training run began with an untrained σ): with the input statistics set as the export's, the
+    network computes the shipped model's depth, AiF and 1σ."""
+    import onnx
+    import onnxruntime as ort
+    from onnx import numpy_helper
+
+    from bmi_sdk.nn.model import DualHeadMimoUNet, ModelConfig, preset_config
+    from bmi_sdk.nn.train import init_from_onnx
+    from bmi_sdk.runtime.model import DEFAULT_MODEL
+
+    shipped = DEFAULT_MODEL.parent / "learned.onnx"
+    config = ModelConfig(**{**preset_config("tiny").to_dict(), "extra_channels": 13, "sigma_head": True})
+    net = DualHeadMimoUNet(config).eval()
+    init_from_onnx(net, shipped)
+    stats = {t.name: numpy_helper.to_array(t) for t in onnx.load(str(shipped)).graph.initializer}
+    with torch.no_grad():
+        for name in ("extra_mean", "extra_std"):  # set from the training data, not copied by a warm start
+            getattr(net, name).copy_(torch.from_numpy(np.array(stats["net." + name])))
+    x = torch.rand(1, 19, 64, 96, generator=torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        aif, depth, sigma = net(x)
+    session = ort.InferenceSession(str(shipped), providers=["CPUExecutionProvider"])
+    ref_aif, ref_depth, ref_sigma = session.run(None, {"coded": x.numpy()})
+    np.testing.assert_allclose(depth.numpy(), ref_depth, rtol=1e-4)
+    np.testing.assert_allclose(sigma.numpy(), ref_sigma, rtol=1e-4)
+    assert np.std(ref_sigma / ref_depth) > 1e-3  # a trained head: not the constant 0.2 of a fresh one
+
+
 def test_an_identity_refinement_returns_the_classical_decode_through_the_tiled_runtime(tmp_path, identity_model):
     """Tiles of 64 px over a 128² frame, each fed its slice of the classical channels: the learned decoder's
     depth, 1σ and AiF must be the classical decoder's (the channels' clips aside)."""

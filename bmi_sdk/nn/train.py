@@ -97,8 +97,9 @@ def network_config(config: TrainConfig, extra_channels: int = 0) -> ModelConfig:
 
 def init_from_onnx(net: DualHeadMimoUNet, onnx_path: str | Path) -> int:
     """Copy the weights of an exported model (initializers ``net.<parameter>``) into ``net``; returns how many
-    tensors were copied. Where ``net`` is wider, the extra input channels of the head start at zero and the
-    σ head's output at log 0.2, so ``net`` computes what the exported model does."""
+    tensors were copied. Where ``net`` is wider, the extra input channels of the head start at zero and a σ head
+    the exported model lacks outputs log 0.2, so ``net`` computes what the exported model does; a σ head the
+    exported model has (a refinement warm-started from a refinement) keeps its trained weights."""
     import onnx
     from onnx import numpy_helper
 
@@ -127,7 +128,7 @@ def init_from_onnx(net: DualHeadMimoUNet, onnx_path: str | Path) -> int:
             else:
                 raise ValueError(f"{onnx_path}: tensor {name} has shape {tuple(src.shape)}, "
                                  f"the network {tuple(target.shape)}")
-    if "sigma_out.1.0.weight" in state:
+    if "sigma_out.1.0.weight" in state and "sigma_out.1.0.weight" not in weights:  # a trained σ head is kept
         with torch.no_grad():
             state["sigma_out.1.0.weight"].zero_()
             state["sigma_out.1.0.bias"].fill_(math.log(0.2))
