@@ -157,6 +157,33 @@ def test_a_refinement_trains_from_renders_to_a_verified_model(tmp_path):
     assert json.loads((tmp_path / "run" / "train_log.json").read_text())["sessions"][-1]["from_step"] == 2
 
 
+def test_a_sigma_head_only_run_changes_nothing_but_the_sigma_head(tmp_path):
+    """``sigma_head_only`` recalibrates the shipped refinement's 1σ on new pairs: after two optimiser steps every
+    tensor but the σ head's, the input standardisation included, is the shipped model's, and the σ head moved.
+    Without a refinement to start from it is refused."""
+    import onnx
+    from onnx import numpy_helper
+
+    from bmi_sdk.nn.data import CacheSpec
+    from bmi_sdk.nn.refine_data import RefineSpec
+    from bmi_sdk.nn.train import TrainConfig, load_weights, train
+    from bmi_sdk.runtime.model import DEFAULT_MODEL
+
+    shipped = DEFAULT_MODEL.parent / "learned.onnx"
+    config = TrainConfig(steps=2, batch_size=2, lr=1e-2, cache=CacheSpec(samples=2, crop_px=48, jitter_px=4),
+                         refine=RefineSpec(), init_from=str(shipped), sigma_head_only=True)
+    net, _ = load_weights(train(config, tmp_path / "run", tmp_path / "cache", progress=False))
+    source = {t.name.removeprefix("net."): numpy_helper.to_array(t) for t in onnx.load(str(shipped)).graph.initializer}
+    state = net.state_dict()
+    kept = [k for k in source if not k.startswith("sigma_out.")]
+    assert "extra_mean" in kept and len(kept) > 90
+    for name in kept:
+        np.testing.assert_array_equal(state[name].numpy().reshape(source[name].shape), source[name], err_msg=name)
+    assert any(not np.array_equal(state[k].numpy(), source[k]) for k in source if k.startswith("sigma_out."))
+    with pytest.raises(ValueError, match="init_from"):
+        TrainConfig(refine=RefineSpec(), sigma_head_only=True)
+
+
 def test_manifests_keep_the_two_kinds_of_model_apart(tmp_path, identity_model, passthrough_model):
     from bmi_sdk.runtime.model import select_model
 

@@ -30,6 +30,9 @@ def register(subparsers) -> None:
                         "default.onnx; its new input channels and σ output start at zero)")
     p.add_argument("--warmup-steps", type=int, default=None,
                    help="linear learning-rate warm-up (default 0; 200 with --decoder learned)")
+    p.add_argument("--sigma-head-only", action="store_true",
+                   help="--decoder learned: train only the σ head of the --init-from refinement, on this run's pairs "
+                        "(a --seed whose pairs its trunk never saw): its depth and AiF stay the source model's")
     p.add_argument("--refine-sigma", type=float, nargs=2, default=(0.003, 0.012), metavar=("MIN", "MAX"),
                    help="--decoder learned: noise σ range of the decoded training frames (log-uniform)")
     p.add_argument("--camera-errors", type=float, default=0.0, metavar="FRACTION",
@@ -77,7 +80,7 @@ def _run(args) -> int:
     warmup = args.warmup_steps if args.warmup_steps is not None else (200 if args.decoder == "learned" else 0)
     config = TrainConfig(preset=args.preset, steps=args.steps, batch_size=args.batch, lr=args.lr, sigma=sigma,
                          sigma_max=args.sigma_max, seed=args.seed, cache=spec, refine=refine, init_from=init_from,
-                         warmup_steps=warmup)
+                         warmup_steps=warmup, sigma_head_only=args.sigma_head_only)
     errors = f"-e{args.camera_errors:g}" if args.camera_errors else ""
     cache = Path(args.cache or f".bmi_cache/train/{args.lens}-{args.samples}-{args.crop}-s{args.seed}{errors}")
     t0 = time.perf_counter()

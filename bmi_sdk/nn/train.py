@@ -55,9 +55,12 @@ class TrainConfig:
     refine: RefineSpec | None = None  # set: the learned refinement (classical channels in, σ out)
     init_from: str | None = None      # an ONNX model whose weights start the run (``init_from_onnx``)
     warmup_steps: int = 0             # linear learning-rate warm-up (a warm-started refinement needs one)
+    sigma_head_only: bool = False     # train the σ head alone on pairs its trunk never saw (``Trainer``)
 
     def __post_init__(self):
         check_noise_range(self.sigma, self.sigma_max)
+        if self.sigma_head_only and (self.refine is None or self.init_from is None):
+            raise ValueError("sigma_head_only recalibrates a trained refinement's 1σ: it needs refine and init_from")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -95,11 +98,12 @@ def network_config(config: TrainConfig, extra_channels: int = 0) -> ModelConfig:
     return ModelConfig(**{**base.to_dict(), "extra_channels": extra_channels, "sigma_head": True})
 
 
-def init_from_onnx(net: DualHeadMimoUNet, onnx_path: str | Path) -> int:
+def init_from_onnx(net: DualHeadMimoUNet, onnx_path: str | Path, input_stats: bool = False) -> int:
     """Copy the weights of an exported model (initializers ``net.<parameter>``) into ``net``; returns how many
     tensors were copied. Where ``net`` is wider, the extra input channels of the head start at zero and a σ head
     the exported model lacks outputs log 0.2, so ``net`` computes what the exported model does; a σ head the
-    exported model has (a refinement warm-started from a refinement) keeps its trained weights."""
+    exported model has (a refinement warm-started from a refinement) keeps its trained weights. ``input_stats``:
+    also copy the standardisation of the extra input channels (otherwise set from the run's own data)."""
     import onnx
     from onnx import numpy_helper
 
@@ -107,9 +111,13 @@ def init_from_onnx(net: DualHeadMimoUNet, onnx_path: str | Path) -> int:
     state = net.state_dict()
     # the exported graph keeps only the full-resolution AiF output: the coarse outputs' convolutions are
     # not in it and keep their seeded initialisation (they feed only the multi-scale training loss)
-    # the refinement's input statistics are set from its own training data (``Trainer``), not copied
+    # the refinement's input statistics are set from its own training data (``Trainer``), unless ``input_stats``
     missing = [k for k in state if k not in weights
                and not k.startswith(("image_out.0.", "image_out.1.", "extra_mean", "extra_std", "sigma_out."))]
+    if not input_stats:
+        weights = {k: v for k, v in weights.items() if k not in ("extra_mean", "extra_std")}
+    elif "extra_mean" in state and "extra_mean" not in weights:
+        raise ValueError(f"{onnx_path} has no input standardisation to keep: not a learned refinement")
     if missing:
         raise ValueError(f"{onnx_path} lacks {len(missing)} of the network's tensors (e.g. {missing[0]}): "
                          "another architecture")
@@ -148,13 +156,20 @@ class Trainer:
         extra = self.data.extra_channels if config.refine is not None else 0
         self.net = DualHeadMimoUNet(network_config(config, extra))
         if config.init_from is not None:
-            init_from_onnx(self.net, config.init_from)
-        if extra:
+            init_from_onnx(self.net, config.init_from, input_stats=config.sigma_head_only)
+        if extra and not config.sigma_head_only:
             mean, std = self.data.feature_stats()
             self.net.extra_mean.copy_(torch.from_numpy(mean).reshape(1, -1, 1, 1))
             self.net.extra_std.copy_(torch.from_numpy(std).reshape(1, -1, 1, 1))
+        if config.sigma_head_only:
+            # a σ head fitted to the residuals of the pairs its trunk was trained on learns the training error,
+            # which is smaller than the error on new scenes: trained alone on other pairs, it learns the latter.
+            # Everything else, the input standardisation included, stays as the source model has it.
+            for name, parameter in self.net.named_parameters():
+                parameter.requires_grad_(name.startswith("sigma_out."))
         self.net.to(self.device)
-        self.opt = torch.optim.Adam(self.net.parameters(), lr=config.lr, betas=config.betas)
+        self.opt = torch.optim.Adam([p for p in self.net.parameters() if p.requires_grad], lr=config.lr,
+                                    betas=config.betas)
         self.step_index = 0
         self.history: list[dict] = []
 
