@@ -388,3 +388,23 @@ def test_shipped_manifests_record_their_architecture_s_measured_receptive_field(
         config = replace(preset_config(manifest["preset"]), extra_channels=extra, sigma_head=bool(extra))
         net = InferenceWrapper(DualHeadMimoUNet(config)).eval()
         assert manifest["receptive_field_px"] == measure_receptive_field(net, 256, channels=manifest["input_channels"])
+
+
+def test_the_sigma_likelihood_is_minimised_by_the_rms_error_in_metres():
+    """The σ head's loss at one relative σ s shared by every pixel is minimal where s·d̂ is the RMS of the depth
+    error in metres relative to the read depth (the quantity the runtime's depth_sigma is judged on), not the
+    RMS of the log-depth error: with reads at half and twice the truth the two differ by 14 %."""
+    import torch
+
+    from bmi_sdk.nn.losses import sigma_nll_loss
+
+    truth = torch.tensor([[[[2.0, 2.0, 4.0, 4.0]]]])
+    read = torch.tensor([[[[1.0, 4.0, 2.0, 8.0]]]])  # half and twice the truth
+    mask = torch.ones_like(truth, dtype=torch.bool)
+    rel = (read - truth) / read
+    expected = float(torch.sqrt(torch.mean(rel ** 2)))
+    log_s = np.linspace(np.log(0.1), np.log(3.0), 2001)
+    losses = [float(sigma_nll_loss(read, read * math.exp(v), truth, mask)) for v in log_s]
+    best = math.exp(log_s[int(np.argmin(losses))])
+    assert best == pytest.approx(expected, rel=2e-3)
+    assert expected / float(torch.sqrt(torch.mean(torch.log(read / truth) ** 2))) == pytest.approx(1.14, abs=0.01)
