@@ -184,6 +184,18 @@ def test_a_sigma_head_only_run_changes_nothing_but_the_sigma_head(tmp_path):
         TrainConfig(refine=RefineSpec(), sigma_head_only=True)
 
 
+def test_a_sigma_head_only_run_without_a_refinement_to_start_from_is_refused_before_rendering(tmp_path):
+    from bmi_sdk.runtime.model import DEFAULT_MODEL
+
+    for extra, message in (([], "needs --decoder learned and --init-from"),
+                           (["--init-from", str(DEFAULT_MODEL)], "is not a learned refinement")):
+        run = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", "train", "--decoder", "learned", "--sigma-head-only",
+                              "--steps", "2", "--samples", "2", "--crop", "48", "--out", str(tmp_path / "run"),
+                              "--cache", str(tmp_path / "cache"), *extra], capture_output=True, text=True)
+        assert run.returncode == 1 and message in run.stderr, run.stderr[-2000:]
+        assert not (tmp_path / "cache").exists() and not (tmp_path / "run").exists()
+
+
 def test_manifests_keep_the_two_kinds_of_model_apart(tmp_path, identity_model, passthrough_model):
     from bmi_sdk.runtime.model import select_model
 

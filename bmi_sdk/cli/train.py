@@ -77,6 +77,15 @@ def _run(args) -> int:
 
         refine = RefineSpec(sigma_min=args.refine_sigma[0], sigma_max=args.refine_sigma[1], seed=args.seed)
         init_from = init_from or str(DEFAULT_MODEL)
+    if args.sigma_head_only:  # refused before any pair is rendered, naming the model it needs
+        from bmi_sdk.model_manifest import verify_model
+
+        if args.decoder != "learned" or args.init_from is None:
+            raise ValueError("--sigma-head-only retrains the σ head of a learned refinement: it needs "
+                             "--decoder learned and --init-from MODEL.onnx")
+        if verify_model(args.init_from).get("decoder") != "learned":
+            raise ValueError(f"--init-from {args.init_from} is not a learned refinement: --sigma-head-only has no σ head "
+                             "to retrain")
     warmup = args.warmup_steps if args.warmup_steps is not None else (200 if args.decoder == "learned" else 0)
     config = TrainConfig(preset=args.preset, steps=args.steps, batch_size=args.batch, lr=args.lr, sigma=sigma,
                          sigma_max=args.sigma_max, seed=args.seed, cache=spec, refine=refine, init_from=init_from,
