@@ -62,7 +62,7 @@ def _run(args) -> int:
 
     from bmi_sdk.nn.data import STANDARD_SIGMA, CacheSpec, build_cache
     from bmi_sdk.nn.export import export_with_manifest
-    from bmi_sdk.nn.train import TrainConfig, load_weights, train
+    from bmi_sdk.nn.train import TrainConfig, check_sigma_head_source, load_weights, train
 
     if args.crop % 4:
         raise ValueError(f"--crop must be a multiple of 4, got {args.crop}")
@@ -77,19 +77,14 @@ def _run(args) -> int:
 
         refine = RefineSpec(sigma_min=args.refine_sigma[0], sigma_max=args.refine_sigma[1], seed=args.seed)
         init_from = init_from or str(DEFAULT_MODEL)
-    if args.sigma_head_only:  # refused before any pair is rendered, naming the model it needs
-        from bmi_sdk.model_manifest import verify_model
-
-        if args.decoder != "learned" or args.init_from is None:
-            raise ValueError("--sigma-head-only retrains the σ head of a learned refinement: it needs "
-                             "--decoder learned and --init-from MODEL.onnx")
-        if verify_model(args.init_from).get("decoder") != "learned":
-            raise ValueError(f"--init-from {args.init_from} is not a learned refinement: --sigma-head-only has no σ head "
-                             "to retrain")
+    if args.sigma_head_only and (args.decoder != "learned" or args.init_from is None):  # not the default model
+        raise ValueError("--sigma-head-only retrains the σ head of a learned refinement: it needs "
+                         "--decoder learned and --init-from MODEL.onnx")
     warmup = args.warmup_steps if args.warmup_steps is not None else (200 if args.decoder == "learned" else 0)
     config = TrainConfig(preset=args.preset, steps=args.steps, batch_size=args.batch, lr=args.lr, sigma=sigma,
                          sigma_max=args.sigma_max, seed=args.seed, cache=spec, refine=refine, init_from=init_from,
                          warmup_steps=warmup, sigma_head_only=args.sigma_head_only)
+    check_sigma_head_source(config)  # before this command renders the pairs itself
     errors = f"-e{args.camera_errors:g}" if args.camera_errors else ""
     cache = Path(args.cache or f".bmi_cache/train/{args.lens}-{args.samples}-{args.crop}-s{args.seed}{errors}")
     t0 = time.perf_counter()

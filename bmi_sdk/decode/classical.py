@@ -492,9 +492,10 @@ def fill_blind_windows(inv: np.ndarray, sig: np.ndarray, blind: np.ndarray) -> t
 
 
 def fill_grid(grid: np.ndarray) -> np.ndarray:
-    """float32 copy of a window grid whose NaN samples (skipped blocks) take their nearest finite neighbour's
-    value, so interpolation does not spread NaN into valid pixels next to the image-circle border."""
-    g = grid.astype(np.float32)
+    """A window grid as float32 whose NaN samples (skipped blocks) take their nearest finite neighbour's value, so
+    interpolation does not spread NaN into valid pixels next to the image-circle border. A float32 grid without
+    NaN is returned as it is (``FeatureTiles`` fills its grids once and upsamples them per tile)."""
+    g = np.asarray(grid, np.float32)
     bad = ~np.isfinite(g)
     if bad.any() and not bad.all():
         idx = ndimage.distance_transform_edt(bad, return_distances=False, return_indices=True)

@@ -223,12 +223,25 @@ def load_weights(checkpoint: str | Path) -> tuple[DualHeadMimoUNet, TrainConfig]
     return net.eval(), config
 
 
+def check_sigma_head_source(config: TrainConfig) -> None:
+    """Refuse, before any pair is rendered, a ``sigma_head_only`` run whose ``init_from`` is not a learned
+    refinement (its manifest, verified): there would be no σ head and no input standardisation to keep."""
+    if not config.sigma_head_only:
+        return
+    from bmi_sdk.model_manifest import verify_model
+
+    if verify_model(config.init_from).get("decoder") != "learned":
+        raise ValueError(f"--init-from {config.init_from} is not a learned refinement: --sigma-head-only has no "
+                         "σ head to retrain")
+
+
 def train(config: TrainConfig, out_dir: str | Path, cache_dir: str | Path, save_every: int = 250,
           progress: bool = True, device: torch.device | None = None, scheduler: str | None = None,
           workers: int = 1) -> Path:
     """Build the render cache if needed (on Dask with ``scheduler``: ``local:N`` / ``tcp://HOST:PORT``), and
     for a refinement its classical decodes (``workers`` processes), then train (resuming from ``out_dir``'s
     checkpoint); returns the checkpoint."""
+    check_sigma_head_source(config)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     build_cache(cache_dir, config.cache, progress=progress, scheduler=scheduler)
