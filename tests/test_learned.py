@@ -273,6 +273,14 @@ def test_classical_knobs_with_another_decoder_are_refused_not_ignored(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
+def test_the_classical_options_defaults_are_the_decoders():
+    """``bmi infer``'s classical options default to ``ClassicalConfig``'s knobs (the CLI keeps them as literals so
+    that it starts without importing the decoder): a default changed in one place only fails here."""
+    from bmi_sdk.cli.infer import CLASSICAL_KNOBS
+
+    assert CLASSICAL_KNOBS == {knob: getattr(ClassicalConfig(), knob) for knob in CLASSICAL_KNOBS}
+
+
 def test_each_training_pair_draws_its_own_camera_within_the_papers_ranges():
     """``CacheSpec(camera_errors=f)``: sample i's camera is drawn from its own seeded stream (the same camera every
     time, another for another index or seed), every term within f × the paper's range; f = 0 is the nominal

@@ -18,20 +18,16 @@ def infer_many(args) -> int:
     """Decode every frame; print one line per frame and a total; exit status 1 when any frame failed."""
     import time
 
+    from bmi_sdk.cli.infer import classical_config
     from bmi_sdk.runtime.batch import DecodeOptions, plan_outputs, run_batch
     from bmi_sdk.scaleout import open_client
 
     jobs = plan_outputs(args.raw, args.out)
-    classical_config = None
-    if args.decoder == "classical":
-        from bmi_sdk.decode import ClassicalConfig
-
-        classical_config = ClassicalConfig(window_px=args.window_px, stride_px=args.stride_px,
-                                           candidates=args.candidates, noise_sigma=args.noise_sigma)
     options = DecodeOptions(model_path=args.model, calibration_id=args.calibration_id,
                             calibration_path=args.calibration, tile_px=args.tile_px, threads=args.threads,
                             overlap_px=args.overlap_px, ply_step_px=args.ply_step, decoder=args.decoder,
-                            classical_config=classical_config, overwrite=args.overwrite,
+                            classical_config=classical_config(args) if args.decoder == "classical" else None,
+                            overwrite=args.overwrite,
                             allow_test_pattern=args.allow_test_pattern, providers=args.provider,
                             depth_range_m=args.depth_range)
     t0 = time.perf_counter()

@@ -16,8 +16,16 @@ def depth_range(text: str) -> tuple[float, float]:
         raise ValueError(f"--depth-range {text}: {exc}") from None
 
 
-CLASSICAL_KNOBS = {"window_px": 64, "stride_px": 16, "candidates": 48, "noise_sigma": None}
-"""``--decoder classical``'s options and their defaults: any other value with another decoder is refused."""
+CLASSICAL_KNOBS = {"window_px": 64, "stride_px": 16, "candidates": 48, "noise_sigma": None, "pool_sigma_px": 48.0}
+"""``--decoder classical``'s options and their defaults (``ClassicalConfig``'s: a test holds them equal); any other
+value with another decoder is refused."""
+
+
+def classical_config(args):
+    """The ``ClassicalConfig`` of ``--decoder classical``'s options."""
+    from bmi_sdk.decode import ClassicalConfig
+
+    return ClassicalConfig(**{knob: getattr(args, knob) for knob in CLASSICAL_KNOBS})
 
 
 def _run(args) -> int:
@@ -44,12 +52,7 @@ def _run(args) -> int:
         return infer_many(args)
     args.raw = args.raw[0]
 
-    options = {}
-    if args.decoder == "classical":
-        from bmi_sdk.decode import ClassicalConfig
-
-        options["classical_config"] = ClassicalConfig(window_px=args.window_px, stride_px=args.stride_px,
-                                                      candidates=args.candidates, noise_sigma=args.noise_sigma)
+    options = {"classical_config": classical_config(args)} if args.decoder == "classical" else {}
 
     # frame-quality findings (FrameQualityWarning) reach stderr through logging: "bmi infer: warning: …"
     result, report = run_job(args.raw, args.out, model_path=args.model, calibration_id=args.calibration_id,
@@ -140,6 +143,9 @@ def register(subparsers) -> None:
     p.add_argument("--noise-sigma", type=float, default=None,
                    help="classical: a constant raw noise σ in units of full scale (default: the frame's NoiseProfile "
                         "tag, the camera's photon transfer; estimated from the picture when the file has none)")
+    p.add_argument("--pool-sigma-px", type=float, default=CLASSICAL_KNOBS["pool_sigma_px"],
+                   help="classical: radius over which each window's evidence pools its like-coloured neighbours' "
+                        "(default 48; 0: each window alone; docs/decoder.md, method step 4b)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an earlier run's results in --out (they are replaced only once all new files "

@@ -28,6 +28,11 @@ Steps (each in its own module):
    (large across depth edges and in clutter), with (a, b, c) =
    (``sigma_laplace_scale``, ``sigma_spread_scale``, ``sigma_floor_inv_per_m``) fitted by maximum
    likelihood on scenes apart from the benchmark (``bmi bench decoder``).
+   Pooling (``pooling``, ``pool_sigma_px`` > 0, the default): each window's whole curve (candidates neither pass
+   scored interpolated, ``whole_curves``) adds its neighbours' curves, weighted by distance and colour likeness and
+   each truncated at ``pool_truncate_nats``; the pooled curve's parabola gives 1/d. σ stays the window's own (its
+   curvature and the spread of the windows' own reads): overlapping windows share pixels, so their curves are not
+   independent evidence. A textureless window then reads its surface's depth (``bmi bench pooling``).
 5. Optional confidence-weighted fill (``fill_windows`` > 0): 1/d is replaced by its
    inverse-variance weighted mean over a Gaussian neighbourhood, which gives textureless windows
    their neighbours' depth (off by default: on the benchmark it spreads the far background into
@@ -59,6 +64,7 @@ from .candidates import Candidates, inverse_depth_candidates
 from .evidence import (Evidence, hann_taper, plane_nll, taper_variance_inflation, window_spectra,
                        windows_touching)
 from .kernels import ZONE_STEP_DEG, ZoneKernels
+from .pooling import pool_evidence, window_colour
 
 
 NOISE_MODELS = ("profile", "estimate")
@@ -97,6 +103,10 @@ class ClassicalConfig:
     sigma_spread_scale: float = 3.64
     sigma_floor_inv_per_m: float = 0.0234
     fill_windows: float = 0.0
+    pool_sigma_px: float = 48.0  # 0: each window read alone; else its curve pools its neighbours' (``pooling``) within
+    #                              a Gaussian of this radius, weighted by colour likeness and truncated per neighbour
+    pool_colour_sigma: float = 0.4  # colour scale of the pooling weight (difference of log mean colour)
+    pool_truncate_nats: float = 10.0  # the most a neighbour's curve counts against any depth
     aif_step: int = 4
     aif_model_error: float = 0.1  # the AiF's kernel is never exact (depth error, blend between candidates): its
     #                               Wiener filter counts (ε · block mean signal)² as noise besides the sensor's
@@ -113,6 +123,9 @@ class ClassicalConfig:
             raise ValueError(f"stride_px must be even and >= 2, got {self.stride_px}")
         if not self.aif_model_error >= 0:
             raise ValueError(f"aif_model_error must be >= 0, got {self.aif_model_error}")
+        if not (self.pool_sigma_px >= 0 and self.pool_colour_sigma > 0 and self.pool_truncate_nats >= 0):
+            raise ValueError(f"pooling needs pool_sigma_px >= 0, pool_colour_sigma > 0 and pool_truncate_nats >= 0, "
+                             f"got {self.pool_sigma_px}, {self.pool_colour_sigma}, {self.pool_truncate_nats}")
         if self.block_windows < 1 or self.coarse_step < 1 or self.aif_step < 1:
             raise ValueError("block_windows, coarse_step and aif_step must be >= 1")
         if not self.slopes:
@@ -214,7 +227,8 @@ class ClassicalDecoder:
         cfg = self.config
         t_start = time.perf_counter()
         traced_before = self.zones.psf_map.kernels_traced
-        timings = dict.fromkeys(("planes_s", "evidence_s", "kernels_s", "fill_s", "upsample_s", "aif_s"), 0.0)
+        timings = dict.fromkeys(("planes_s", "evidence_s", "kernels_s", "pool_s", "fill_s", "upsample_s", "aif_s"),
+                                0.0)
         height, width = raw.shape
         planes = normalised_planes(raw, black_level_dn, white_level_dn, row0, col0)
         noise, noise_source = frame_noise(cfg, planes, noise_profile)
@@ -241,6 +255,10 @@ class ClassicalDecoder:
         coarse = coarse_indices(n_cand, cfg.coarse_step)
         evidence = np.full((grid_rows, grid_cols, len(coarse)), np.nan, np.float32)
         blind = np.zeros((grid_rows, grid_cols), bool)  # windows clipped in every plane: no evidence of their own
+        pooling = cfg.pool_sigma_px > 0
+        if pooling:  # every window's whole curve and colour, for pooling once the grid is read
+            curves = np.full((grid_rows, grid_cols, n_cand), np.nan, np.float32)
+            colour = np.zeros((grid_rows, grid_cols, 3), np.float32)
         evaluations = {"full": 0, "done": 0}
         blocks = evidence_blocks(cfg, height, width)
         skipped = windows_clipped = 0
@@ -292,6 +310,9 @@ class ClassicalDecoder:
             depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
             inv[br:br + nr, bc:bc + nc] = 1.0 / depth_b
             sig[br:br + nr, bc:bc + nc] = sigma_b * self.laplace_inflation
+            if pooling:
+                curves[br:br + nr, bc:bc + nc] = whole_curves(coarse, coarse_nll, which, nll, n_cand).reshape(nr, nc, -1)
+                colour[br:br + nr, bc:bc + nc] = window_colour([w[1] for w in windows]).reshape(nr, nc, 3)
             evaluations["full"] += window_reads * n_cand
             evaluations["done"] += window_reads * (len(coarse) + len(fine))
             timings["evidence_s"] += (t1 - t0) + (t3 - t2) + (time.perf_counter() - t4)
@@ -300,7 +321,14 @@ class ClassicalDecoder:
             bar.close()
         t0 = time.perf_counter()
         sigma_laplace = sig
-        spread = local_spread(inv)
+        spread = local_spread(inv)  # the windows' own reads: how much they disagree is what the σ model was fitted on
+        if pooling:
+            pooled = pool_evidence(curves, colour, cfg.pool_sigma_px / cfg.stride_px, cfg.pool_colour_sigma,
+                                   cfg.pool_truncate_nats)
+            del curves
+            inv = np.where(np.isfinite(inv), 1.0 / Evidence(np.nan_to_num(pooled), cand_inv).refine()[0], np.nan)
+        timings["pool_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
         sig = np.sqrt((cfg.sigma_laplace_scale * sigma_laplace) ** 2 + (cfg.sigma_spread_scale * spread) ** 2
                       + cfg.sigma_floor_inv_per_m ** 2)
         inv, sig = fill_blind_windows(inv, sig, blind)
@@ -432,6 +460,24 @@ def fft_span_px(core_px: int, halo_px: int) -> int:
 def coarse_indices(n_candidates: int, coarse_step: int) -> np.ndarray:
     """Indices of the coarse pass's candidates: every ``coarse_step``-th one and the last."""
     return np.unique(np.r_[np.arange(0, n_candidates, coarse_step), n_candidates - 1])
+
+
+def whole_curves(coarse: np.ndarray, coarse_nll: np.ndarray, which: np.ndarray, nll: np.ndarray,
+                 n_candidates: int) -> np.ndarray:
+    """(windows, n_candidates) float32 NLL less each window's minimum over every candidate, from a block's two passes:
+    the coarse pass's ``coarse_nll`` (windows, len(coarse)) and the fine pass's ``nll`` (windows, len(which)), one
+    curve on one β grid; candidates neither pass scored are interpolated linearly between the scored ones (they lie
+    away from every window's best, where the curve is smooth and pooling truncates it)."""
+    scored = np.union1d(coarse, which)
+    values = np.empty((len(nll), len(scored)))
+    values[:, np.isin(scored, coarse)] = coarse_nll
+    values[:, np.isin(scored, which)] = nll
+    pos = np.interp(np.arange(n_candidates), scored, np.arange(len(scored)))
+    lo = np.minimum(np.floor(pos).astype(int), len(scored) - 1)
+    hi = np.minimum(lo + 1, len(scored) - 1)
+    frac = pos - lo
+    full = values[:, lo] * (1.0 - frac) + values[:, hi] * frac
+    return (full - full.min(axis=1, keepdims=True)).astype(np.float32)
 
 
 def local_spread(inv: np.ndarray) -> np.ndarray:

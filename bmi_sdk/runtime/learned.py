@@ -54,6 +54,7 @@ def model_classical_config(model: Model, threads: int | None = None) -> Classica
     knobs.setdefault("noise_model", "estimate")
     knobs.setdefault("window_model", "untapered")
     knobs.setdefault("aif_model_error", 0.0)
+    knobs.setdefault("pool_sigma_px", 0.0)  # and each window read alone
     knobs["slopes"] = tuple(knobs.get("slopes", (2.0,)))
     return replace(ClassicalConfig(**knobs), threads=threads)
 
