@@ -408,3 +408,76 @@ def test_the_sigma_likelihood_is_minimised_by_the_rms_error_in_metres():
     best = math.exp(log_s[int(np.argmin(losses))])
     assert best == pytest.approx(expected, rel=2e-3)
     assert expected / float(torch.sqrt(torch.mean(torch.log(read / truth) ** 2))) == pytest.approx(1.14, abs=0.01)
+
+
+def test_scene_scale_one_draws_the_scenes_of_the_caches_before_it():
+    """``draw_scene`` at scale 1 takes nothing more from the sample's random stream: caches rendered before the
+    scale existed are the ones a scale-1 spec renders, bit for bit."""
+    from bmi_sdk.nn.data import draw_scene
+    from bmi_sdk.scenes import generate_scene
+
+    rgb, range_m = draw_scene(96, 1.0, np.random.default_rng([4, 7]))
+    scene = generate_scene(96, 96, np.random.default_rng([4, 7]))
+    assert np.array_equal(rgb, scene.rgb) and np.array_equal(range_m, scene.range_m)
+
+
+def test_a_larger_scene_scale_gives_crops_with_fewer_depth_edges():
+    """Scenes drawn up to 8× larger (log-uniform) and cropped hold objects that much larger against the crop: about
+    half as many pixels lie on a depth step (the benchmark's scenes are drawn at the crop's scale; a frame's
+    objects are larger still)."""
+    from bmi_sdk.nn.data import draw_scene
+
+    def edge_share(scale):
+        shares = []
+        for i in range(12):
+            rgb, range_m = draw_scene(64, scale, np.random.default_rng([11, i]))
+            assert rgb.shape == (64, 64, 3) and range_m.shape == (64, 64) and np.isfinite(range_m).all()
+            steps = np.hypot(*np.gradient(np.log(range_m))) > 0.05
+            shares.append(steps.mean())
+        return np.mean(shares)
+
+    assert edge_share(8.0) < 0.6 * edge_share(1.0)
+    with pytest.raises(ValueError, match="scene_scale_max"):
+        CacheSpec(scene_scale_max=0.5)
+
+
+def test_a_cache_from_before_a_spec_field_is_reused_not_refused(tmp_path):
+    """cache.json written before ``scene_scale_max`` existed names no scale; it was rendered at scale 1, so a
+    scale-1 spec reuses it (nothing is rendered: its shard is there) and another scale is refused."""
+    from bmi_sdk.nn.data import build_cache, render_identity, shard_path
+
+    spec = CacheSpec(samples=4, crop_px=16, jitter_px=2)
+    old_spec = {k: v for k, v in spec.to_dict().items() if k != "scene_scale_max"}
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    (cache / "cache.json").write_text(json.dumps({"schema": CACHE_SCHEMA, "spec": old_spec,
+                                                  "renderer": render_identity(spec.lens)}))
+    shard_path(cache, 0).write_bytes(b"")
+    build_cache(cache, spec, progress=False)
+    with pytest.raises(ValueError, match="another cache"):
+        build_cache(cache, CacheSpec(samples=4, crop_px=16, jitter_px=2, scene_scale_max=4.0), progress=False)
+
+
+def test_the_benchmark_at_scene_scale_one_is_the_benchmark_and_larger_scales_crop_larger_scenes():
+    """``Benchmark(scene_scale=1)`` draws the tiles it always drew (bit for bit); at 4 each tile is the centre of a
+    scene drawn 4× larger, the same seed's scene content at the objects' larger size, with fewer depth steps."""
+    from bmi_sdk.nn.data import SCENE_MARGIN_PX, mirror_extend
+    from bmi_sdk.nn.evaluate import Benchmark
+    from bmi_sdk.scenes import generate_scene
+
+    bench = Benchmark(tiles=1, tile_px=64)
+    draw_px = bench.tile_px + 2 * SCENE_MARGIN_PX
+    before = generate_scene(draw_px, draw_px, np.random.default_rng([bench.seed, 7, 0, 0]))
+    want = mirror_extend(before.rgb, before.range_m, bench.margin_px - SCENE_MARGIN_PX)
+    got = bench.scene("centre", 0)
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+    def steps(b):
+        return np.mean([(np.hypot(*np.gradient(np.log(b.scene(region, 0)[1]))) > 0.05).mean()
+                        for region in ("centre", "edge")])
+
+    large = Benchmark(tiles=1, tile_px=64, scene_scale=4.0)
+    assert large.scene("centre", 0)[1].shape == got[1].shape
+    assert steps(large) < steps(bench)
+    with pytest.raises(ValueError, match="scene_scale"):
+        Benchmark(scene_scale=0.9)

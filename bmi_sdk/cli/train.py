@@ -39,6 +39,10 @@ def register(subparsers) -> None:
                    help="each pair's camera draws hardware errors within FRACTION of the paper's ranges (shift 0.5 px, "
                         "scale 5 %%, decenter 10 um, tilt 1', stray light 3 %%, sensor radius 2 %%) and is rendered, and "
                         "(--decoder learned) decoded, with its own exact kernels (default 0: the nominal camera)")
+    p.add_argument("--scene-scale-max", type=float, default=1.0, metavar="SCALE",
+                   help="procedural pairs: draw each scene at a scale log-uniform in [1, SCALE] and crop it, so its "
+                        "objects are up to SCALE× larger against the crop, as a frame's are (default 1: the crop's "
+                        "own scale, the `bmi eval` benchmark's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sigma", type=float, default=None,
                    help="training noise σ, fraction of full scale (default 0.005, the paper's standard); "
@@ -68,7 +72,7 @@ def _run(args) -> int:
         raise ValueError(f"--crop must be a multiple of 4, got {args.crop}")
     torch.set_num_threads(args.threads)
     spec = CacheSpec(lens=args.lens, samples=args.samples, crop_px=args.crop, seed=args.seed,
-                     camera_errors=args.camera_errors)
+                     camera_errors=args.camera_errors, scene_scale_max=args.scene_scale_max)
     sigma = STANDARD_SIGMA if args.sigma is None else args.sigma
     refine, init_from = None, args.init_from
     if args.decoder == "learned":
@@ -86,6 +90,7 @@ def _run(args) -> int:
                          warmup_steps=warmup, sigma_head_only=args.sigma_head_only)
     check_sigma_head_source(config)  # before this command renders the pairs itself
     errors = f"-e{args.camera_errors:g}" if args.camera_errors else ""
+    errors += f"-x{args.scene_scale_max:g}" if args.scene_scale_max > 1 else ""
     cache = Path(args.cache or f".bmi_cache/train/{args.lens}-{args.samples}-{args.crop}-s{args.seed}{errors}")
     t0 = time.perf_counter()
     build_cache(cache, spec, workers=args.render_workers, scheduler=args.scheduler)

@@ -166,11 +166,16 @@ class CacheSpec:
     source: str = "procedural"
     camera_errors: float = 0.0  # > 0: each sample's camera draws hardware errors within this fraction of the paper's
     #                             ranges (``Perturbation.random``) and is rendered with that camera's exact kernels
+    scene_scale_max: float = 1.0  # > 1: each procedural sample's scene is drawn at a scale log-uniform in [1, this]
+    #                               (objects that much larger: a crop of a frame-scale scene), ``draw_scene``
 
     def __post_init__(self):
         if not 0.0 <= self.camera_errors <= 1.0:
             raise ValueError(f"camera_errors is a fraction of the paper's error ranges in [0, 1], "
                              f"got {self.camera_errors}")
+        if not self.scene_scale_max >= 1.0:
+            raise ValueError(f"scene_scale_max must be >= 1 (1: scenes drawn at the crop's own scale), "
+                             f"got {self.scene_scale_max}")
 
     def camera(self, index: int):
         """The ``BuiltCamera`` sample ``index`` is rendered through: the nominal lens, or (``camera_errors`` > 0) one
@@ -215,19 +220,46 @@ def _dataset_window(scenes: Sequence, geometry: SensorGeometry, size_px: int, rn
     raise ValueError("could not find a mostly valid window in 100 placed patches")
 
 
+def scene_crop(draw_px: int, scene_px: int, rng: np.random.Generator,
+               offset: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(rgb, range_m) of the ``draw_px``² crop at ``offset`` (row, col; default centred) of a ``scene_px``² procedural
+    scene drawn from ``rng``. ``generate_scene`` sizes its objects to the scene, so a scene drawn k× larger than the
+    crop holds objects k× larger against it, as a frame's are against a tile; ``scene_px`` = ``draw_px`` is the
+    whole scene, drawn as before crops existed."""
+    from bmi_sdk.scenes import generate_scene
+
+    if scene_px < draw_px:
+        raise ValueError(f"a {draw_px}² crop needs a scene of at least that size, got {scene_px}²")
+    r0, c0 = offset if offset is not None else ((scene_px - draw_px) // 2,) * 2
+    scene = generate_scene(scene_px, scene_px, rng)
+    if scene_px == draw_px:
+        return scene.rgb, scene.range_m
+    box = slice(r0, r0 + draw_px), slice(c0, c0 + draw_px)
+    return np.ascontiguousarray(scene.rgb[box]), np.ascontiguousarray(scene.range_m[box])
+
+
+def draw_scene(draw_px: int, scale_max: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(rgb, range_m) of a training pair's ``draw_px``² procedural scene: with ``scale_max`` > 1 a random crop of a
+    scene drawn at a size log-uniform in [1, scale_max] × ``draw_px`` (``scene_crop``). ``scale_max`` = 1 draws
+    nothing more from ``rng``, so such caches are the ones rendered before the scale existed."""
+    if scale_max <= 1.0:
+        return scene_crop(draw_px, draw_px, rng)
+    big = max(draw_px, int(round(draw_px * math.exp(rng.uniform(0.0, math.log(scale_max))))))
+    r0, c0 = rng.integers(0, big - draw_px + 1, size=2)
+    return scene_crop(draw_px, big, rng, (int(r0), int(c0)))
+
+
 def render_sample(spec: CacheSpec, index: int, tensor, geometry: SensorGeometry,
                   scenes: Sequence | None = None) -> dict:
     """One cached sample (seeded by (spec.seed, index)): optical image, targets and window position."""
     from bmi_sdk.render import render_coded
-    from bmi_sdk.scenes import generate_scene
 
     rng = np.random.default_rng([spec.seed, index])
     size = spec.stored_px + 2 * spec.margin_px
     if scenes is None:
         row0, col0 = sample_window(geometry, size, rng)
-        draw_px = spec.stored_px + 2 * SCENE_MARGIN_PX
-        scene = generate_scene(draw_px, draw_px, rng)
-        rgb, range_m = mirror_extend(scene.rgb, scene.range_m, spec.margin_px - SCENE_MARGIN_PX)
+        rgb, range_m = draw_scene(spec.stored_px + 2 * SCENE_MARGIN_PX, spec.scene_scale_max, rng)
+        rgb, range_m = mirror_extend(rgb, range_m, spec.margin_px - SCENE_MARGIN_PX)
     else:
         rgb, range_m, row0, col0 = _dataset_window(scenes, geometry, size, rng)
     render_range = np.where(np.isfinite(range_m), range_m, FAR_FILL_M).astype(np.float32)
@@ -328,6 +360,10 @@ def build_cache(cache_dir: str | Path, spec: CacheSpec, scenes: Sequence | None 
             "shard_samples": shard_samples}
     if meta_path.exists():
         old = {"shard_samples": SHARD_SAMPLES, **json.loads(meta_path.read_text())}  # caches before the field
+        try:  # a cache from before a spec field reads it at its default, which is how it was rendered
+            old["spec"] = CacheSpec(**old["spec"]).to_dict()
+        except (KeyError, TypeError, ValueError):
+            pass  # not a spec this version knows: refused below
         if old != meta:
             raise ValueError(f"{cache_dir} holds another cache (spec {old.get('spec')}, renderer {old.get('renderer')}, "
                              f"{old['shard_samples']} samples a shard; this run needs {meta['spec']}, "

@@ -46,7 +46,8 @@ import numpy as np
 from bmi_sdk.model_io import network_input, raw_to_rgb, window_cfa
 from bmi_sdk.lenses import lens_geometry, lens_tensor
 from bmi_sdk.metrics import depth_metrics, image_metrics, mean_metrics
-from bmi_sdk.nn.data import SCENE_MARGIN_PX, STANDARD_SIGMA, mirror_extend, render_margin_px, sample_window, simulate_raw
+from bmi_sdk.nn.data import (SCENE_MARGIN_PX, STANDARD_SIGMA, mirror_extend, render_margin_px, sample_window,
+                             scene_crop, simulate_raw)
 from bmi_sdk.optics.perturb import Perturbation
 from bmi_sdk.sensor import (BLACK_LEVEL_DN, CFA_PATTERN, PAPER_NOISE_SIGMAS, WHITE_LEVEL_DN, NoiseProfile,
                             relative_illumination)
@@ -100,6 +101,12 @@ class Benchmark:
     seed: int = 20260
     threads: int = 2
     scheduler: str | None = None  # renders on Dask (``scaleout``: local:N or tcp://HOST:PORT); None: here
+    scene_scale: float = 1.0  # > 1: each tile's scene is drawn this much larger and its centre kept (``scene``)
+
+    def __post_init__(self):
+        if not self.scene_scale >= 1.0:
+            raise ValueError(f"scene_scale must be >= 1 (1: scenes drawn at the tile's own scale), "
+                             f"got {self.scene_scale}")
 
     @property
     def margin_px(self) -> int:
@@ -116,12 +123,13 @@ class Benchmark:
         return out
 
     def scene(self, region: str, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """(linear RGB, range_m) of tile ``i`` of ``region`` over this lens's window (tile + 2 × margin)."""
-        from bmi_sdk.scenes import generate_scene
-
+        """(linear RGB, range_m) of tile ``i`` of ``region`` over this lens's window (tile + 2 × margin): a
+        procedural scene drawn at the window's size, or (``scene_scale`` > 1) the centre of one drawn that much
+        larger, whose objects are that much larger against the tile (``nn.data.scene_crop``)."""
         draw_px = self.tile_px + 2 * SCENE_MARGIN_PX
-        scene = generate_scene(draw_px, draw_px, np.random.default_rng([self.seed, 7, list(REGIONS).index(region), i]))
-        return mirror_extend(scene.rgb, scene.range_m, self.margin_px - SCENE_MARGIN_PX)
+        rgb, range_m = scene_crop(draw_px, int(round(draw_px * self.scene_scale)),
+                                  np.random.default_rng([self.seed, 7, list(REGIONS).index(region), i]))
+        return mirror_extend(rgb, range_m, self.margin_px - SCENE_MARGIN_PX)
 
     def renders(self, tensor, progress: bool = False, psf_mode: str = "tensor",
                 centre_calibrated: bool = True) -> list[dict]:
@@ -355,7 +363,7 @@ def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(),
             rows += score(model, renders_p, bench, STANDARD_SIGMA, name)
     if "fisheye_standard" in conditions:
         fb = Benchmark(lens="fisheye", tiles=bench.tiles, tile_px=bench.tile_px, seed=bench.seed, threads=bench.threads,
-                       scheduler=bench.scheduler)
+                       scheduler=bench.scheduler, scene_scale=bench.scene_scale)
         from dataclasses import replace
 
         fisheye_tensor = lens_tensor("fisheye")
