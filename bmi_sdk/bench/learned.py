@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from . import cpu_seconds, markdown_table, peak_rss_mb, register_target
-from .decoder import PLANE_DEPTHS_M, PLANE_FIELDS_DEG, classical_depth, plane_absrel
+from .decoder import PLANE_DEPTHS_M, PLANE_FIELDS_DEG, classical_depth, full_frame_raw, plane_absrel
 
 
 def _learned_depth(tiles, geometry, costs: dict):
@@ -41,22 +41,14 @@ def _learned_depth(tiles, geometry, costs: dict):
 
 def _full_frame(model_path, nominal, geometry) -> str:
     from bmi_sdk.built_camera import BuiltCamera
-    from bmi_sdk.nn.data import STANDARD_SIGMA, simulate_raw
-    from bmi_sdk.render import PsfMap, render_coded
+    from bmi_sdk.nn.data import STANDARD_SIGMA
     from bmi_sdk.runtime.learned import learned_decoder
     from bmi_sdk.runtime.model import Model
     from bmi_sdk.runtime.pipeline import infer_raw
     from bmi_sdk.decode.features import FeatureTiles
-    from bmi_sdk.scenes import generate_scene
-    from bmi_sdk.sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, NoiseProfile, relative_illumination
+    from bmi_sdk.sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, NoiseProfile
 
-    h, w = geometry.height_px, geometry.width_px
-    scene = generate_scene(h, w, np.random.default_rng(7))
-    optical = render_coded(scene.rgb, scene.range_m, nominal, geometry, 0, 0,
-                           psf_map=PsfMap(nominal, geometry, mode="tensor"))
-    optical *= relative_illumination(geometry, 0, 0, h, w)[..., None]
-    raw = simulate_raw(optical, STANDARD_SIGMA, np.random.default_rng(7))
-    del optical
+    range_m, raw, _ = full_frame_raw(nominal, geometry)
     model = Model(model_path)
     decoder = learned_decoder(model, BuiltCamera(geometry=geometry))
     w0, c0 = time.perf_counter(), cpu_seconds()
@@ -67,8 +59,8 @@ def _full_frame(model_path, nominal, geometry) -> str:
     result = infer_raw(model, raw, black_level_dn=BLACK_LEVEL_DN, white_level_dn=WHITE_LEVEL_DN, geometry=geometry,
                        extra=features)
     w2, c2 = time.perf_counter(), cpu_seconds()
-    ok = result.valid & np.isfinite(scene.range_m)
-    absrel = float(np.mean(np.abs(result.depth_m[ok] - scene.range_m[ok]) / scene.range_m[ok]))
+    ok = result.valid & np.isfinite(range_m)
+    absrel = float(np.mean(np.abs(result.depth_m[ok] - range_m[ok]) / range_m[ok]))
     rows = [["classical stage + channels", f"{w1 - w0:.1f}", f"{c1 - c0:.1f}"],
             ["network (tiles)", f"{w2 - w1:.1f}", f"{c2 - c1:.1f}"], ["total", f"{w2 - w0:.1f}", f"{c2 - c0:.1f}"]]
     return "\n".join([f"Full 6000×4500 procedural frame (seed 7, tensor-mode render), learned decoder "
