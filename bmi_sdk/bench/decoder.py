@@ -149,18 +149,29 @@ def plane_raw(tensor, geometry, field_deg: float, depth_m: float, seed: int = 3,
     rendered with ``tensor``'s kernels (``psf_mode``: rotated tensor kernels, or exact ones; or a given ``psf_map``)
     on the renderer's zones (``zone_px``, default the renderer's), relative illumination applied, as the raw window
     at (row0, col0) of the sensor with the standard noise (σ 0.005)."""
+    from bmi_sdk.render import PsfMap
+
+    size = size_px + 2 * PLANE_MARGIN_PX
+    rgb = plane_texture(size, texture, np.random.default_rng(seed))
+    return window_raw(rgb, np.full((size, size), depth_m, np.float32), tensor, geometry, field_deg, 30.0, seed,
+                      psf_map or PsfMap(tensor, geometry, mode=psf_mode), zone_px)
+
+
+def window_raw(rgb: np.ndarray, range_m: np.ndarray, tensor, geometry, field_deg: float, azimuth_deg: float,
+               seed: int, psf_map, zone_px: int | None = None) -> tuple[np.ndarray, int, int]:
+    """(raw, row0, col0): a scene (``rgb``, ``range_m``, ``PLANE_MARGIN_PX`` of context on each side) centred at
+    (``field_deg``, ``azimuth_deg``), rendered with ``psf_map``'s kernels on the renderer's zones (``zone_px``,
+    default the renderer's), relative illumination applied, as the raw window inside the margin, at (row0, col0) of
+    the sensor, with the standard noise (σ 0.005) drawn from ``seed``."""
     from bmi_sdk.nn.data import STANDARD_SIGMA, simulate_raw
-    from bmi_sdk.render import PsfMap, render_coded
+    from bmi_sdk.render import render_coded
     from bmi_sdk.sensor import relative_illumination
 
-    m = PLANE_MARGIN_PX
-    size = size_px + 2 * m
-    rgb = plane_texture(size, texture, np.random.default_rng(seed))
-    r, c = geometry.pixel_of_field(field_deg, 30.0)
+    m, size = PLANE_MARGIN_PX, rgb.shape[0]
+    r, c = geometry.pixel_of_field(field_deg, azimuth_deg)
     row0, col0 = int(r - size / 2) // 2 * 2, int(c - size / 2) // 2 * 2
     zones = {} if zone_px is None else {"zone_px": zone_px}
-    optical = render_coded(rgb, np.full((size, size), depth_m, np.float32), tensor, geometry, row0, col0,
-                           psf_map=psf_map or PsfMap(tensor, geometry, mode=psf_mode), **zones)
+    optical = render_coded(rgb, range_m, tensor, geometry, row0, col0, psf_map=psf_map, **zones)
     optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
     raw = simulate_raw(optical[m:-m, m:-m], STANDARD_SIGMA, np.random.default_rng(seed), row0 + m, col0 + m)
     return raw, row0 + m, col0 + m

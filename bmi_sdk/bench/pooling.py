@@ -21,10 +21,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from . import cpu_seconds, markdown_table, register_target
+from . import cpu_seconds, markdown_table, peak_rss_mb, register_target
+from .decoder import PLANE_MARGIN_PX, full_frame_raw, window_raw
 
 SCENE_PX = 1024
-SCENE_MARGIN_PX = 24
 SCENE_FIELDS = ((0.0, 0.0), (20.0, 120.0), (30.0, 240.0), (38.0, 0.0))  # (θ°, φ°) of each scene's centre
 SCENE_SEEDS = (101, 102)
 NO_LIMIT = 1e9
@@ -47,24 +47,20 @@ def variants() -> list[tuple[str, object]]:
 
 
 def frame_scale_scenes(tensor, geometry) -> list[dict]:
-    """Raw frames (σ 0.005) and true ranges of procedural scenes drawn at ``SCENE_PX``², one per seed and field."""
-    from bmi_sdk.nn.data import STANDARD_SIGMA, simulate_raw
-    from bmi_sdk.render import PsfMap, render_coded
+    """Raw frames (σ 0.005) and true ranges of procedural scenes drawn at ``SCENE_PX``², one per seed and field
+    (``decoder.window_raw``)."""
+    from bmi_sdk.render import PsfMap
     from bmi_sdk.scenes import generate_scene
-    from bmi_sdk.sensor import relative_illumination
 
     psf_map = PsfMap(tensor, geometry, mode="tensor")
-    m, size = SCENE_MARGIN_PX, SCENE_PX + 2 * SCENE_MARGIN_PX
+    m, size = PLANE_MARGIN_PX, SCENE_PX + 2 * PLANE_MARGIN_PX
     scenes = []
     for seed in SCENE_SEEDS:
         for field_deg, azimuth_deg in SCENE_FIELDS:
             scene = generate_scene(size, size, np.random.default_rng([seed, int(field_deg), int(azimuth_deg)]))
-            r, c = geometry.pixel_of_field(field_deg, azimuth_deg)
-            row0, col0 = int(r - size / 2) // 2 * 2, int(c - size / 2) // 2 * 2
-            optical = render_coded(scene.rgb, scene.range_m, tensor, geometry, row0, col0, psf_map=psf_map)
-            optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
-            raw = simulate_raw(optical[m:-m, m:-m], STANDARD_SIGMA, np.random.default_rng(seed), row0 + m, col0 + m)
-            scenes.append({"raw": raw, "row0": row0 + m, "col0": col0 + m, "range_m": scene.range_m[m:-m, m:-m]})
+            raw, row0, col0 = window_raw(scene.rgb, scene.range_m, tensor, geometry, field_deg, azimuth_deg, seed,
+                                         psf_map)
+            scenes.append({"raw": raw, "row0": row0, "col0": col0, "range_m": scene.range_m[m:-m, m:-m]})
     return scenes
 
 
@@ -72,6 +68,7 @@ def scene_rows(scenes: list[dict], psf_map, geometry) -> list[list]:
     """[configuration, AbsRel, δ1, σ z RMS, CPU s / MP, pooling wall s / MP] over ``scenes`` (all pixels pooled) per
     ``variants`` row; each decoder decodes the first scene once untimed (its kernels' first load)."""
     from bmi_sdk.decode import ClassicalDecoder
+    from bmi_sdk.metrics import depth_metrics
     from bmi_sdk.nn.data import STANDARD_SIGMA
     from bmi_sdk.sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, NoiseProfile
 
@@ -82,7 +79,7 @@ def scene_rows(scenes: list[dict], psf_map, geometry) -> list[list]:
         first = scenes[0]  # untimed: loads the kernels every configuration shares from the PSF cache
         decoder.decode(first["raw"], BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, first["row0"], first["col0"],
                        noise_profile=noise)
-        rel, within, z2, cpu, pool_s, pixels = [], [], [], 0.0, 0.0, 0
+        reads, trues, z2, cpu, pool_s, pixels = [], [], [], 0.0, 0.0, 0
         for s in scenes:
             c0 = cpu_seconds()
             out = decoder.decode(s["raw"], BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, s["row0"], s["col0"],
@@ -91,12 +88,12 @@ def scene_rows(scenes: list[dict], psf_map, geometry) -> list[list]:
             pool_s += out.stats["timings_s"]["pool_s"]
             pixels += s["raw"].size
             ok = out.valid & np.isfinite(s["range_m"]) & np.isfinite(out.depth_m)
-            read, true = out.depth_m[ok].astype(np.float64), s["range_m"][ok]
-            rel.append(np.abs(read - true) / true)
-            within.append(np.maximum(read / true, true / read) < 1.25)
-            z2.append(((read - true) / out.depth_sigma_m[ok]) ** 2)
-        rows.append([name, float(np.mean(np.concatenate(rel))), float(np.mean(np.concatenate(within))),
-                     float(np.sqrt(np.mean(np.concatenate(z2)))), cpu / (pixels / 1e6), pool_s / (pixels / 1e6)])
+            reads.append(out.depth_m[ok].astype(np.float64))
+            trues.append(s["range_m"][ok])
+            z2.append(((reads[-1] - trues[-1]) / out.depth_sigma_m[ok]) ** 2)
+        m = depth_metrics(np.concatenate(reads), np.concatenate(trues))
+        rows.append([name, m["absrel"], m["delta1"], float(np.sqrt(np.mean(np.concatenate(z2)))),
+                     cpu / (pixels / 1e6), pool_s / (pixels / 1e6)])
     return rows
 
 
@@ -124,12 +121,10 @@ def full_frame_rows(tensor, geometry) -> tuple[list[list], int]:
     import time
 
     from bmi_sdk.decode import ClassicalDecoder
+    from bmi_sdk.metrics import depth_metrics
     from bmi_sdk.nn.data import STANDARD_SIGMA
     from bmi_sdk.render import PsfMap
     from bmi_sdk.sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, NoiseProfile
-
-    from . import peak_rss_mb
-    from .decoder import full_frame_raw
 
     range_m, raw, _ = full_frame_raw(tensor, geometry)
     psf_map = PsfMap(tensor, geometry, mode="tensor")
@@ -142,11 +137,9 @@ def full_frame_rows(tensor, geometry) -> tuple[list[list], int]:
         out = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, noise_profile=noise)
         wall = time.perf_counter() - t0
         ok = out.valid & np.isfinite(range_m)
-        read, true = out.depth_m[ok].astype(np.float64), range_m[ok]
         pixels = int(ok.sum())
-        rows.append([name, float(np.mean(np.abs(read - true) / true)),
-                     float(np.mean(np.maximum(read / true, true / read) < 1.25)), wall,
-                     out.stats["timings_s"]["pool_s"], peak_rss_mb()])
+        m = depth_metrics(out.depth_m, range_m, ok)
+        rows.append([name, m["absrel"], m["delta1"], wall, out.stats["timings_s"]["pool_s"], peak_rss_mb()])
         del out
     return rows, pixels
 
