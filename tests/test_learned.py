@@ -1,7 +1,8 @@
 """The learned refinement (``--decoder learned``): its warm start reproduces the shipped network, the runtime
 feeds it the classical decoder's channels tile by tile exactly (an identity refinement must return the
-classical decoder's depth, 1σ and AiF), a training run goes from renders to a verified ONNX model, and the
-manifests keep the two kinds of model apart."""
+classical decoder's depth, 1σ and AiF) and returns the network's depth fused with the classical one by their
+σs, a training run goes from renders to a verified ONNX model, and the manifests keep the two kinds of model
+apart."""
 
 from __future__ import annotations
 
@@ -125,6 +126,48 @@ def test_an_identity_refinement_returns_the_classical_decode_through_the_tiled_r
     aif_c, aif_l = np.load(tmp_path / "c" / "aif.npy"), np.load(tmp_path / "l" / "aif.npy")
     np.testing.assert_allclose(aif_l, np.clip(aif_c, 0.0, 2.0), atol=1e-5)
     assert b"property float sigma" in (tmp_path / "l" / "points.ply").read_bytes()[:400]
+
+
+class DoubledRefinement(nn.Module):
+    """Reads twice the classical depth, with a 1σ of ``rel`` × its own depth; AiF = the classical AiF channels."""
+
+    def __init__(self, rel: float):
+        super().__init__()
+        self.rel = rel
+
+    def forward(self, x):
+        depth = 2.0 * FEATURE_DEPTH_REF_M * torch.exp(x[:, 6:7])
+        return x[:, -3:] * 1.0, depth, depth * self.rel
+
+
+@pytest.mark.parametrize("rel", [30.0, 1e-4])
+def test_bmi_infer_returns_the_fusion_of_the_two_reads(tmp_path, rel):
+    """Through ``bmi infer --decoder learned``: a network that reads 2× the classical depth with a huge σ leaves
+    the classical read (within its weight's share of log 2); one with a tiny σ decides alone. Either way the
+    written depth and σ are ``fuse_log_depth`` of the classical decoder's written maps and the network's."""
+    from bmi_sdk.decode.fusion import fuse_log_depth
+    from bmi_sdk.runtime import export_model
+
+    model = export_model(DoubledRefinement(rel), tmp_path / "doubled.onnx", preset="test-doubled",
+                         extra_channels=_channels(), classical_config=CONFIG.to_dict())
+    _bmi("simulate", "--procedural", 5, "--size", 128, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
+         "--out", tmp_path / "f.dng")
+    _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "c", "--decoder", "classical", "--candidates", 12,
+         "--quiet")
+    _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "l", "--decoder", "learned", "--model", model,
+         "--tile-px", 64, "--quiet")
+    depth_c, sigma_c = np.load(tmp_path / "c" / "depth.npy"), np.load(tmp_path / "c" / "depth_sigma.npy")
+    depth_l, sigma_l = np.load(tmp_path / "l" / "depth.npy"), np.load(tmp_path / "l" / "depth_sigma.npy")
+    ok = np.isfinite(depth_l)
+    assert np.array_equal(ok, np.isfinite(depth_c)) and ok.mean() > 0.9
+    want_depth, want_sigma, _ = fuse_log_depth(depth_c, sigma_c, 2.0 * depth_c, 2.0 * rel * depth_c)
+    np.testing.assert_allclose(depth_l[ok], want_depth[ok], rtol=1e-3)
+    np.testing.assert_allclose(sigma_l[ok], want_sigma[ok], rtol=1e-3)
+    near = depth_c if rel > 1 else 2.0 * depth_c
+    assert np.median(np.abs(depth_l[ok] / near[ok] - 1.0)) < 1e-3
+    report = json.loads((tmp_path / "l" / "report.json").read_text())
+    share = report["fusion"]["classical_weight_mean"]
+    assert (share > 0.99) if rel > 1 else (share < 0.01)
 
 
 def test_a_refinement_trains_from_renders_to_a_verified_model(tmp_path):
@@ -271,6 +314,12 @@ def test_classical_knobs_with_another_decoder_are_refused_not_ignored(tmp_path):
                           str(tmp_path / "o"), "--decoder", "learned", "--window-px", "48"], capture_output=True, text=True)
     assert run.returncode == 1 and "--window-px" in run.stderr and "--decoder classical" in run.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_eval_no_fusion_without_the_learned_decoder_is_refused():
+    run = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", "eval", "--decoder", "classical", "--no-fusion",
+                          "--tiles", "1"], capture_output=True, text=True)
+    assert run.returncode == 1 and "--no-fusion" in run.stderr and "learned" in run.stderr
 
 
 def test_the_classical_options_defaults_are_the_decoders():

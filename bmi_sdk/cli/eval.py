@@ -32,6 +32,9 @@ def register(subparsers) -> None:
     p.add_argument("--decoder", default="cnn",
                    help="comma list of decoders: cnn (the ONNX model), classical (bmi_sdk.decode, no network), "
                         "learned (the classical evidence refined by --learned-model); e.g. cnn,classical,learned")
+    p.add_argument("--no-fusion", action="store_true",
+                   help="learned: score the network's depth alone, not fused with its classical stage's by their σs "
+                        "(as bmi infer returns it); its rows carry fusion false")
     p.add_argument("--window-px", type=int, default=64, help="classical: evidence window (default 64)")
     p.add_argument("--stride-px", type=int, default=16, help="classical: window stride (default 16)")
     p.add_argument("--candidates", type=int, default=48, help="classical: depth candidates (default 48)")
@@ -59,6 +62,8 @@ def _run(args) -> int:
         args.learned_model = args.learned_model or str(LEARNED_MODEL)
         if model_decoder(verify_model(args.learned_model)) != "learned":
             raise ValueError(f"--learned-model {args.learned_model} is not a learned refinement model")
+    if args.no_fusion and "learned" not in decoders:
+        raise ValueError("--no-fusion scores the learned decoder's network alone; add learned to --decoder")
     if args.tile_px % 4:
         raise ValueError(f"--tile-px must be a multiple of 4, got {args.tile_px}")
     bench = Benchmark(tiles=args.tiles, tile_px=args.tile_px, seed=args.seed, threads=args.threads,
@@ -70,12 +75,12 @@ def _run(args) -> int:
     with scheduler_address(args.scheduler, announce=not args.json) as scheduler:  # benchmark tiles render there
         rows = run_benchmark(args.model, replace(bench, scheduler=scheduler), conditions, args.fisheye_model,
                              progress=not args.json, decoders=decoders, classical_config=config,
-                             learned_model=args.learned_model)
+                             learned_model=args.learned_model, learned_fusion=not args.no_fusion)
     if args.json:
         scale = {"scene_scale": bench.scene_scale} if bench.scene_scale != 1 else {}
         for row in rows:
             print(json.dumps({**{k: row[k] for k in ("condition", "decoder", "region", *KEYS, "sigma_z_rms",
-                                                     "sigma_z_std") if k in row}, **scale}))
+                                                     "sigma_z_std", "fusion") if k in row}, **scale}))
         return 0
     print("| condition | decoder | region | AbsRel | RMSE (m) | δ<1.25 | δ<1.25² | δ<1.25³ | PSNR (dB) | SSIM | σ z std |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")

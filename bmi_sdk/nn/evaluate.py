@@ -185,14 +185,18 @@ class NetworkTiles:
 
     An end-to-end model (decoder ``cnn``) reads the demosaiced tile and its field channels; a learned
     refinement (decoder ``learned``) also the classical decoder's channels (``decode.features``), made with
-    its manifest's knobs over ``psf_map``'s kernels (the nominal camera's, or the built camera's own).
+    its manifest's knobs over ``psf_map``'s kernels (the nominal camera's, or the built camera's own), and
+    its depth is the network's fused with the classical stage's (``decode.fusion``, as ``bmi infer`` does);
+    ``fuse=False`` keeps the network's own.
     """
 
-    def __init__(self, path: str | Path, tile_px: int, threads: int = 2, psf_map=None, name: str | None = None):
+    def __init__(self, path: str | Path, tile_px: int, threads: int = 2, psf_map=None, name: str | None = None,
+                 fuse: bool = True):
         from bmi_sdk.runtime.model import Model
 
         self.model = Model(path, tile_px=tile_px, threads=threads)
         self.name = name or self.model.decoder
+        self.fuse = fuse
         self.stage = None
         if self.model.decoder == "learned":
             from bmi_sdk.decode import ClassicalDecoder
@@ -209,7 +213,12 @@ class NetworkTiles:
             decoded = self.stage.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0, noise_profile=noise)
             x = np.concatenate([x, refinement_features(decoded, self.stage.config.stride_px)[None]], axis=1)
         aif, depth, *sigma = self.model.run(np.ascontiguousarray(x, np.float32))
-        return aif[0].transpose(1, 2, 0), depth[0, 0], (sigma[0][0, 0] if sigma else None)
+        depth, sigma = depth[0, 0], (sigma[0][0, 0] if sigma else None)
+        if self.stage is not None and self.fuse:
+            from bmi_sdk.decode.fusion import fuse_log_depth
+
+            depth, sigma, _ = fuse_log_depth(decoded.depth_m, decoded.depth_sigma_m, depth, sigma)
+        return aif[0].transpose(1, 2, 0), depth, sigma
 
 
 class ClassicalTiles:
@@ -268,6 +277,8 @@ def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition:
     for region, region_rows in per_region.items():
         row = {"condition": condition, "decoder": getattr(model, "name", "cnn"), "region": region,
                **mean_metrics(region_rows)}
+        if getattr(model, "stage", None) is not None:  # a learned refinement: fused with its classical stage?
+            row["fusion"] = model.fuse
         if region in z_sums:
             z_sum, z2_sum, count = map(sum, zip(*z_sums[region]))
             count = max(count, 1)
@@ -287,9 +298,11 @@ def classical_window_px(lens_name: str, base_px: int) -> int:
     return max(base_px, -(-LENS_KERNEL_PX[lens_name] // 4) * 4)
 
 
-def _decoders(decoders, model_path, psf_map, config, threads: int, tile_px: int, learned_path=None) -> list:
+def _decoders(decoders, model_path, psf_map, config, threads: int, tile_px: int, learned_path=None,
+              fuse: bool = True) -> list:
     """The benchmark decoders of one optical system: its ONNX model (``cnn``), the classical decoder over its
-    nominal kernels, and the learned refinement over them (``learned_path``; none for a lens without one)."""
+    nominal kernels, and the learned refinement over them (``learned_path``; none for a lens without one;
+    ``fuse``: its depth fused with its classical stage's, ``NetworkTiles``)."""
     out = []
     if "cnn" in decoders:
         if model_path is None:
@@ -298,14 +311,14 @@ def _decoders(decoders, model_path, psf_map, config, threads: int, tile_px: int,
     if "classical" in decoders:
         out.append(ClassicalTiles(psf_map, config))
     if "learned" in decoders and learned_path is not None:
-        out.append(NetworkTiles(learned_path, tile_px, threads, psf_map))
+        out.append(NetworkTiles(learned_path, tile_px, threads, psf_map, fuse=fuse))
     return out
 
 
 def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(), conditions: list[str] | None = None,
                   fisheye_model: str | Path | None = None, progress: bool = True,
                   decoders: tuple[str, ...] = ("cnn",), classical_config=None,
-                  learned_model: str | Path | None = None) -> list[dict]:
+                  learned_model: str | Path | None = None, learned_fusion: bool = True) -> list[dict]:
     """Every requested condition (default: noise sweep, hardware errors (``HARDWARE``, ``EXACT``), + fisheye
     when its model is given, or always for the classical decoder) for every requested decoder.
 
@@ -314,6 +327,8 @@ def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(),
     (decoder ``classical_calibrated``: decoding with a perfect calibration). The learned refinement
     (``learned_model``, default the shipped ``learned.onnx``) does the same through its classical stage
     (``learned`` and ``learned_calibrated``); there is no fisheye refinement, so no fisheye learned row.
+    ``learned_fusion=False`` scores the refinement's network alone, without its fusion with the classical
+    stage (``decode.fusion``); its rows say which (``fusion``).
     """
     from bmi_sdk.built_camera import BuiltCamera
     from bmi_sdk.decode import ClassicalConfig
@@ -337,12 +352,13 @@ def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(),
 
         learned_model = LEARNED_MODEL
     models = _decoders(decoders, model_path, PsfMap(nominal, geometry, mode="tensor"), config, bench.threads,
-                       bench.tile_px, learned_model)
+                       bench.tile_px, learned_model, learned_fusion)
 
     def calibrated(psf_map):
         out = [ClassicalTiles(psf_map, config, "classical_calibrated")] if "classical" in decoders else []
         if "learned" in decoders:
-            out.append(NetworkTiles(learned_model, bench.tile_px, bench.threads, psf_map, "learned_calibrated"))
+            out.append(NetworkTiles(learned_model, bench.tile_px, bench.threads, psf_map, "learned_calibrated",
+                                    fuse=learned_fusion))
         return out
 
     rows: list[dict] = []

@@ -4,7 +4,9 @@
 camera's kernels, nominal or calibrated) with the knobs the model was trained with (its manifest's
 ``classical_config``), turns its result into per-pixel channels (``decode.features``) and runs the
 refinement network tile by tile (``pipeline.infer_raw`` with ``extra``), which returns depth, AiF and a
-depth 1σ. The calibration reaches the network through the evidence: the model is not retrained.
+depth 1σ. The depth returned is the network's read fused with the classical stage's by their σs
+(``decode.fusion``): the physics decides where it is confident, the network elsewhere. The calibration
+reaches the network through the evidence and the fusion: the model is not retrained.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import numpy as np
 from ..built_camera import BuiltCamera
 from ..decode import ClassicalConfig, ClassicalDecoder
 from ..decode.features import FeatureTiles, extra_channels
+from ..decode.fusion import fuse_log_depth
 from ..model_io import INPUT_CHANNELS
 from .classical import classical_decoder, decode_frame
 from .model import Model
@@ -33,6 +36,7 @@ class LearnedResult:
     valid: np.ndarray
     network: InferenceResult
     classical_stats: dict = field(default_factory=dict)
+    fusion: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         skipped = (self.classical_stats["candidate_evaluations_exhaustive"]
@@ -42,6 +46,7 @@ class LearnedResult:
                 "tiling": self.network.plan.to_dict(), "blocks_run": self.classical_stats["blocks_run"],
                 "blocks_skipped": self.classical_stats["blocks_skipped"],
                 "candidate_evaluations_skipped": int(skipped), "decoder_stats": self.classical_stats,
+                "fusion": self.fusion,
                 "timings_s": {"classical": self.classical_stats["timings_s"], "network": self.network.timings_s}}
 
 
@@ -84,4 +89,28 @@ def decode_learned(model: Model, decoder: ClassicalDecoder, frame, camera: Built
     invalid = ~valid  # in place: copies of a full frame's maps cost 216 MB at the run's peak
     net.depth_m[invalid] = np.nan
     net.depth_sigma_m[invalid] = np.nan
-    return LearnedResult(net.aif, net.depth_m, net.depth_sigma_m, valid, net, stats)
+    t0 = time.perf_counter()
+    classical_share = fuse_into(classical.depth_m, classical.depth_sigma_m, net.depth_m, net.depth_sigma_m)
+    fusion = {"classical_weight_mean": classical_share, "fusion_s": time.perf_counter() - t0}
+    return LearnedResult(net.aif, net.depth_m, net.depth_sigma_m, valid, net, stats, fusion)
+
+
+FUSION_ROWS = 256
+"""Rows fused at a time: a full frame's temporaries stay a few tens of MB."""
+
+
+def fuse_into(classical_depth_m: np.ndarray, classical_sigma_m: np.ndarray, depth_m: np.ndarray,
+              sigma_m: np.ndarray) -> float:
+    """Replace the network's ``depth_m`` and ``sigma_m`` (NaN where invalid) by their fusion with the classical
+    read (``decode.fusion``), band by band; returns the classical read's mean weight over the valid pixels."""
+    weight_sum, count = 0.0, 0
+    for top in range(0, depth_m.shape[0], FUSION_ROWS):
+        band = slice(top, top + FUSION_ROWS)
+        valid = np.isfinite(depth_m[band])
+        fused, sigma, weight = fuse_log_depth(classical_depth_m[band], classical_sigma_m[band], depth_m[band],
+                                              sigma_m[band])
+        depth_m[band] = np.where(valid, fused, np.nan)
+        sigma_m[band] = np.where(valid, sigma, np.nan)
+        weight_sum += float(weight[valid].sum())
+        count += int(valid.sum())
+    return weight_sum / count if count else float("nan")
