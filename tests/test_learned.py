@@ -154,8 +154,9 @@ def test_bmi_infer_returns_the_fusion_of_the_two_reads(tmp_path, rel):
          "--out", tmp_path / "f.dng")
     _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "c", "--decoder", "classical", "--candidates", 12,
          "--quiet")
-    _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "l", "--decoder", "learned", "--model", model,
-         "--tile-px", 64, "--quiet")
+    out = _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "l", "--decoder", "learned", "--model", model,
+               "--tile-px", 64, "--quiet")
+    assert "the classical read's mean weight" in out
     depth_c, sigma_c = np.load(tmp_path / "c" / "depth.npy"), np.load(tmp_path / "c" / "depth_sigma.npy")
     depth_l, sigma_l = np.load(tmp_path / "l" / "depth.npy"), np.load(tmp_path / "l" / "depth_sigma.npy")
     ok = np.isfinite(depth_l)

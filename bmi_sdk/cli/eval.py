@@ -86,6 +86,7 @@ def _run(args) -> int:
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         z = f"{r['sigma_z_std']:.2f}" if "sigma_z_std" in r else "–"
-        print(f"| {r['condition']} | {r['decoder']} | {r['region']} | {r['absrel']:.3f} | {r['rmse_m']:.3f} | "
+        decoder = r["decoder"] + (" (network alone)" if r.get("fusion") is False else "")
+        print(f"| {r['condition']} | {decoder} | {r['region']} | {r['absrel']:.3f} | {r['rmse_m']:.3f} | "
               f"{r['delta1']:.3f} | {r['delta2']:.3f} | {r['delta3']:.3f} | {r['psnr_db']:.2f} | {r['ssim']:.3f} | {z} |")
     return 0
