@@ -80,10 +80,11 @@ def _full_frame(model_path, nominal, geometry) -> str:
     rows = [["classical stage + channels", f"{w1 - w0:.1f}", f"{c1 - c0:.1f}"],
             ["network (tiles)", f"{w2 - w1:.1f}", f"{c2 - c1:.1f}"], ["fusion", f"{w3 - w2:.1f}", f"{c3 - c2:.1f}"],
             ["total", f"{w3 - w0:.1f}", f"{c3 - c0:.1f}"]]
-    return "\n".join([f"Full 6000×4500 procedural frame (seed 7, tensor-mode render, decoded with the same kernels), learned decoder "
-                      f"{model_path.name}; peak RSS {peak_rss_mb():.0f} MB (render included); depth AbsRel over "
-                      f"{int(ok.sum())} valid pixels: classical stage alone {classical_absrel:.3f}, network alone {network_absrel:.3f}, fused (the decoder's "
-                      f"output) {absrel:.3f}, the classical read's mean weight {share:.2f}.", "",
+    return "\n".join([f"Full 6000×4500 procedural frame (seed 7, tensor-mode render, decoded with the same kernels), "
+                      f"learned decoder {model_path.name}; peak RSS {peak_rss_mb():.0f} MB (render included); depth "
+                      f"AbsRel over {int(ok.sum())} valid pixels: classical stage alone {classical_absrel:.3f}, "
+                      f"network alone {network_absrel:.3f}, fused (the decoder's output) {absrel:.3f}, the classical read's "
+                      f"mean weight {share:.2f}.", "",
                       markdown_table(["stage", "wall s", "CPU s"], rows)])
 
 

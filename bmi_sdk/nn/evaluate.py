@@ -214,7 +214,7 @@ class NetworkTiles:
             x = np.concatenate([x, refinement_features(decoded, self.stage.config.stride_px)[None]], axis=1)
         aif, depth, *sigma = self.model.run(np.ascontiguousarray(x, np.float32))
         depth, sigma = depth[0, 0], (sigma[0][0, 0] if sigma else None)
-        if self.stage is not None and self.fuse:
+        if self.stage is not None and self.fuse and sigma is not None:
             from bmi_sdk.decode.fusion import fuse_log_depth
 
             depth, sigma, _ = fuse_log_depth(decoded.depth_m, decoded.depth_sigma_m, depth, sigma)
