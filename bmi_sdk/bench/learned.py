@@ -26,24 +26,14 @@ from .decoder import PLANE_DEPTHS_M, PLANE_FIELDS_DEG, classical_depth, full_fra
 def _learned_depth(tiles, geometry, costs: dict, fuse: bool):
     """``plane_absrel``'s ``decode`` for a ``nn.evaluate.NetworkTiles`` refinement, timing its two stages; ``fuse``:
     the depth fused with the classical stage's (``decode.fusion``), else the network's own."""
-    from bmi_sdk.decode.features import refinement_features
-    from bmi_sdk.decode.fusion import fuse_log_depth
-    from bmi_sdk.model_io import network_input, raw_to_rgb, window_cfa
-    from bmi_sdk.sensor import BLACK_LEVEL_DN, CFA_PATTERN, WHITE_LEVEL_DN
 
     def decode(raw, row0, col0, noise):
         w0, c0 = time.perf_counter(), cpu_seconds()
-        decoded = tiles.stage.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0, noise_profile=noise)
+        decoded = tiles.classical_read(raw, geometry, row0, col0, noise)
         w1, c1 = time.perf_counter(), cpu_seconds()
-        seen = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, window_cfa(CFA_PATTERN, row0, col0))
-        x = np.concatenate([network_input(seen, geometry, row0, col0),
-                            refinement_features(decoded, tiles.stage.config.stride_px)[None]], axis=1)
-        _, depth, sigma = tiles.model.run(np.ascontiguousarray(x, np.float32))
+        _, depth, _ = tiles.network_read(raw, geometry, row0, col0, decoded, fuse)
         costs.setdefault("classical", []).append((w1 - w0, c1 - c0))
         costs.setdefault("network", []).append((time.perf_counter() - w1, cpu_seconds() - c1))
-        depth = depth[0, 0]
-        if fuse:
-            depth = fuse_log_depth(decoded.depth_m, decoded.depth_sigma_m, depth, sigma[0, 0])[0]
         return depth, decoded.valid
 
     return decode
@@ -89,18 +79,15 @@ def _full_frame(model_path, nominal, geometry) -> str:
 
 
 def run(full: bool = False) -> str:
-    from bmi_sdk.decode import ClassicalDecoder
     from bmi_sdk.lenses import lens_geometry, lens_tensor
     from bmi_sdk.nn.evaluate import NetworkTiles
     from bmi_sdk.render import PsfMap
-    from bmi_sdk.runtime.learned import model_classical_config
     from bmi_sdk.runtime.model import LEARNED_MODEL
 
     nominal = lens_tensor("bmi_monocentric")
     geometry = lens_geometry("bmi_monocentric")
     psf_map = PsfMap(nominal, geometry, mode="tensor")
     tiles = NetworkTiles(LEARNED_MODEL, 192, 2, psf_map)
-    classical = ClassicalDecoder.for_psf_map(psf_map, model_classical_config(tiles.model))
     costs: dict = {}
     network = _learned_depth(tiles, geometry, costs, fuse=False)
     learned = _learned_depth(tiles, geometry, {}, fuse=True)
@@ -109,7 +96,7 @@ def run(full: bool = False) -> str:
         row = [f"{depth_m:g} m"]
         for field_deg in PLANE_FIELDS_DEG:
             row += [plane_absrel(nominal, geometry, decode, field_deg, depth_m)
-                    for decode in (classical_depth(classical, geometry), network, learned)]
+                    for decode in (classical_depth(tiles.stage, geometry), network, learned)]
         rows.append(row)
     head = ["range"] + [f"θ {f:g}° {d}" for f in PLANE_FIELDS_DEG for d in ("classical", "network", "learned")]
     out = [f"Textured fronto-parallel planes (192² window, φ 30°, σ 0.005, nominal tensor kernels render and "

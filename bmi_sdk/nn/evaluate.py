@@ -205,16 +205,25 @@ class NetworkTiles:
             self.stage = ClassicalDecoder.for_psf_map(psf_map, model_classical_config(self.model, threads))
 
     def __call__(self, raw: np.ndarray, geometry, row0: int, col0: int, noise: NoiseProfile):
+        decoded = None if self.stage is None else self.classical_read(raw, geometry, row0, col0, noise)
+        return self.network_read(raw, geometry, row0, col0, decoded)
+
+    def classical_read(self, raw: np.ndarray, geometry, row0: int, col0: int, noise: NoiseProfile):
+        """A learned refinement's first stage: the classical decode (``DecodeResult``) of a raw tile."""
+        return self.stage.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0, noise_profile=noise)
+
+    def network_read(self, raw: np.ndarray, geometry, row0: int, col0: int, decoded=None, fuse: bool | None = None):
+        """(AiF H × W × 3, depth, 1σ or None) of the network on a raw tile; a refinement also reads ``decoded``'s
+        channels and, when ``fuse`` (default: this decoder's), returns its depth fused with ``decoded``'s."""
         seen = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, window_cfa(CFA_PATTERN, row0, col0))
         x = network_input(seen, geometry, row0, col0)
-        if self.stage is not None:
+        if decoded is not None:
             from bmi_sdk.decode.features import refinement_features
 
-            decoded = self.stage.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0, noise_profile=noise)
             x = np.concatenate([x, refinement_features(decoded, self.stage.config.stride_px)[None]], axis=1)
         aif, depth, *sigma = self.model.run(np.ascontiguousarray(x, np.float32))
         depth, sigma = depth[0, 0], (sigma[0][0, 0] if sigma else None)
-        if self.stage is not None and self.fuse and sigma is not None:
+        if decoded is not None and (self.fuse if fuse is None else fuse) and sigma is not None:
             from bmi_sdk.decode.fusion import fuse_log_depth
 
             depth, sigma, _ = fuse_log_depth(decoded.depth_m, decoded.depth_sigma_m, depth, sigma)
