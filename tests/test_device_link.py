@@ -510,6 +510,25 @@ def test_serve_with_token_file_and_ctrl_c_prints_the_fault_summary(tmp_path):
     assert "faults injected" in err and "'drop'" in err and "cancelled" not in err
 
 
+@pytest.mark.parametrize("stop_signal", [signal.SIGINT, signal.SIGTERM])
+def test_serve_started_in_the_background_stops_on_sigint_or_sigterm_with_its_summary(stop_signal):
+    """A server started with SIGINT ignored (``serve … &`` in a script) still stops on Ctrl-C, and a service
+    manager's SIGTERM stops it the same way: closed, with its fault summary, exit status 0."""
+    serve = subprocess.Popen([sys.executable, "-m", "bmi_sdk.cli", "firmware-sim", "serve", "--scene", "flat"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        assert "tcp://127.0.0.1:" in serve.stdout.readline()
+        serve.send_signal(stop_signal)
+        out, err = serve.communicate(timeout=BOUND_S)
+    finally:
+        if serve.poll() is None:
+            serve.kill()
+            serve.communicate()
+    assert serve.returncode == 0, err
+    assert "faults injected" in err and "Traceback" not in err
+
+
 def test_serve_refuses_an_empty_token_file(tmp_path):
     empty = tmp_path / "token"
     empty.write_text("\n")

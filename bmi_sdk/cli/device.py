@@ -127,18 +127,32 @@ def _serve(args) -> int:
     from bmi_sdk.protocol.wire import DEFAULT_IDLE_TIMEOUT_S
     from firmware_sim import FaultPlan, FirmwareDevice, FirmwareServer, make_source
 
+    _stop_on_signals()
     token = _read_token(args.token_file) if args.token_file else None
     device = FirmwareDevice(source=make_source(args.scene), seed=args.seed, serial=args.serial,
                             faults=FaultPlan.parse(args.faults) if args.faults else None)
     idle_s = DEFAULT_IDLE_TIMEOUT_S if args.idle_timeout_s is None else args.idle_timeout_s
     with FirmwareServer(device, host=args.host, port=args.port, token=token, idle_timeout_s=idle_s) as server:
-        print(f"serving {device.describe()['serial']} ({args.scene}{', token required' if token else ''}) "
-              f"on {server.uri}", flush=True)
         deadline = time.monotonic() + args.duration_s if args.duration_s > 0 else None
-        try:
+        try:  # from the line that tells hosts where it serves, a stop signal stops it cleanly
+            print(f"serving {device.describe()['serial']} ({args.scene}{', token required' if token else ''}) "
+                  f"on {server.uri}", flush=True)
             while deadline is None or time.monotonic() < deadline:
                 time.sleep(0.1)
         except KeyboardInterrupt:  # Ctrl-C is how a server is stopped: report, do not call it a failure
             pass
     print(f"stopped; faults injected: {device.injector.counts()}", file=sys.stderr)
     return 0
+
+
+def _stop_on_signals() -> None:
+    """Make Ctrl-C (SIGINT) and a service manager's SIGTERM stop the server the same way (close, then the fault
+    summary). Python installs its SIGINT handler only where SIGINT is not ignored at start, and a job started in
+    the background of a script (``serve … &``) inherits it ignored: such a server could not be stopped cleanly."""
+    import signal
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, stop)
