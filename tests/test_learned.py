@@ -1,8 +1,8 @@
 """The learned refinement (``--decoder learned``): its warm start reproduces the shipped network, the runtime
 feeds it the classical decoder's channels tile by tile exactly (an identity refinement must return the
-classical decoder's depth, 1σ and AiF) and returns the network's depth fused with the classical one by their
-σs, a training run goes from renders to a verified ONNX model, and the manifests keep the two kinds of model
-apart."""
+classical decoder's depth, 1σ and AiF) and returns the network's depth fused with the classical one (with the
+weights ``bmi fit-fusion`` writes into the manifest, else by their σs), a training run goes from renders to a
+verified ONNX model, and the manifests keep the two kinds of model apart."""
 
 from __future__ import annotations
 
@@ -140,16 +140,32 @@ class DoubledRefinement(nn.Module):
         return x[:, -3:] * 1.0, depth, depth * self.rel
 
 
-@pytest.mark.parametrize("rel", [30.0, 1e-4])
-def test_bmi_infer_returns_the_fusion_of_the_two_reads(tmp_path, rel):
-    """Through ``bmi infer --decoder learned``: a network that reads 2× the classical depth with a huge σ leaves
-    the classical read (within its weight's share of log 2); one with a tiny σ decides alone. Either way the
-    written depth and σ are ``fuse_log_depth`` of the classical decoder's written maps and the network's."""
-    from bmi_sdk.decode.fusion import fuse_log_depth
+FITTED = {"intercept": 1.0, "rel_sigma_a": -2.0, "rel_sigma_b": 1.0, "gap": -0.5, "gap_floor": 0.01}
+
+
+def _doubled_model(path, rel: float, fusion: dict | None = None):
+    """A ``DoubledRefinement(rel)`` exported to ``path``, its manifest carrying ``fusion`` weights when given."""
+    from bmi_sdk.model_manifest import manifest_path
     from bmi_sdk.runtime import export_model
 
-    model = export_model(DoubledRefinement(rel), tmp_path / "doubled.onnx", preset="test-doubled",
-                         extra_channels=_channels(), classical_config=CONFIG.to_dict())
+    model = export_model(DoubledRefinement(rel), path, preset="test-doubled", extra_channels=_channels(),
+                         classical_config=CONFIG.to_dict())
+    if fusion is not None:
+        doc = json.loads(manifest_path(model).read_text())
+        manifest_path(model).write_text(json.dumps({**doc, "fusion": {"weights": fusion}}))
+    return model
+
+
+@pytest.mark.parametrize("rel, fusion", [(30.0, None), (1e-4, None), (0.1, FITTED)])
+def test_bmi_infer_returns_the_fusion_of_the_two_reads(tmp_path, rel, fusion):
+    """Through ``bmi infer --decoder learned``: a network that reads 2× the classical depth with a huge σ leaves
+    the classical read (within its weight's share of log 2); one with a tiny σ decides alone; a manifest's
+    fitted weights are the ones used. Each time the written depth and σ are ``fuse_log_depth`` of the classical
+    decoder's written maps and the network's, with the manifest's weights (else the inverse-variance ones)."""
+    from bmi_sdk.decode.fusion import INVERSE_VARIANCE, FusionWeights, fuse_log_depth
+
+    model = _doubled_model(tmp_path / "doubled.onnx", rel, fusion)
+    weights = INVERSE_VARIANCE if fusion is None else FusionWeights.from_dict(fusion)
     _bmi("simulate", "--procedural", 5, "--size", 128, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
          "--out", tmp_path / "f.dng")
     _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "c", "--decoder", "classical", "--candidates", 12,
@@ -161,14 +177,53 @@ def test_bmi_infer_returns_the_fusion_of_the_two_reads(tmp_path, rel):
     depth_l, sigma_l = np.load(tmp_path / "l" / "depth.npy"), np.load(tmp_path / "l" / "depth_sigma.npy")
     ok = np.isfinite(depth_l)
     assert np.array_equal(ok, np.isfinite(depth_c)) and ok.mean() > 0.9
-    want_depth, want_sigma, _ = fuse_log_depth(depth_c, sigma_c, 2.0 * depth_c, 2.0 * rel * depth_c)
+    want_depth, want_sigma, want_share = fuse_log_depth(depth_c, sigma_c, 2.0 * depth_c, 2.0 * rel * depth_c,
+                                                        weights)
     np.testing.assert_allclose(depth_l[ok], want_depth[ok], rtol=1e-3)
     np.testing.assert_allclose(sigma_l[ok], want_sigma[ok], rtol=1e-3)
-    near = depth_c if rel > 1 else 2.0 * depth_c
-    assert np.median(np.abs(depth_l[ok] / near[ok] - 1.0)) < 1e-3
     report = json.loads((tmp_path / "l" / "report.json").read_text())
     share = report["fusion"]["classical_weight_mean"]
-    assert (share > 0.99) if rel > 1 else (share < 0.01)
+    assert share == pytest.approx(np.mean(want_share[ok]), abs=1e-3)
+    assert report["fusion"]["weights"] == ("inverse-variance" if fusion is None else "fitted")
+    if fusion is None:
+        near = depth_c if rel > 1 else 2.0 * depth_c
+        assert np.median(np.abs(depth_l[ok] / near[ok] - 1.0)) < 1e-3
+        assert (share > 0.99) if rel > 1 else (share < 0.01)
+    else:
+        assert 0.01 < share < 0.99
+
+
+def test_fit_fusion_writes_weights_the_runtime_reads_and_a_rerun_writes_the_same(tmp_path, passthrough_model):
+    """``bmi fit-fusion`` on a refinement whose network reads 2× the classical depth: the fitted fusion's objective
+    is no worse than the inverse-variance one's (the fit starts there and only descends), the weights land in the
+    manifest, ``Model`` reads them, and a second run writes the same weights. An end-to-end model is refused."""
+    from bmi_sdk.decode.fusion import FusionWeights
+    from bmi_sdk.model_manifest import manifest_path
+    from bmi_sdk.runtime.model import Model
+
+    model = _doubled_model(tmp_path / "doubled.onnx", 0.1)
+    args = ("fit-fusion", "--model", model, "--tiles", 1, "--scales", "4", "--sigmas", "0.005,0.02", "--pixels", 3000)
+    out = _bmi(*args)
+    assert "| scale 4, σ 0.02 |" in out and "wrote the weights" in out
+    fit = json.loads(manifest_path(model).read_text())["fusion"]
+    assert fit["fit"]["objective"]["fitted"] <= fit["fit"]["objective"]["inverse_variance"]
+    assert len(fit["fit"]["mean_abs_log_error"]) == 2
+    weights = FusionWeights.from_dict(fit["weights"])
+    assert Model(model, tile_px=64, warmup=False).fusion_weights == weights
+    assert (weights.noise_ref_sigma, weights.noise_max_sigma) == (0.005, 0.02)
+    _bmi(*args)
+    assert json.loads(manifest_path(model).read_text())["fusion"]["weights"] == fit["weights"]
+    run = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", "fit-fusion", "--model", str(passthrough_model),
+                          "--tiles", "1"], capture_output=True, text=True)
+    assert run.returncode == 1 and "not a learned refinement" in run.stderr
+
+
+def test_a_manifest_with_unreadable_fusion_weights_is_refused(tmp_path):
+    from bmi_sdk.runtime.model import Model
+
+    model = _doubled_model(tmp_path / "doubled.onnx", 0.1, {**FITTED, "gap": "steep"})
+    with pytest.raises(ModelError, match="fusion weights are unreadable.*gap must be a finite number"):
+        Model(model, tile_px=64, warmup=False)
 
 
 def test_a_refinement_trains_from_renders_to_a_verified_model(tmp_path):

@@ -2,8 +2,9 @@
 
 * Planes: the textured fronto-parallel planes of ``bmi bench decoder`` (1–8 m, θ 0° and 50°, σ 0.005,
   the nominal tensor kernels render and decode), decoded by the classical decoder with the learned
-  model's knobs, by the refinement network on top of it, and by the learned decoder (the two fused by
-  their σs, ``decode.fusion``, as ``bmi infer`` returns it): depth AbsRel per distance.
+  model's knobs, by the refinement network on top of it, and by the learned decoder (the two fused with
+  the weights of the model's manifest, ``decode.fusion``, as ``bmi infer`` returns it): depth AbsRel per
+  distance.
 * Cost: CPU and wall seconds per 192² tile of each stage (classical, network), median of the plane runs.
 * ``--full``: a 6000×4500 procedural frame through ``bmi infer --decoder learned``'s runtime steps
   (classical stage over the whole frame, the network tile by tile, the fusion): wall and CPU time per stage,
@@ -43,10 +44,8 @@ def _full_frame(model_path, nominal, geometry) -> str:
     from bmi_sdk.decode import ClassicalDecoder
     from bmi_sdk.nn.data import STANDARD_SIGMA
     from bmi_sdk.render import PsfMap
-    from bmi_sdk.runtime.learned import fuse_into, model_classical_config
+    from bmi_sdk.runtime.learned import model_classical_config, refine_decoded
     from bmi_sdk.runtime.model import Model
-    from bmi_sdk.runtime.pipeline import infer_raw
-    from bmi_sdk.decode.features import FeatureTiles
     from bmi_sdk.sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, NoiseProfile
 
     range_m, raw, _ = full_frame_raw(nominal, geometry)
@@ -55,26 +54,30 @@ def _full_frame(model_path, nominal, geometry) -> str:
     w0, c0 = time.perf_counter(), cpu_seconds()
     decoded = decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry,
                              noise_profile=NoiseProfile.additive(STANDARD_SIGMA))
-    features = FeatureTiles(decoded, decoder.config.stride_px)
     w1, c1 = time.perf_counter(), cpu_seconds()
-    result = infer_raw(model, raw, black_level_dn=BLACK_LEVEL_DN, white_level_dn=WHITE_LEVEL_DN, geometry=geometry,
-                       extra=features)
+    result = refine_decoded(model, decoder, decoded, raw, black_level_dn=BLACK_LEVEL_DN,
+                            white_level_dn=WHITE_LEVEL_DN, geometry=geometry, keep_network_read=True)
     w2, c2 = time.perf_counter(), cpu_seconds()
     ok = result.valid & decoded.valid & np.isfinite(range_m)
-    classical_absrel = float(np.mean(np.abs(decoded.depth_m[ok] - range_m[ok]) / range_m[ok]))
-    network_absrel = float(np.mean(np.abs(result.depth_m[ok] - range_m[ok]) / range_m[ok]))
-    result.depth_m[~ok] = np.nan
-    share = fuse_into(decoded.depth_m, decoded.depth_sigma_m, result.depth_m, result.depth_sigma_m)
-    w3, c3 = time.perf_counter(), cpu_seconds()
-    absrel = float(np.mean(np.abs(result.depth_m[ok] - range_m[ok]) / range_m[ok]))
-    rows = [["classical stage + channels", f"{w1 - w0:.1f}", f"{c1 - c0:.1f}"],
-            ["network (tiles)", f"{w2 - w1:.1f}", f"{c2 - c1:.1f}"], ["fusion", f"{w3 - w2:.1f}", f"{c3 - c2:.1f}"],
-            ["total", f"{w3 - w0:.1f}", f"{c3 - c0:.1f}"]]
+
+    def absrel(depth_m: np.ndarray) -> float:
+        return float(np.mean(np.abs(depth_m[ok] - range_m[ok]) / range_m[ok]))
+
+    fusion_s = result.fusion["fusion_s"]
+    network_s = sum(result.network.timings_s.values())
+    rows = [["classical stage", f"{w1 - w0:.1f}", f"{c1 - c0:.1f}"],
+            ["channels + network + fusion", f"{w2 - w1:.1f}", f"{c2 - c1:.1f}"],
+            ["of which the network's tiles (input, ONNX, blend)", f"{network_s:.1f}", ""],
+            ["of which the fusion", f"{fusion_s:.1f}", ""],
+            ["total", f"{w2 - w0:.1f}", f"{c2 - c0:.1f}"]]
+    classical_absrel, network_absrel, absrel = (absrel(d) for d in (decoded.depth_m, result.network_depth_m,
+                                                                    result.depth_m))
+    share = result.fusion["classical_weight_mean"]
     return "\n".join([f"Full 6000×4500 procedural frame (seed 7, tensor-mode render, decoded with the same kernels), "
                       f"learned decoder {model_path.name}; peak RSS {peak_rss_mb():.0f} MB (render included); depth "
                       f"AbsRel over {int(ok.sum())} valid pixels: classical stage alone {classical_absrel:.3f}, "
-                      f"network alone {network_absrel:.3f}, fused (the decoder's output) {absrel:.3f}, the classical read's "
-                      f"mean weight {share:.2f}.", "",
+                      f"network alone {network_absrel:.3f}, fused (the decoder's output, {result.fusion['weights']} "
+                      f"weights) {absrel:.3f}, the classical read's mean weight {share:.2f}.", "",
                       markdown_table(["stage", "wall s", "CPU s"], rows)])
 
 

@@ -33,8 +33,8 @@ def register(subparsers) -> None:
                    help="comma list of decoders: cnn (the ONNX model), classical (bmi_sdk.decode, no network), "
                         "learned (the classical evidence refined by --learned-model); e.g. cnn,classical,learned")
     p.add_argument("--no-fusion", action="store_true",
-                   help="learned: score the network's depth alone, not fused with its classical stage's by their σs "
-                        "(as bmi infer returns it); its rows carry fusion false")
+                   help="learned: score the network's depth alone, not fused with its classical stage's (with the "
+                        "weights of its manifest, as bmi infer returns it); its rows carry fusion false")
     p.add_argument("--window-px", type=int, default=64, help="classical: evidence window (default 64)")
     p.add_argument("--stride-px", type=int, default=16, help="classical: window stride (default 16)")
     p.add_argument("--candidates", type=int, default=48, help="classical: depth candidates (default 48)")

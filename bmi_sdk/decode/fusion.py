@@ -1,26 +1,114 @@
-"""Inverse-variance fusion of two depth reads of the same pixels, in log depth.
+"""Fusion of two depth reads of the same pixels, in log depth, with a weight fitted or inverse-variance.
 
 The learned refinement (``--decoder learned``) returns a depth and a 1σ from its network; its classical
-stage returned its own depth and 1σ from the camera's kernels. Each σ is honest on its own (``bmi eval``'s
-error/σ spread), and neither read is better everywhere: the network fills textureless windows and reads
-tile-scale clutter better, the physics reads large textured surfaces better (docs/results.md, session 15).
-The learned decoder's output is their fusion:
+stage returned its own depth and 1σ from the camera's kernels. Neither read is better everywhere: the
+network fills textureless windows and reads tile-scale clutter better, the physics reads large textured
+surfaces better (docs/results.md, sessions 15 and 16). The learned decoder's output is their fusion:
 
-    p = r_b² / (r_a² + r_b²),   log d = p log d_a + (1 − p) log d_b,   r = p r_a + (1 − p) r_b,   σ = r d,
+    log d = p log d_a + (1 − p) log d_b,   r = p r_a + (1 − p) r_b,   σ = r d,
 
-with r = σ / d each read's relative 1σ, the 1σ of its log depth to first order. The weight is the
-inverse-variance one. The fused σ is the one the two reads would have if their errors were fully
-correlated (ρ = 1): the network reads the classical stage's output, so the two errors are not
-independent, and for any ρ ≤ 1 the fused estimate's spread is at most this
-(p² r_a² + (1−p)² r_b² + 2ρ p(1−p) r_a r_b ≤ (p r_a + (1−p) r_b)²). The tests check that bound against
-correlated draws.
+with r = σ / d each read's relative 1σ (the 1σ of its log depth to first order) and p read a's share,
+
+    logit p = c₀ + c_a log r_a + c_b log r_b + c_g log(g + g₀),   g = |log d_a − log d_b|.
+
+``INVERSE_VARIANCE`` (c = 0, −2, 2, 0) is p = r_b² / (r_a² + r_b²), the inverse-variance weight, exact for
+Gaussian errors. The two reads' errors are not Gaussian: most pixels read far better than their σ and a
+few far worse (docs/results.md, session 16), so how far the reads disagree (g) tells which one is off.
+How much each read's σ can be trusted also changes with the frame's noise, so the four coefficients may
+move linearly with log σ_noise between the noise levels they were fitted at. A model's manifest may carry
+weights fitted to minimise the fused log error on scenes apart from every reported one
+(``nn.fusion_fit``, ``bmi fit-fusion``); without them the fusion is the inverse-variance one.
+
+The fused σ is the one the two reads would have if their errors were fully correlated (ρ = 1): the
+network reads the classical stage's output, so the two errors are not independent, and for a weight
+fixed in advance and any ρ ≤ 1 the fused error's spread is at most this
+(p² r_a² + (1−p)² r_b² + 2ρ p(1−p) r_a r_b ≤ (p r_a + (1−p) r_b)²). The tests check that bound
+against correlated draws; with a weight that reads g it is measured (``bmi eval``'s error/σ spread).
 
 Where only one read is valid (finite, positive depth and σ), it is the output; where neither, NaN.
 """
 
 from __future__ import annotations
 
+import math
+from dataclasses import asdict, dataclass
+
 import numpy as np
+from scipy.special import expit
+
+
+@dataclass(frozen=True)
+class FusionWeights:
+    """The logistic weight of read a (module doc): logit p = c₀ + c_a log r_a + c_b log r_b + c_g log(g + g₀),
+    with (c₀, c_a, c_b, c_g) = (intercept, rel_sigma_a, rel_sigma_b, gap) + u · noise_slopes and
+    u = log(σ_noise / noise_ref_sigma) clipped to [0, log(noise_max_sigma / noise_ref_sigma)]: the weights at the
+    frame's noise, linear in log noise between the noise levels they were fitted at and held beyond them."""
+
+    intercept: float
+    rel_sigma_a: float
+    rel_sigma_b: float
+    gap: float = 0.0
+    noise_slopes: tuple = (0.0, 0.0, 0.0, 0.0)
+    gap_floor: float = 0.01  # log-depth gaps well under 1 % read as agreement
+    noise_ref_sigma: float = 0.005  # the standard noise (fraction of full scale)
+    noise_max_sigma: float = 0.005
+
+    def __post_init__(self):
+        object.__setattr__(self, "noise_slopes", tuple(self.noise_slopes))
+        if len(self.noise_slopes) != 4:
+            raise ValueError(f"fusion weight noise_slopes holds 4 numbers, got {len(self.noise_slopes)}")
+        values = {k: v for k, v in asdict(self).items() if k != "noise_slopes"}
+        values.update({f"noise_slopes[{i}]": v for i, v in enumerate(self.noise_slopes)})
+        for name, value in values.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"fusion weight {name} must be a finite number, got {value!r}")
+        if self.gap_floor <= 0 or self.noise_ref_sigma <= 0 or self.noise_max_sigma < self.noise_ref_sigma:
+            raise ValueError(f"fusion weights need gap_floor > 0 and 0 < noise_ref_sigma ≤ noise_max_sigma, got "
+                             f"{self.gap_floor}, {self.noise_ref_sigma}, {self.noise_max_sigma}")
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), "noise_slopes": list(self.noise_slopes)}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "FusionWeights":
+        """The weights a manifest's ``fusion.weights`` holds, refusing unknown or missing keys by name."""
+        if not isinstance(data, dict):
+            raise ValueError(f"fusion weights are a JSON object, got {type(data).__name__}")
+        known = set(cls.__dataclass_fields__)
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown fusion weight(s) {unknown}; known: {sorted(known)}")
+        if not isinstance(data.get("noise_slopes", ()), (list, tuple)):
+            raise ValueError(f"fusion weight noise_slopes is a list of 4 numbers, got {data['noise_slopes']!r}")
+        try:
+            return cls(**data)
+        except TypeError as exc:
+            raise ValueError(f"fusion weights {sorted(data)} lack some of {sorted(known)}") from exc
+
+    def coefficients(self, noise_sigma: float | None = None) -> np.ndarray:
+        """(c₀, c_a, c_b, c_g) at a frame's noise σ (fraction of full scale; None: at ``noise_ref_sigma``)."""
+        base = np.array([self.intercept, self.rel_sigma_a, self.rel_sigma_b, self.gap])
+        if noise_sigma is None or not any(self.noise_slopes):
+            return base
+        if not (math.isfinite(noise_sigma) and noise_sigma > 0):
+            raise ValueError(f"the fusion's noise σ must be a positive number, got {noise_sigma}")
+        u = min(max(math.log(noise_sigma / self.noise_ref_sigma), 0.0),
+                math.log(self.noise_max_sigma / self.noise_ref_sigma))
+        return base + u * np.array(self.noise_slopes)
+
+    def share_a(self, rel_a: np.ndarray, rel_b: np.ndarray, log_gap: np.ndarray,
+                noise_sigma: float | None = None) -> np.ndarray:
+        """p, read a's share in each pixel's log depth, from both relative 1σs, |log d_a − log d_b| and the
+        frame's noise σ."""
+        c0, ca, cb, cg = self.coefficients(noise_sigma)
+        logit = c0 + ca * np.log(rel_a) + cb * np.log(rel_b)
+        if cg:
+            logit = logit + cg * np.log(log_gap + self.gap_floor)
+        return expit(logit)
+
+
+INVERSE_VARIANCE = FusionWeights(0.0, -2.0, 2.0)
+"""p = r_b² / (r_a² + r_b²): the fusion of a model whose manifest carries no fitted weights."""
 
 
 def _read_ok(depth_m: np.ndarray, sigma_m: np.ndarray) -> np.ndarray:
@@ -28,9 +116,11 @@ def _read_ok(depth_m: np.ndarray, sigma_m: np.ndarray) -> np.ndarray:
         return np.isfinite(depth_m) & np.isfinite(sigma_m) & (depth_m > 0) & (sigma_m > 0)
 
 
-def fuse_log_depth(depth_a_m: np.ndarray, sigma_a_m: np.ndarray, depth_b_m: np.ndarray,
-                   sigma_b_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(depth_m, sigma_m, weight_a) of the fusion (module doc) of reads a and b, arrays of one shape.
+def fuse_log_depth(depth_a_m: np.ndarray, sigma_a_m: np.ndarray, depth_b_m: np.ndarray, sigma_b_m: np.ndarray,
+                   weights: FusionWeights = INVERSE_VARIANCE,
+                   noise_sigma: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(depth_m, sigma_m, weight_a) of the fusion (module doc) of reads a and b, arrays of one shape, with
+    ``weights`` at the frame's noise σ (fraction of full scale; None: the weights' reference noise).
 
     ``weight_a`` is p, the share read a has in each pixel's log depth (1 where only a is valid, 0 where only
     b is, NaN where neither): its mean says how much of a frame each read decided.
@@ -43,8 +133,10 @@ def fuse_log_depth(depth_a_m: np.ndarray, sigma_a_m: np.ndarray, depth_b_m: np.n
     safe_a, safe_b = np.where(ok_a, depth_a_m, 1.0), np.where(ok_b, depth_b_m, 1.0)
     rel_a = np.where(ok_a, sigma_a_m, 1.0) / safe_a
     rel_b = np.where(ok_b, sigma_b_m, 1.0) / safe_b
-    weight_a = np.where(both, rel_b ** 2 / (rel_a ** 2 + rel_b ** 2), np.where(ok_a, 1.0, 0.0))
-    log_depth = weight_a * np.log(safe_a) + (1.0 - weight_a) * np.log(safe_b)
+    log_a, log_b = np.log(safe_a), np.log(safe_b)
+    share = weights.share_a(rel_a, rel_b, np.abs(log_a - log_b), noise_sigma)
+    weight_a = np.where(both, share, np.where(ok_a, 1.0, 0.0))
+    log_depth = weight_a * log_a + (1.0 - weight_a) * log_b
     depth = np.exp(log_depth)
     sigma = (weight_a * rel_a + (1.0 - weight_a) * rel_b) * depth
     none = ~(ok_a | ok_b)

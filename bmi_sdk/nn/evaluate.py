@@ -186,7 +186,8 @@ class NetworkTiles:
     An end-to-end model (decoder ``cnn``) reads the demosaiced tile and its field channels; a learned
     refinement (decoder ``learned``) also the classical decoder's channels (``decode.features``), made with
     its manifest's knobs over ``psf_map``'s kernels (the nominal camera's, or the built camera's own), and
-    its depth is the network's fused with the classical stage's (``decode.fusion``, as ``bmi infer`` does);
+    its depth is the network's fused with the classical stage's (``decode.fusion``, with the weights of the
+    model's manifest, as ``bmi infer`` does);
     ``fuse=False`` keeps the network's own.
     """
 
@@ -226,7 +227,8 @@ class NetworkTiles:
         if decoded is not None and (self.fuse if fuse is None else fuse) and sigma is not None:
             from bmi_sdk.decode.fusion import fuse_log_depth
 
-            depth, sigma, _ = fuse_log_depth(decoded.depth_m, decoded.depth_sigma_m, depth, sigma)
+            depth, sigma, _ = fuse_log_depth(decoded.depth_m, decoded.depth_sigma_m, depth, sigma,
+                                             self.model.fusion_weights, decoded.stats.get("noise_sigma"))
         return aif[0].transpose(1, 2, 0), depth, sigma
 
 

@@ -4,8 +4,9 @@
 camera's kernels, nominal or calibrated) with the knobs the model was trained with (its manifest's
 ``classical_config``), turns its result into per-pixel channels (``decode.features``) and runs the
 refinement network tile by tile (``pipeline.infer_raw`` with ``extra``), which returns depth, AiF and a
-depth 1σ. The depth returned is the network's read fused with the classical stage's by their σs
-(``decode.fusion``): the physics decides where it is confident, the network elsewhere. The calibration
+depth 1σ. The depth returned is the network's read fused with the classical stage's (``decode.fusion``), by
+their σs and their disagreement with the weights the model's manifest carries (``bmi fit-fusion``; else the
+inverse-variance ones): the physics decides where it is confident, the network elsewhere. The calibration
 reaches the network through the evidence and the fusion: the model is not retrained.
 """
 
@@ -18,8 +19,9 @@ import numpy as np
 
 from ..built_camera import BuiltCamera
 from ..decode import ClassicalConfig, ClassicalDecoder
+from ..decode.classical import DecodeResult
 from ..decode.features import FeatureTiles, extra_channels
-from ..decode.fusion import fuse_log_depth
+from ..decode.fusion import INVERSE_VARIANCE, FusionWeights, fuse_log_depth
 from ..model_io import INPUT_CHANNELS
 from .classical import classical_decoder, decode_frame
 from .model import Model
@@ -37,6 +39,7 @@ class LearnedResult:
     network: InferenceResult
     classical_stats: dict = field(default_factory=dict)
     fusion: dict = field(default_factory=dict)
+    network_depth_m: np.ndarray | None = None  # the network's read before the fusion (``keep_network_read``)
 
     def summary(self) -> dict:
         skipped = (self.classical_stats["candidate_evaluations_exhaustive"]
@@ -78,21 +81,41 @@ def decode_learned(model: Model, decoder: ClassicalDecoder, frame, camera: Built
                    overlap_px: int | None = None, progress: bool = False) -> LearnedResult:
     """Decode a ``devices.RawFrame`` taken by ``camera``: classical stage, then the refinement network."""
     classical = decode_frame(decoder, frame, camera, progress=progress)
+    return refine_decoded(model, decoder, classical.decoded, frame.data, black_level_dn=frame.black_level_dn,
+                          white_level_dn=frame.white_level_dn, cfa=frame.cfa, geometry=frame.geometry,
+                          row0=frame.roi.y_px, col0=frame.roi.x_px, stats=classical.stats, overlap_px=overlap_px,
+                          progress=progress)
+
+
+def refine_decoded(model: Model, decoder: ClassicalDecoder, decoded: DecodeResult, raw: np.ndarray, *,
+                   black_level_dn: float, white_level_dn: float, cfa: str = "RGGB", geometry, row0: int = 0,
+                   col0: int = 0, stats: dict | None = None, overlap_px: int | None = None, progress: bool = False,
+                   keep_network_read: bool = False) -> LearnedResult:
+    """The refinement's second stage over an H × W raw window that ``decoder`` decoded into ``decoded``: its
+    channels, the network tile by tile, and the fusion of the two reads.
+
+    A pixel is valid where the network reads it (inside the image circle); where the classical stage has no
+    read there, the network's is the output (``decode.fusion``). ``keep_network_read`` keeps the network's
+    depth before the fusion (``network_depth_m``, a copy: 108 MB for a full frame) for benchmarks.
+    """
+    stats = dict(decoded.stats if stats is None else stats)
     t0 = time.perf_counter()
-    stats = classical.stats
-    features = FeatureTiles(classical.decoded, decoder.config.stride_px)
+    features = FeatureTiles(decoded, decoder.config.stride_px)
     stats["timings_s"] = dict(stats["timings_s"], features_s=time.perf_counter() - t0)
-    net = infer_raw(model, frame.data, black_level_dn=frame.black_level_dn, white_level_dn=frame.white_level_dn,
-                    cfa=frame.cfa, geometry=frame.geometry, row0=frame.roi.y_px, col0=frame.roi.x_px,
-                    overlap_px=overlap_px, progress=progress, extra=features)
-    valid = net.valid & classical.valid
-    invalid = ~valid  # in place: copies of a full frame's maps cost 216 MB at the run's peak
-    net.depth_m[invalid] = np.nan
-    net.depth_sigma_m[invalid] = np.nan
+    net = infer_raw(model, raw, black_level_dn=black_level_dn, white_level_dn=white_level_dn, cfa=cfa,
+                    geometry=geometry, row0=row0, col0=col0, overlap_px=overlap_px, progress=progress,
+                    extra=features)
+    network_depth_m = net.depth_m.copy() if keep_network_read else None
     t0 = time.perf_counter()
-    classical_share = fuse_into(classical.depth_m, classical.depth_sigma_m, net.depth_m, net.depth_sigma_m)
-    fusion = {"classical_weight_mean": classical_share, "fusion_s": time.perf_counter() - t0}
-    return LearnedResult(net.aif, net.depth_m, net.depth_sigma_m, valid, net, stats, fusion)
+    weights = model.fusion_weights
+    noise_sigma = decoded.stats.get("noise_sigma")
+    classical_share = fuse_into(decoded.depth_m, decoded.depth_sigma_m, net.depth_m, net.depth_sigma_m, weights,
+                                noise_sigma)
+    fusion = {"classical_weight_mean": classical_share, "fusion_s": time.perf_counter() - t0,
+              "weights": "inverse-variance" if weights == INVERSE_VARIANCE else "fitted", "noise_sigma": noise_sigma,
+              "coefficients": [float(c) for c in weights.coefficients(noise_sigma)], **weights.to_dict()}
+    valid = net.valid & np.isfinite(net.depth_m)
+    return LearnedResult(net.aif, net.depth_m, net.depth_sigma_m, valid, net, stats, fusion, network_depth_m)
 
 
 FUSION_ROWS = 256
@@ -100,15 +123,16 @@ FUSION_ROWS = 256
 
 
 def fuse_into(classical_depth_m: np.ndarray, classical_sigma_m: np.ndarray, depth_m: np.ndarray,
-              sigma_m: np.ndarray) -> float:
+              sigma_m: np.ndarray, weights: FusionWeights = INVERSE_VARIANCE, noise_sigma: float | None = None) -> float:
     """Replace the network's ``depth_m`` and ``sigma_m`` (NaN where invalid) by their fusion with the classical
-    read (``decode.fusion``), band by band; returns the classical read's mean weight over the valid pixels."""
+    read (``decode.fusion`` with ``weights`` at the frame's ``noise_sigma``), band by band; returns the classical
+    read's mean weight over the valid pixels."""
     weight_sum, count = 0.0, 0
     for top in range(0, depth_m.shape[0], FUSION_ROWS):
         band = slice(top, top + FUSION_ROWS)
         valid = np.isfinite(depth_m[band])
         fused, sigma, weight = fuse_log_depth(classical_depth_m[band], classical_sigma_m[band], depth_m[band],
-                                              sigma_m[band])
+                                              sigma_m[band], weights, noise_sigma)
         depth_m[band] = np.where(valid, fused, np.nan)
         sigma_m[band] = np.where(valid, sigma, np.nan)
         weight_sum += float(weight[valid].sum())

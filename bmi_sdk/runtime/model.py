@@ -123,6 +123,7 @@ class Model:
         self.output_names = tuple(self.manifest["output_names"])
         self.input_channels = int(self.manifest["input_channels"])
         self.decoder = model_decoder(self.manifest)
+        self.fusion_weights = model_fusion_weights(self.manifest, self.path.name)
         if names_in != [INPUT_NAME] or sorted(names_out) != sorted(self.output_names):
             raise ModelError(f"{self.path.name}: graph has inputs {names_in} and outputs {names_out}; "
                              f"its manifest says {INPUT_NAME!r} → {list(self.output_names)}")
@@ -194,6 +195,23 @@ class Model:
                 "calibration_id": self.manifest["calibration_id"], "receptive_field_px": self.receptive_field_px,
                 "tile_px": self.tile_px, "threads": self.threads, "execution_provider": self.provider, "graph_optimization": self.optimization,
                 "load_s": self.load_s, "warmup_s": self.warmup_s}
+
+
+def model_fusion_weights(manifest: dict, name: str):
+    """The ``decode.fusion.FusionWeights`` a learned refinement's depth is fused with its classical stage's by:
+    its manifest's fitted ``fusion.weights`` (``bmi fit-fusion``), else the inverse-variance ones; None for an
+    end-to-end model, which has no classical stage."""
+    if model_decoder(manifest) != "learned":
+        return None
+    from ..decode.fusion import INVERSE_VARIANCE, FusionWeights
+
+    fusion = manifest.get("fusion")
+    if fusion is None:
+        return INVERSE_VARIANCE
+    try:
+        return FusionWeights.from_dict(fusion["weights"] if isinstance(fusion, dict) else fusion)
+    except (KeyError, ValueError) as exc:
+        raise ModelError(f"model {name}: its manifest's fusion weights are unreadable ({exc})") from exc
 
 
 def select_model(calibration_id: str | None = None, models_dir: str | os.PathLike = MODELS_DIR,
