@@ -482,6 +482,20 @@ def test_ipv6_server_prints_a_uri_the_host_opens():
 
 
 # -- 7. the serve command: token file, idle timeout, Ctrl-C -------------------------------------------------
+def _stopped(serve: subprocess.Popen, stop_signal, act=lambda: None) -> str:
+    """Run ``act`` against a started server, send it ``stop_signal`` and return its stderr once it has exited
+    (killed if it has not within ``BOUND_S``)."""
+    try:
+        act()
+        serve.send_signal(stop_signal)
+        _, err = serve.communicate(timeout=BOUND_S)
+    finally:
+        if serve.poll() is None:
+            serve.kill()
+            serve.communicate()
+    return err
+
+
 def test_serve_with_token_file_and_ctrl_c_prints_the_fault_summary(tmp_path):
     token_file = tmp_path / "token"
     token_file.write_text("letmein\n")
@@ -489,7 +503,8 @@ def test_serve_with_token_file_and_ctrl_c_prints_the_fault_summary(tmp_path):
     serve = subprocess.Popen([sys.executable, "-m", "bmi_sdk.cli", "firmware-sim", "serve", "--scene", "flat",
                               "--token-file", str(token_file), "--idle-timeout-s", "30", "--faults", "drop=0.5"],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
+
+    def grab_one_frame():
         line = serve.stdout.readline()
         uri = line.split(" on ")[-1].strip()
         assert uri.startswith("tcp://127.0.0.1:"), line
@@ -500,12 +515,8 @@ def test_serve_with_token_file_and_ctrl_c_prints_the_fault_summary(tmp_path):
             cam.start(buffers=2)
             cam.grab(timeout_s=BOUND_S).release()
             cam.stop()
-        serve.send_signal(signal.SIGINT)
-        out, err = serve.communicate(timeout=BOUND_S)
-    finally:
-        if serve.poll() is None:
-            serve.kill()
-            serve.communicate()
+
+    err = _stopped(serve, signal.SIGINT, grab_one_frame)
     assert serve.returncode == 0, err
     assert "faults injected" in err and "'drop'" in err and "cancelled" not in err
 
@@ -517,14 +528,11 @@ def test_serve_started_in_the_background_stops_on_sigint_or_sigterm_with_its_sum
     serve = subprocess.Popen([sys.executable, "-m", "bmi_sdk.cli", "firmware-sim", "serve", "--scene", "flat"],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                              preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
-    try:
+
+    def started():
         assert "tcp://127.0.0.1:" in serve.stdout.readline()
-        serve.send_signal(stop_signal)
-        out, err = serve.communicate(timeout=BOUND_S)
-    finally:
-        if serve.poll() is None:
-            serve.kill()
-            serve.communicate()
+
+    err = _stopped(serve, stop_signal, started)
     assert serve.returncode == 0, err
     assert "faults injected" in err and "Traceback" not in err
 

@@ -72,7 +72,9 @@ def _run(args) -> int:
               f"noise σ {stats['noise_sigma']:.4f} ({stats['noise_source']})")
         print(f"classical blocks run {stats['blocks_run']}, skipped {stats['blocks_skipped']}; network tiles run "
               f"{report['tiles_run']}, skipped {report['tiles_skipped']}; peak memory {report['peak_rss_mb']:.0f} MB")
-        print(f"depth: the network's fused with the classical stage's by their 1σ (the classical read's mean weight "
+        how = {"fitted": "by their 1σ and disagreement, with the model's fitted weights",
+               "inverse-variance": "by their 1σ"}[report["fusion"]["weights"]]
+        print(f"depth: the network's fused with the classical stage's {how} (the classical read's mean weight "
               f"{report['fusion']['classical_weight_mean']:.2f})")
         _print_clipped(stats)
         print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_z.npy, depth_sigma.npy, confidence.png, depth_mm.png, "
