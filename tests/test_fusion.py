@@ -152,8 +152,9 @@ def test_the_weights_move_with_log_noise_between_the_levels_fitted_and_hold_beyo
     np.testing.assert_allclose(weights.coefficients(0.02), base + np.log(4.0) * np.array([-2.0, 0.5, 0, 0]))
     np.testing.assert_allclose(weights.coefficients(0.5), weights.coefficients(0.02))  # beyond the most: held
     assert FusionWeights.from_dict(weights.to_dict()) == weights
-    with pytest.raises(ValueError, match="noise σ must be a positive number"):
-        weights.coefficients(0.0)
+    np.testing.assert_allclose(weights.coefficients(0.0), base)  # a noise-free frame
+    with pytest.raises(ValueError, match="noise σ must be a number ≥ 0"):
+        weights.coefficients(-0.01)
     with pytest.raises(ValueError, match="noise_slopes holds 4 numbers"):
         FusionWeights(0.0, -2.0, 2.0, noise_slopes=(1.0, 2.0))
 

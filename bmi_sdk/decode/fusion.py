@@ -90,10 +90,11 @@ class FusionWeights:
         base = np.array([self.intercept, self.rel_sigma_a, self.rel_sigma_b, self.gap])
         if noise_sigma is None or not any(self.noise_slopes):
             return base
-        if not (math.isfinite(noise_sigma) and noise_sigma > 0):
-            raise ValueError(f"the fusion's noise σ must be a positive number, got {noise_sigma}")
-        u = min(max(math.log(noise_sigma / self.noise_ref_sigma), 0.0),
-                math.log(self.noise_max_sigma / self.noise_ref_sigma))
+        if not (math.isfinite(noise_sigma) and noise_sigma >= 0):
+            raise ValueError(f"the fusion's noise σ must be a number ≥ 0, got {noise_sigma}")
+        if noise_sigma <= self.noise_ref_sigma:  # a noise-free frame included: the reference weights
+            return base
+        u = min(math.log(noise_sigma / self.noise_ref_sigma), math.log(self.noise_max_sigma / self.noise_ref_sigma))
         return base + u * np.array(self.noise_slopes)
 
     def share_a(self, rel_a: np.ndarray, rel_b: np.ndarray, log_gap: np.ndarray,
