@@ -68,7 +68,7 @@ class ReadSet:
 
 
 def collect_reads(model_path: str | Path, scene_scale: float, *, seed: int = FIT_SEED, tiles: int = 12,
-                  sigma: float = STANDARD_SIGMA, threads: int = 2, psf_map=None) -> ReadSet:
+                  sigma: float = STANDARD_SIGMA, threads: int = 2) -> ReadSet:
     """Both reads of a learned refinement on the benchmark's tiles of ``seed`` at ``scene_scale`` (centre and
     edge, ``tiles`` each, noise σ), decoded with the nominal camera's tensor kernels as they were rendered."""
     from bmi_sdk.lenses import lens_geometry, lens_tensor
@@ -76,8 +76,7 @@ def collect_reads(model_path: str | Path, scene_scale: float, *, seed: int = FIT
 
     bench = Benchmark(tiles=tiles, seed=seed, threads=threads, scene_scale=scene_scale)
     geometry, nominal = lens_geometry(bench.lens), lens_tensor(bench.lens)
-    psf_map = psf_map or PsfMap(nominal, geometry, mode="tensor")
-    decoder = NetworkTiles(model_path, bench.tile_px, threads, psf_map, fuse=False)
+    decoder = NetworkTiles(model_path, bench.tile_px, threads, PsfMap(nominal, geometry, mode="tensor"), fuse=False)
     if decoder.stage is None:
         raise ValueError(f"model {Path(model_path).name} is not a learned refinement: it has no classical read to "
                          "fuse with (bmi train --decoder learned)")
