@@ -143,20 +143,23 @@ def test_a_fit_without_pixels_is_refused():
 
 
 def test_the_weights_move_with_log_noise_between_the_levels_fitted_and_hold_beyond():
-    weights = FusionWeights(1.0, -2.0, 2.0, 0.0, noise_slopes=(-2.0, 0.5, 0.0, 0.0), noise_ref_sigma=0.005,
-                            noise_max_sigma=0.02)
-    base = np.array([1.0, -2.0, 2.0, 0.0])
+    weights = FusionWeights(1.0, -2.0, 2.0, 0.0, noise_ref_sigma=0.005, noise_levels=(0.02, 0.08),
+                            noise_coefficients=((3.0, -1.0, 2.0, 0.0), (-1.0, -1.0, 4.0, 2.0)))
+    base, at_02, at_08 = np.array([1.0, -2.0, 2.0, 0.0]), np.array([3.0, -1.0, 2.0, 0.0]), np.array([-1.0, -1, 4, 2])
     np.testing.assert_allclose(weights.coefficients(None), base)
-    np.testing.assert_allclose(weights.coefficients(0.001), base)  # below the least noise fitted: held
-    np.testing.assert_allclose(weights.coefficients(0.01), base + np.log(2.0) * np.array([-2.0, 0.5, 0, 0]))
-    np.testing.assert_allclose(weights.coefficients(0.02), base + np.log(4.0) * np.array([-2.0, 0.5, 0, 0]))
-    np.testing.assert_allclose(weights.coefficients(0.5), weights.coefficients(0.02))  # beyond the most: held
-    assert FusionWeights.from_dict(weights.to_dict()) == weights
     np.testing.assert_allclose(weights.coefficients(0.0), base)  # a noise-free frame
+    np.testing.assert_allclose(weights.coefficients(0.001), base)  # below the least noise fitted: held
+    np.testing.assert_allclose(weights.coefficients(0.01), (base + at_02) / 2)  # halfway in log σ
+    np.testing.assert_allclose(weights.coefficients(0.02), at_02)
+    np.testing.assert_allclose(weights.coefficients(0.04), (at_02 + at_08) / 2)
+    np.testing.assert_allclose(weights.coefficients(0.5), at_08)  # beyond the most: held
+    assert FusionWeights.from_dict(weights.to_dict()) == weights
     with pytest.raises(ValueError, match="noise σ must be a number ≥ 0"):
         weights.coefficients(-0.01)
-    with pytest.raises(ValueError, match="noise_slopes holds 4 numbers"):
-        FusionWeights(0.0, -2.0, 2.0, noise_slopes=(1.0, 2.0))
+    with pytest.raises(ValueError, match="4 numbers for each of the 1 noise_levels"):
+        FusionWeights(0.0, -2.0, 2.0, noise_levels=(0.02,), noise_coefficients=((1.0, 2.0),))
+    with pytest.raises(ValueError, match="must rise above noise_ref_sigma"):
+        FusionWeights(0.0, -2.0, 2.0, noise_levels=(0.004,), noise_coefficients=((0.0, -2.0, 2.0, 0.0),))
 
 
 def _reads_at_noise(seed: int, noise_sigma: float, n: int = 40_000):
@@ -181,7 +184,7 @@ def test_a_fit_over_two_noise_levels_learns_what_each_reads_sigma_is_worth_at_ea
     train = [_reads_at_noise(1, 0.005), _reads_at_noise(2, 0.02)]
     weights = fit_fusion_weights(train, pixels_per_set=20_000)
     blind = fit_fusion_weights([replace(s, noise_sigma=0.005) for s in train], pixels_per_set=20_000)
-    assert (weights.noise_ref_sigma, weights.noise_max_sigma) == (0.005, 0.02) and blind.noise_slopes == (0,) * 4
+    assert (weights.noise_ref_sigma, weights.noise_levels) == (0.005, (0.02,)) and blind.noise_levels == ()
     low, high = _reads_at_noise(3, 0.005), _reads_at_noise(4, 0.02)
     share_low = fuse_log_depth(low.classical_m, low.classical_sigma_m, low.network_m, low.network_sigma_m, weights,
                                0.005)[2]

@@ -196,7 +196,8 @@ def test_bmi_infer_returns_the_fusion_of_the_two_reads(tmp_path, rel, fusion):
 def test_fit_fusion_writes_weights_the_runtime_reads_and_a_rerun_writes_the_same(tmp_path, passthrough_model):
     """``bmi fit-fusion`` on a refinement whose network reads 2× the classical depth: the fitted fusion's objective
     is no worse than the inverse-variance one's (the fit starts there and only descends), the weights land in the
-    manifest, ``Model`` reads them, and a second run writes the same weights. An end-to-end model is refused."""
+    manifest, ``Model`` reads them, a second run writes the same weights, and a run over weights the runtime
+    refuses replaces them. An end-to-end model is refused."""
     from bmi_sdk.decode.fusion import FusionWeights
     from bmi_sdk.model_manifest import manifest_path
     from bmi_sdk.runtime.model import Model
@@ -210,7 +211,14 @@ def test_fit_fusion_writes_weights_the_runtime_reads_and_a_rerun_writes_the_same
     assert len(fit["fit"]["mean_abs_log_error"]) == 2
     weights = FusionWeights.from_dict(fit["weights"])
     assert Model(model, tile_px=64, warmup=False).fusion_weights == weights
-    assert (weights.noise_ref_sigma, weights.noise_max_sigma) == (0.005, 0.02)
+    assert (weights.noise_ref_sigma, weights.noise_levels) == (0.005, (0.02,))
+    _bmi(*args)
+    assert json.loads(manifest_path(model).read_text())["fusion"]["weights"] == fit["weights"]
+    # a manifest whose weights the runtime refuses is repaired by a refit
+    doc = json.loads(manifest_path(model).read_text())
+    manifest_path(model).write_text(json.dumps({**doc, "fusion": {"weights": {**fit["weights"], "gap": "steep"}}}))
+    with pytest.raises(ModelError, match="fusion weights are unreadable"):
+        Model(model, tile_px=64, warmup=False)
     _bmi(*args)
     assert json.loads(manifest_path(model).read_text())["fusion"]["weights"] == fit["weights"]
     run = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", "fit-fusion", "--model", str(passthrough_model),

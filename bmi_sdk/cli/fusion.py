@@ -12,7 +12,7 @@ def register(subparsers) -> None:
         "fit-fusion", help="fit how a learned refinement fuses its network's depth with its classical stage's",
         description="Decode benchmark tiles of a seed no reported number uses, at several scene scales and noise "
                     "levels, with the learned refinement's two stages; fit the fusion's weights (decode.fusion: "
-                    "both relative σs and the two reads' disagreement, and their slopes in log noise) to the least "
+                    "both relative σs and the two reads' disagreement, at each noise level) to the least "
                     "mean |log depth error|; print the error of each read, the inverse-variance fusion and the "
                     "fitted one per set of tiles; and write the weights into the model's manifest, which bmi infer "
                     "and bmi eval read. Re-running it gives the same weights.")
@@ -24,7 +24,8 @@ def register(subparsers) -> None:
     p.add_argument("--tiles", type=int, default=12, help="tiles per field region, scale and noise σ (default 12)")
     p.add_argument("--sigmas", default=",".join(f"{s:g}" for s in FIT_SIGMAS),
                    help="comma list of noise σs (fraction of full scale) the tiles are taken at, each with every "
-                        "scale; more than one fits the weights' slopes in log noise (default: %(default)s)")
+                        "scale; the weights are fitted at each and interpolated in log σ between them (default: "
+                        "%(default)s)")
     p.add_argument("--pixels", type=int, default=FIT_PIXELS_PER_SET,
                    help="pixels per set of tiles the fit reads, drawn from the tiles' valid ones (default %(default)s)")
     p.add_argument("--threads", type=int, default=2)

@@ -15,7 +15,7 @@ with r = σ / d each read's relative 1σ (the 1σ of its log depth to first orde
 Gaussian errors. The two reads' errors are not Gaussian: most pixels read far better than their σ and a
 few far worse (docs/results.md, session 16), so how far the reads disagree (g) tells which one is off.
 How much each read's σ can be trusted also changes with the frame's noise, so the four coefficients may
-move linearly with log σ_noise between the noise levels they were fitted at. A model's manifest may carry
+be fitted at several noise levels and interpolated linearly in log σ_noise between them. A model's manifest may carry
 weights fitted to minimise the fused log error on scenes apart from every reported one
 (``nn.fusion_fit``, ``bmi fit-fusion``); without them the fusion is the inverse-variance one.
 
@@ -39,35 +39,47 @@ from scipy.special import expit
 
 @dataclass(frozen=True)
 class FusionWeights:
-    """The logistic weight of read a (module doc): logit p = c₀ + c_a log r_a + c_b log r_b + c_g log(g + g₀),
-    with (c₀, c_a, c_b, c_g) = (intercept, rel_sigma_a, rel_sigma_b, gap) + u · noise_slopes and
-    u = log(σ_noise / noise_ref_sigma) clipped to [0, log(noise_max_sigma / noise_ref_sigma)]: the weights at the
-    frame's noise, linear in log noise between the noise levels they were fitted at and held beyond them."""
+    """The logistic weight of read a (module doc): logit p = c₀ + c_a log r_a + c_b log r_b + c_g log(g + g₀).
+
+    (c₀, c_a, c_b, c_g) = (intercept, rel_sigma_a, rel_sigma_b, gap) at ``noise_ref_sigma``, and
+    ``noise_coefficients[k]`` at the noisier ``noise_levels[k]`` (σ, fraction of full scale, increasing): at a
+    frame's noise they are interpolated linearly in log σ between the levels they were fitted at, and held
+    below the least and above the most."""
 
     intercept: float
     rel_sigma_a: float
     rel_sigma_b: float
     gap: float = 0.0
-    noise_slopes: tuple = (0.0, 0.0, 0.0, 0.0)
     gap_floor: float = 0.01  # log-depth gaps well under 1 % read as agreement
-    noise_ref_sigma: float = 0.005  # the standard noise (fraction of full scale)
-    noise_max_sigma: float = 0.005
+    noise_ref_sigma: float = 0.005  # the standard noise
+    noise_levels: tuple = ()
+    noise_coefficients: tuple = ()
 
     def __post_init__(self):
-        object.__setattr__(self, "noise_slopes", tuple(self.noise_slopes))
-        if len(self.noise_slopes) != 4:
-            raise ValueError(f"fusion weight noise_slopes holds 4 numbers, got {len(self.noise_slopes)}")
-        values = {k: v for k, v in asdict(self).items() if k != "noise_slopes"}
-        values.update({f"noise_slopes[{i}]": v for i, v in enumerate(self.noise_slopes)})
+        levels = tuple(self.noise_levels)
+        table = tuple(tuple(row) for row in self.noise_coefficients)
+        object.__setattr__(self, "noise_levels", levels)
+        object.__setattr__(self, "noise_coefficients", table)
+        if len(table) != len(levels) or any(len(row) != 4 for row in table):
+            raise ValueError(f"fusion weight noise_coefficients holds 4 numbers for each of the {len(levels)} "
+                             f"noise_levels, got {[len(row) for row in table]}")
+        values = {k: getattr(self, k) for k in ("intercept", "rel_sigma_a", "rel_sigma_b", "gap", "gap_floor",
+                                                "noise_ref_sigma")}
+        values.update({f"noise_levels[{i}]": v for i, v in enumerate(levels)})
+        values.update({f"noise_coefficients[{i}][{j}]": v for i, row in enumerate(table) for j, v in enumerate(row)})
         for name, value in values.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ValueError(f"fusion weight {name} must be a finite number, got {value!r}")
-        if self.gap_floor <= 0 or self.noise_ref_sigma <= 0 or self.noise_max_sigma < self.noise_ref_sigma:
-            raise ValueError(f"fusion weights need gap_floor > 0 and 0 < noise_ref_sigma ≤ noise_max_sigma, got "
-                             f"{self.gap_floor}, {self.noise_ref_sigma}, {self.noise_max_sigma}")
+        if self.gap_floor <= 0 or self.noise_ref_sigma <= 0:
+            raise ValueError(f"fusion weights need gap_floor > 0 and noise_ref_sigma > 0, got {self.gap_floor} "
+                             f"and {self.noise_ref_sigma}")
+        if any(b <= a for a, b in zip((self.noise_ref_sigma, *levels), levels)):
+            raise ValueError(f"fusion weight noise_levels must rise above noise_ref_sigma {self.noise_ref_sigma}, "
+                             f"got {list(levels)}")
 
     def to_dict(self) -> dict:
-        return {**asdict(self), "noise_slopes": list(self.noise_slopes)}
+        return {**asdict(self), "noise_levels": list(self.noise_levels),
+                "noise_coefficients": [list(row) for row in self.noise_coefficients]}
 
     @classmethod
     def from_dict(cls, data: dict) -> "FusionWeights":
@@ -78,8 +90,12 @@ class FusionWeights:
         unknown = sorted(set(data) - known)
         if unknown:
             raise ValueError(f"unknown fusion weight(s) {unknown}; known: {sorted(known)}")
-        if not isinstance(data.get("noise_slopes", ()), (list, tuple)):
-            raise ValueError(f"fusion weight noise_slopes is a list of 4 numbers, got {data['noise_slopes']!r}")
+        for key in ("noise_levels", "noise_coefficients"):
+            value = data.get(key, ())
+            if not isinstance(value, (list, tuple)) or (
+                    key == "noise_coefficients" and not all(isinstance(row, (list, tuple)) for row in value)):
+                raise ValueError(f"fusion weight {key} is a list{' of lists' if key == 'noise_coefficients' else ''}, "
+                                 f"got {value!r}")
         try:
             return cls(**data)
         except TypeError as exc:
@@ -88,14 +104,15 @@ class FusionWeights:
     def coefficients(self, noise_sigma: float | None = None) -> np.ndarray:
         """(c₀, c_a, c_b, c_g) at a frame's noise σ (fraction of full scale; None: at ``noise_ref_sigma``)."""
         base = np.array([self.intercept, self.rel_sigma_a, self.rel_sigma_b, self.gap])
-        if noise_sigma is None or not any(self.noise_slopes):
+        if noise_sigma is None or not self.noise_levels:
             return base
         if not (math.isfinite(noise_sigma) and noise_sigma >= 0):
             raise ValueError(f"the fusion's noise σ must be a number ≥ 0, got {noise_sigma}")
         if noise_sigma <= self.noise_ref_sigma:  # a noise-free frame included: the reference weights
             return base
-        u = min(math.log(noise_sigma / self.noise_ref_sigma), math.log(self.noise_max_sigma / self.noise_ref_sigma))
-        return base + u * np.array(self.noise_slopes)
+        log_levels = np.log([self.noise_ref_sigma, *self.noise_levels])
+        table = np.array([base, *self.noise_coefficients])
+        return np.array([np.interp(math.log(noise_sigma), log_levels, table[:, j]) for j in range(4)])
 
     def share_a(self, rel_a: np.ndarray, rel_b: np.ndarray, log_gap: np.ndarray,
                 noise_sigma: float | None = None) -> np.ndarray:

@@ -188,14 +188,14 @@ class NetworkTiles:
     its manifest's knobs over ``psf_map``'s kernels (the nominal camera's, or the built camera's own), and
     its depth is the network's fused with the classical stage's (``decode.fusion``, with the weights of the
     model's manifest, as ``bmi infer`` does);
-    ``fuse=False`` keeps the network's own.
+    ``fuse=False`` keeps the network's own (and leaves the manifest's fusion weights unread).
     """
 
     def __init__(self, path: str | Path, tile_px: int, threads: int = 2, psf_map=None, name: str | None = None,
                  fuse: bool = True):
         from bmi_sdk.runtime.model import Model
 
-        self.model = Model(path, tile_px=tile_px, threads=threads)
+        self.model = Model(path, tile_px=tile_px, threads=threads, fusion_weights=fuse)
         self.name = name or self.model.decoder
         self.fuse = fuse
         self.stage = None
@@ -225,6 +225,8 @@ class NetworkTiles:
         aif, depth, *sigma = self.model.run(np.ascontiguousarray(x, np.float32))
         depth, sigma = depth[0, 0], (sigma[0][0, 0] if sigma else None)
         if decoded is not None and (self.fuse if fuse is None else fuse) and sigma is not None:
+            if self.model.fusion_weights is None:
+                raise ValueError("this decoder was built with fuse=False: its model's fusion weights were not read")
             from bmi_sdk.decode.fusion import fuse_log_depth
 
             depth, sigma, _ = fuse_log_depth(decoded.depth_m, decoded.depth_sigma_m, depth, sigma,

@@ -8,11 +8,11 @@ a few far worse, and the ratio depends on the scene's scale (docs/results.md, se
 weights are fitted, by minimising the fused depth's mean |log error| (AbsRel to first order), on the
 procedural benchmark's tiles of a seed that no reported table reads, drawn at several scene scales
 (1: tile-scale clutter, 16: surfaces larger than a tile, as a full frame's are) and noise levels, each
-set weighing the same. With more than one noise level the weights also get their slopes in log noise
-(``FusionWeights.noise_slopes``): at σ 0.02 the network's σ says less and the classical read more than
-at 0.005, and one set of weights for both reads the noisy frames worse than the inverse-variance one
-(docs/results.md, session 16). The fit starts from the inverse-variance weights; it is deterministic (a
-fixed pixel sample, BFGS).
+set weighing the same. The weights are fitted at each noise level apart (``FusionWeights.noise_levels``):
+at σ 0.02 and 0.05 the network's σ says less and the classical read more than at 0.005, and one set of
+weights for all reads the noisy frames worse than the inverse-variance one (docs/results.md, session 16).
+Each level's fit starts from the inverse-variance weights; it is deterministic (a fixed pixel sample,
+BFGS).
 
 ``bmi fit-fusion`` runs it and writes the weights into the model's manifest (``fusion``), which the
 runtime (``bmi infer``) and ``bmi eval`` read.
@@ -33,7 +33,7 @@ from bmi_sdk.sensor import NoiseProfile
 FIT_SEED = 4242
 """The fit's benchmark seed: apart from every reported one (20260 the benchmark, 777 held out, 7 the full frame)."""
 FIT_SCALES = (1.0, 4.0, 16.0)
-FIT_SIGMAS = (STANDARD_SIGMA, 0.02)
+FIT_SIGMAS = (STANDARD_SIGMA, 0.02, 0.05)
 FIT_PIXELS_PER_SET = 100_000
 GAP_FLOOR = 0.01
 
@@ -114,26 +114,25 @@ def fit_objective(sets: list[ReadSet], weights: FusionWeights, pixels_per_set: i
 
 def fit_fusion_weights(sets: list[ReadSet], gap_floor: float = GAP_FLOOR,
                        pixels_per_set: int = FIT_PIXELS_PER_SET) -> FusionWeights:
-    """The weights minimising the mean over ``sets`` of each set's mean |log error| (module doc), from the
-    inverse-variance ones; with sets at more than one noise σ, also their slopes in log noise, between the
-    least and the most noise seen (the least is the weights' reference)."""
-    from scipy.optimize import minimize
-
+    """The weights minimising, at each noise σ among ``sets``, the mean over that σ's sets of each set's mean
+    |log error| (module doc), each from the inverse-variance ones; the least σ is the weights' reference."""
     if not sets or any(len(s) == 0 for s in sets):
         raise ValueError("the fusion fit needs at least one set of tiles, each with valid pixels")
     samples = _samples(sets, pixels_per_set)
     noise = sorted({s.noise_sigma for s in sets})
-    with_noise = len(noise) > 1
+    levels = [_fit_level([s for s in samples if s.noise_sigma == sigma], gap_floor, pixels_per_set)
+              for sigma in noise]
+    return FusionWeights(*levels[0], gap_floor=gap_floor, noise_ref_sigma=noise[0], noise_levels=tuple(noise[1:]),
+                         noise_coefficients=tuple(levels[1:]))
 
-    def weights_of(x: np.ndarray) -> FusionWeights:
-        slopes = tuple(float(v) for v in x[4:]) if with_noise else (0.0,) * 4
-        return FusionWeights(*(float(v) for v in x[:4]), noise_slopes=slopes, gap_floor=gap_floor,
-                             noise_ref_sigma=noise[0], noise_max_sigma=noise[-1])
+
+def _fit_level(samples: list[ReadSet], gap_floor: float, pixels_per_set: int) -> tuple[float, ...]:
+    """(c₀, c_a, c_b, c_g) minimising ``fit_objective`` over sets of one noise σ, from the inverse-variance ones."""
+    from scipy.optimize import minimize
 
     def loss(x: np.ndarray) -> float:
-        return fit_objective(samples, weights_of(x), pixels_per_set)
+        return fit_objective(samples, FusionWeights(*(float(v) for v in x), gap_floor=gap_floor), pixels_per_set)
 
-    start = np.zeros(8 if with_noise else 4)
-    start[:3] = INVERSE_VARIANCE.intercept, INVERSE_VARIANCE.rel_sigma_a, INVERSE_VARIANCE.rel_sigma_b
+    start = np.array([INVERSE_VARIANCE.intercept, INVERSE_VARIANCE.rel_sigma_a, INVERSE_VARIANCE.rel_sigma_b, 0.0])
     result = minimize(loss, start, method="BFGS", options={"gtol": 1e-6, "maxiter": 400})
-    return weights_of(result.x)
+    return tuple(float(v) for v in result.x)
