@@ -60,7 +60,7 @@ def _full_frame(model_path, nominal, geometry) -> str:
     w2, c2 = time.perf_counter(), cpu_seconds()
     ok = result.valid & decoded.valid & np.isfinite(range_m)
 
-    def absrel(depth_m: np.ndarray) -> float:
+    def absrel_of(depth_m: np.ndarray) -> float:
         return float(np.mean(np.abs(depth_m[ok] - range_m[ok]) / range_m[ok]))
 
     fusion_s = result.fusion["fusion_s"]
@@ -70,8 +70,8 @@ def _full_frame(model_path, nominal, geometry) -> str:
             ["of which the network's tiles (input, ONNX, blend)", f"{network_s:.1f}", ""],
             ["of which the fusion", f"{fusion_s:.1f}", ""],
             ["total", f"{w2 - w0:.1f}", f"{c2 - c0:.1f}"]]
-    classical_absrel, network_absrel, absrel = (absrel(d) for d in (decoded.depth_m, result.network_depth_m,
-                                                                    result.depth_m))
+    classical_absrel, network_absrel, absrel = (absrel_of(d) for d in (decoded.depth_m, result.network_depth_m,
+                                                                       result.depth_m))
     share = result.fusion["classical_weight_mean"]
     return "\n".join([f"Full 6000×4500 procedural frame (seed 7, tensor-mode render, decoded with the same kernels), "
                       f"learned decoder {model_path.name}; peak RSS {peak_rss_mb():.0f} MB (render included); depth "

@@ -40,27 +40,18 @@ def _run(args) -> int:
     from bmi_sdk.model_manifest import manifest_path, model_decoder, verify_model
     from bmi_sdk.decode.fusion import INVERSE_VARIANCE
     from bmi_sdk.nn.evaluate import Benchmark
-    from bmi_sdk.nn.fusion_fit import collect_reads, fit_fusion_weights, fit_objective, mean_abs_log_error
+    from bmi_sdk.nn.fusion_fit import (abs_log_error, collect_reads, fit_fusion_weights, fit_objective,
+                                       mean_abs_log_error)
     from bmi_sdk.runtime.model import LEARNED_MODEL
 
     model = args.model or str(LEARNED_MODEL)
     manifest = verify_model(model)
     if model_decoder(manifest) != "learned":
         raise ValueError(f"--model {model} is not a learned refinement: it has no classical read to fuse with")
-    try:
-        scales = [float(s) for s in args.scales.split(",") if s.strip()]
-    except ValueError as exc:
-        raise ValueError(f"--scales must be a comma list of numbers ≥ 1, got {args.scales!r}") from exc
-    if not scales or any(not s >= 1.0 for s in scales):
-        raise ValueError(f"--scales must be a comma list of numbers ≥ 1, got {args.scales!r}")
+    scales = _numbers(args.scales, "--scales", "numbers ≥ 1", lambda s: s >= 1.0)
     if args.tiles < 1 or args.pixels < 100:
         raise ValueError(f"--tiles must be ≥ 1 and --pixels ≥ 100, got {args.tiles} and {args.pixels}")
-    try:
-        sigmas = [float(s) for s in args.sigmas.split(",") if s.strip()]
-    except ValueError as exc:
-        raise ValueError(f"--sigmas must be a comma list of noise σs in (0, 1), got {args.sigmas!r}") from exc
-    if not sigmas or any(not 0 < s < 1 for s in sigmas):
-        raise ValueError(f"--sigmas must be a comma list of noise σs in (0, 1), got {args.sigmas!r}")
+    sigmas = _numbers(args.sigmas, "--sigmas", "noise σs in (0, 1)", lambda s: 0 < s < 1)
     if args.seed == Benchmark.seed:
         logging.getLogger("bmi.fit-fusion").warning(
             "seed %d is the benchmark's own: bmi eval's numbers would no longer be held out", args.seed)
@@ -71,8 +62,7 @@ def _run(args) -> int:
                  (("inverse_variance", INVERSE_VARIANCE), ("fitted", weights))}
     rows, errors = [], {}
     for s in sets:
-        classical = float(np.mean(np.abs(np.log(s.classical_m / s.truth_m))))
-        network = float(np.mean(np.abs(np.log(s.network_m / s.truth_m))))
+        classical, network = abs_log_error(s.classical_m, s.truth_m), abs_log_error(s.network_m, s.truth_m)
         errors[s.name] = {"pixels": len(s), "classical": classical, "network": network,
                           "inverse_variance": mean_abs_log_error(s, INVERSE_VARIANCE),
                           "fitted": mean_abs_log_error(s, weights)}
@@ -100,3 +90,14 @@ def _run(args) -> int:
     write_json(manifest_path(model), manifest)
     print(f"wrote the weights into {manifest_path(model)}")
     return 0
+
+
+def _numbers(text: str, option: str, what: str, ok) -> list[float]:
+    """The numbers of a comma list option, each passing ``ok``; a one-line error naming ``option`` otherwise."""
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        values = []
+    if not values or not all(ok(v) for v in values):
+        raise ValueError(f"{option} must be a comma list of {what}, got {text!r}")
+    return values

@@ -195,7 +195,7 @@ class NetworkTiles:
                  fuse: bool = True):
         from bmi_sdk.runtime.model import Model
 
-        self.model = Model(path, tile_px=tile_px, threads=threads, fusion_weights=fuse)
+        self.model = Model(path, tile_px=tile_px, threads=threads, read_fusion_weights=fuse)
         self.name = name or self.model.decoder
         self.fuse = fuse
         self.stage = None

@@ -97,9 +97,14 @@ def collect_reads(model_path: str | Path, scene_scale: float, *, seed: int = FIT
     return ReadSet(f"scale {scene_scale:g}, σ {sigma:g}", *(np.concatenate(c) for c in columns), sigma)
 
 
+def abs_log_error(depth_m: np.ndarray, truth_m: np.ndarray) -> float:
+    """Mean |log(d / d_true)|: AbsRel to first order, and symmetric in near and far errors."""
+    return float(np.mean(np.abs(np.log(depth_m / truth_m))))
+
+
 def mean_abs_log_error(read_set: ReadSet, weights: FusionWeights) -> float:
     """The fused depth's mean |log(d / d_true)| over the set's pixels."""
-    return float(np.mean(np.abs(np.log(read_set.fused(weights) / read_set.truth_m))))
+    return abs_log_error(read_set.fused(weights), read_set.truth_m)
 
 
 def _samples(sets: list[ReadSet], pixels_per_set: int) -> list[ReadSet]:

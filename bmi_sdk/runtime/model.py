@@ -95,12 +95,13 @@ class Model:
     ``providers``: execution provider name(s) for ``choose_providers`` (default: the best available);
     ``provider`` is the one the session actually runs on. ``sess_options``: an
     ``onnxruntime.SessionOptions`` used as given instead of ``session_options(threads, optimization)``.
-    ``fusion_weights=False`` leaves a learned refinement's fusion weights unread (``fusion_weights`` None).
+    ``read_fusion_weights=False`` leaves a learned refinement's fusion weights unread (``fusion_weights`` None).
     """
 
     def __init__(self, path: str | os.PathLike = DEFAULT_MODEL, *, tile_px: int | None = 512,
                  threads: int | None = None, optimization: str = "all", warmup: bool = True,
-                 providers: str | list[str] | None = None, sess_options=None, fusion_weights: bool = True):
+                 providers: str | list[str] | None = None, sess_options=None,
+                 read_fusion_weights: bool = True):
         import onnxruntime as ort
 
         self.path = Path(path)
@@ -125,7 +126,7 @@ class Model:
         self.input_channels = int(self.manifest["input_channels"])
         self.decoder = model_decoder(self.manifest)
         # a refit (bmi fit-fusion) reads the model without its weights, so that it can replace unreadable ones
-        self.fusion_weights = model_fusion_weights(self.manifest, self.path.name) if fusion_weights else None
+        self.fusion_weights = model_fusion_weights(self.manifest, self.path.name) if read_fusion_weights else None
         if names_in != [INPUT_NAME] or sorted(names_out) != sorted(self.output_names):
             raise ModelError(f"{self.path.name}: graph has inputs {names_in} and outputs {names_out}; "
                              f"its manifest says {INPUT_NAME!r} → {list(self.output_names)}")
