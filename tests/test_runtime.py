@@ -78,6 +78,8 @@ def test_tiled_equals_untiled_on_frame_not_multiple_of_tile(unet):
     raw = _raw(198, 302)  # neither a multiple of the tile nor of 4
     tiled = _infer(Model(unet, tile_px=64, threads=1), raw)
     whole = _infer(Model(unet, tile_px=336, threads=1), raw)
+    # the default overlap is the receptive field alone: no cross-fade is needed where both tiles agree
+    assert (tiled.plan.overlap_px, tiled.plan.ramp_px) == (16, 0)
     assert whole.tiles_run == 1 and tiled.tiles_run > 12
     assert np.abs(tiled.aif - whole.aif).mean() < 1e-6
     assert np.abs(tiled.depth_m - whole.depth_m).max() < 1e-5
@@ -87,14 +89,14 @@ def test_tiled_equals_untiled_on_frame_not_multiple_of_tile(unet):
 
 
 def test_blend_weights_partition_unity_and_cover_frame():
-    plan = TilePlan.for_model(300, 500, 96, receptive_field_px=13, largest_psf_px=41)
+    plan = TilePlan.for_model(300, 500, 96, receptive_field_px=13, overlap_px=2 * 8 + 24)  # a 24-px Hann ramp
     acc = np.zeros((300 + 2 * plan.pad_px + 200, 500 + 2 * plan.pad_px + 200))
     for r, c, w in plan.tiles():
         acc[r + plan.pad_px:r + plan.pad_px + 96, c + plan.pad_px:c + plan.pad_px + 96] += w
     frame = acc[plan.pad_px:plan.pad_px + 300, plan.pad_px:plan.pad_px + 500]
     assert frame.min() > 0.49  # every pixel is covered
     assert np.allclose(frame[:150, :300], 1.0, atol=1e-6)  # uniform interior tiles cross-fade to exactly 1
-    assert plan.overlap_px == 2 * 8 + 24 and all(o % 4 == 0 for o in plan.row_origins + plan.col_origins)
+    assert plan.ramp_px == 24 and all(o % 4 == 0 for o in plan.row_origins + plan.col_origins)
 
 
 def test_reflect_indices_keep_bayer_phase_any_extent():
@@ -272,27 +274,6 @@ def test_packaged_models_match_their_manifests_and_serve_their_own_lens():
     assert shipped["default.onnx"]["lens"] == "bmi_monocentric" and shipped["fisheye.onnx"]["lens"] == "fisheye"
     assert select_model(None) == (MODELS_DIR / "default.onnx", None)
     assert select_model(None, lens="fisheye") == (MODELS_DIR / "fisheye.onnx", None)
-
-
-def test_a_manifest_without_largest_psf_px_gets_its_lens_profiles_kernel(tmp_path):
-    """The shipped manifests do not record largest_psf_px: the tile overlap then comes from the kernel of the
-    manifest's lens (bmi_sdk.lenses), so the fisheye model is tiled for its 161-px PSFs, not the
-    monocentric's 41 px; a lens that is no profile is refused rather than guessed."""
-    import shutil
-
-    from bmi_sdk.runtime import MODELS_DIR
-
-    def copy_without_psf_size(name, **changes):
-        onnx = tmp_path / name
-        shutil.copyfile(MODELS_DIR / name, onnx)
-        manifest = {k: v for k, v in read_manifest(MODELS_DIR / name).items() if k != "largest_psf_px"}
-        manifest_path(onnx).write_text(json.dumps({**manifest, **changes}))
-        return Model(onnx, tile_px=64, warmup=False)
-
-    assert copy_without_psf_size("fisheye.onnx").largest_psf_px == 161
-    assert copy_without_psf_size("default.onnx").largest_psf_px == 41
-    with pytest.raises(ModelError, match="no largest_psf_px.*'my_lens'"):
-        copy_without_psf_size("default.onnx", lens="my_lens").largest_psf_px  # noqa: B018
 
 
 def test_export_records_the_lens_profiles_tensor_key_and_kernel(tmp_path):

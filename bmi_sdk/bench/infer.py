@@ -117,7 +117,7 @@ def _seam_rows(model_path: Path, frame, window, tiles: list[int], threads) -> tu
               geometry=frame.geometry, row0=r0, col0=c0)
     manifest = verify_model(model_path)
     rf = int(manifest["receptive_field_px"])
-    pad = TilePlan.for_model(h, w, 1 << 20, rf, 0).pad_px
+    pad = TilePlan.for_model(h, w, 1 << 20, rf).pad_px
     whole = Model(model_path, tile_px=round_up(max(h, w) + 2 * pad, 4), threads=threads)
     t0 = time.perf_counter()
     ref = infer_raw(whole, raw, **kw)
@@ -125,7 +125,7 @@ def _seam_rows(model_path: Path, frame, window, tiles: list[int], threads) -> tu
     rows = [["untiled", whole.tile_px, "-", 1, ref_s, 0.0, 0.0]]
     for tile in tiles:
         model = Model(model_path, tile_px=tile, threads=threads)
-        default = TilePlan.for_model(h, w, tile, rf, model.largest_psf_px).overlap_px
+        default = TilePlan.for_model(h, w, tile, rf).overlap_px
         for overlap in sorted({0, round_up(rf // 4, 4), round_up(rf // 2, 4), round_up(rf, 4), default}):
             if overlap >= tile - 4:
                 continue

@@ -14,7 +14,8 @@ It
   and refuses the export above ``TOLERANCE``, so a graph that tracing specialised to the example
   shape never ships;
 - writes the manifest with the measured difference and opset, the lens profile's nominal PSF
-  tensor key and its kernel size as ``largest_psf_px``.
+  tensor key and its kernel size as ``largest_psf_px`` (provenance: the PSFs it was trained on; tiling
+  needs only ``receptive_field_px``).
 
 torch is imported inside the functions: ``import bmi_sdk.runtime`` stays free of it.
 """

@@ -170,20 +170,6 @@ class Model:
     def size_multiple(self) -> int:
         return int(self.manifest["size_multiple"])
 
-    @property
-    def largest_psf_px(self) -> int:
-        """Largest PSF support the model was trained with: manifest ``largest_psf_px``, else the kernel of the
-        manifest's lens profile (``lenses.LENS_KERNEL_PX``: the shipped manifests do not record it)."""
-        if "largest_psf_px" in self.manifest:
-            return int(self.manifest["largest_psf_px"])
-        from ..lenses import LENS_KERNEL_PX
-
-        lens = self.manifest["lens"]
-        if lens not in LENS_KERNEL_PX:
-            raise ModelError(f"model {self.path}: its manifest records no largest_psf_px and its lens {lens!r} "
-                             f"is none of the lens profiles {sorted(LENS_KERNEL_PX)}")
-        return LENS_KERNEL_PX[lens]
-
     def run(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
         """``1 × C × tile × tile`` float32 → (aif ``1 × 3 × tile × tile``, depth_m ``1 × 1 × tile × tile``
         [, depth_sigma_m ``1 × 1 × tile × tile`` for the learned refinement]), in the manifest's order."""

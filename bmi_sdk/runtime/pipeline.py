@@ -100,8 +100,8 @@ def infer_raw(model: Model, raw: np.ndarray, *, black_level_dn: float, white_lev
         raise ValueError(f"model {model.path.name} reads {model.input_channels} channels; the frame gives "
                          f"{INPUT_CHANNELS} + {n_extra}" + ("" if extra is None else f" of shape {extra.shape}"))
     with_sigma = len(model.output_names) == 3
-    plan = TilePlan.for_model(height, width, model.tile_px, model.receptive_field_px, model.largest_psf_px,
-                              step_px=model.size_multiple, overlap_px=overlap_px)
+    plan = TilePlan.for_model(height, width, model.tile_px, model.receptive_field_px, step_px=model.size_multiple,
+                              overlap_px=overlap_px)
     tile = plan.tile_px
     timings = dict.fromkeys(("demosaic_s", "field_s", "network_s", "blend_s", "finalise_s"), 0.0)
     aif = np.zeros((height, width, 3), np.float32)

@@ -12,7 +12,10 @@ tiles overlap by ``overlap_px``, split into
 
 So ``overlap_px = 2 × context_px + ramp_px``. With ``context_px`` ≥ half the
 receptive field every kept output pixel sees its whole receptive field inside
-its tile, and the tiled result equals the untiled one up to float rounding.
+its tile, and the tiled result equals the untiled one up to float rounding:
+the default overlap is that context alone (no ramp), since both tiles already
+agree wherever a ramp would blend them. A ramp is left only when an explicit
+overlap exceeds twice the context (benchmarks).
 Sides that face the (padded) frame edge keep weight 1: there is no neighbour
 to blend with. Every origin and size is a multiple of ``step_px`` (the
 network's size multiple, itself even), so the Bayer phase and the network's
@@ -55,25 +58,25 @@ class TilePlan:
             raise ValueError(f"2 × context_px={self.context_px} must not exceed overlap_px={self.overlap_px}")
 
     @classmethod
-    def for_model(cls, height_px: int, width_px: int, tile_px: int, receptive_field_px: int, largest_psf_px: int,
+    def for_model(cls, height_px: int, width_px: int, tile_px: int, receptive_field_px: int,
                   step_px: int = 4, overlap_px: int | None = None) -> "TilePlan":
         """The plan for a network with the given receptive field (full width, input px).
 
-        Default overlap: the receptive field plus half the largest PSF (context
-        = half the receptive field per side, ramp = half the largest PSF),
-        rounded up to ``step_px``. An explicit ``overlap_px`` (benchmarks) keeps
-        the context at half the receptive field as long as the overlap allows,
-        and gives the rest to the ramp. The border pad is half the receptive
-        field whatever the overlap, so that only seams change with it.
+        Default overlap: the receptive field (context = half of it per side,
+        rounded up to ``step_px``; no ramp: module doc). An explicit
+        ``overlap_px`` (benchmarks) keeps the context at half the receptive
+        field as long as the overlap allows, and gives the rest to the ramp.
+        The border pad is half the receptive field whatever the overlap, so
+        that only seams change with it.
         """
         half_rf = round_up(receptive_field_px / 2, step_px)
         if overlap_px is None:
-            overlap_px = 2 * half_rf + round_up(largest_psf_px / 2, step_px)
+            overlap_px = 2 * half_rf
         overlap_px = round_up(overlap_px, step_px)
         context = min(half_rf, overlap_px // 2)
         if overlap_px >= tile_px:
             raise ValueError(f"tile_px={tile_px} is too small for an overlap of {overlap_px} px "
-                             f"(receptive field {receptive_field_px} px, largest PSF {largest_psf_px} px)")
+                             f"(receptive field {receptive_field_px} px)")
         return cls(height_px, width_px, tile_px, overlap_px, context, half_rf, step_px)
 
     @property
