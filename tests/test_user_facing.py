@@ -241,6 +241,42 @@ def test_simulate_save_truth_writes_the_window_the_frame_shows(tmp_path):
     np.testing.assert_array_equal(np.load(tmp_path / "p_truth_rgb.npy"), scene.rgb)
 
 
+def test_simulate_and_calibrate_refuse_an_earlier_runs_files_before_their_work(tmp_path, capsys):
+    """A repeated `bmi simulate` or `bmi calibrate` command line would silently replace a rendered frame or a
+    calibration: both now refuse, naming every file, before rendering or capturing (so the refusal is quick),
+    and leave the files as they were; --overwrite replaces them."""
+    from bmi_sdk.cli import main
+
+    out = tmp_path / "p.dng"
+    simulate = ["simulate", "--procedural", "5", "--size", "64", "--psf-mode", "tensor", "--noise", "0.005",
+                "--save-truth", "--out", str(out)]
+    assert main(simulate) == 0
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert set(before) == {"p.dng", "p.json", "p_truth_range.npy", "p_truth_rgb.npy"}
+    capsys.readouterr()
+    assert main(simulate + ["--seed", "1"]) == 1
+    err = capsys.readouterr().err
+    assert all(name in err for name in before) and "--overwrite" in err
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    assert main(simulate + ["--seed", "1", "--overwrite"]) == 0
+    assert (tmp_path / "p.dng").read_bytes() != before["p.dng"]  # another noise draw
+    assert (tmp_path / "p_truth_range.npy").read_bytes() == before["p_truth_range.npy"]  # the same scene
+
+    calib = tmp_path / "c.json"
+    calib.write_text('{"an": "earlier calibration"}')
+    capsys.readouterr()
+    assert main(["calibrate", "--simulate", "decenter_um=8,0", "--out", str(calib)]) == 1
+    err = capsys.readouterr().err
+    assert "c.json already exists" in err and "simulated" not in capsys.readouterr().out
+    assert calib.read_text() == '{"an": "earlier calibration"}'
+    captures = tmp_path / "caps"
+    captures.mkdir()
+    (captures / "captures.json").write_text("{}")
+    assert main(["calibrate", "--simulate", "decenter_um=8,0", "--out", str(tmp_path / "d.json"),
+                 "--save-captures", str(captures)]) == 1
+    assert "is not empty" in capsys.readouterr().err and not (tmp_path / "d.json").exists()
+
+
 # -- logging -----------------------------------------------------------------------------------------------------
 
 def test_diagnostics_go_through_logging_and_follow_v_and_q(model_path, tmp_path, capsys):

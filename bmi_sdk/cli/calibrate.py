@@ -3,6 +3,14 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
+
+
+def _outputs(out: str) -> list[Path]:
+    """The files ``calibration.io.write_calibration`` writes for calibration file ``out``."""
+    path = Path(out)
+    tensor = path.with_name(path.stem + ".psf.npz")
+    return [path, tensor, tensor.with_suffix(".json"), path.with_suffix(".png")]
 
 
 def _run(args) -> int:
@@ -15,8 +23,15 @@ def _run(args) -> int:
     from calibration.targets import (CalibrationError, CapturePlan, load_captures, simulate_captures,
                                      standard_target)
 
+    from ._outputs import refuse_existing
+
     if bool(args.captures) == bool(args.simulate):
         raise CalibrationError("give either --captures DIR (real or saved captures) or --simulate NAME=VALUE ...")
+    if not args.overwrite:  # before minutes of capturing and fitting
+        refuse_existing(_outputs(args.out))
+        if args.save_captures and Path(args.save_captures).is_dir() and any(Path(args.save_captures).iterdir()):
+            raise FileExistsError(f"--save-captures folder {args.save_captures} is not empty; pass --overwrite to "
+                                  "write into it, or choose another folder")
     free = {}
     for name in args.fix or []:
         free[name] = False
@@ -81,4 +96,7 @@ def register(subparsers) -> None:
     p.add_argument("--method", choices=("lm", "gn"), default="lm", help="jaxopt LevenbergMarquardt or GaussNewton")
     p.add_argument("--max-outer", type=int, default=4, help="relinearisations of the exact engine")
     p.add_argument("--out", required=True, help="calibration file (.json)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier calibration's files (and write into a non-empty --save-captures "
+                        "folder); default: refuse them, before any capture or fit")
     p.set_defaults(handler=_run)

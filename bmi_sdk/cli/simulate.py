@@ -91,14 +91,31 @@ def _show(bar, done: int, total: int) -> None:
     bar.update(done - bar.n)
 
 
+def _outputs(args) -> list[Path]:
+    """Every file this command line writes: the DNG, its sidecar, and the truth and previews asked for."""
+    from devices.dng import sidecar_path
+
+    out = Path(args.out)
+    paths = [out, sidecar_path(out)]
+    if args.save_truth:
+        paths += [out.with_name(out.stem + "_truth_range.npy"), out.with_name(out.stem + "_truth_rgb.npy")]
+    if args.preview:
+        paths += [out.with_name(out.stem + "_coded.png"), out.with_name(out.stem + "_scene.png")]
+    return paths
+
+
 def _run(args) -> int:
     from tqdm import tqdm
+
+    from ._outputs import refuse_existing
 
     from bmi_sdk.lenses import lens_geometry, lens_tensor
     from bmi_sdk.sensor import SensorModel
     from devices import Roi, open_camera
     from firmware_sim import FirmwareDevice, RenderedScene
 
+    if not args.overwrite:
+        refuse_existing(_outputs(args))  # before minutes of rendering
     t0 = time.perf_counter()
     lens_name = "fisheye" if args.lens == "fisheye" else "bmi_monocentric"
     # The lens profile: the fisheye images on a plane sensor with its own chief-ray mapping, with wider kernels.
@@ -140,7 +157,7 @@ def _run(args) -> int:
         cam.settings.roi = Roi(col0, row0, width, height)
         frame = cam.capture()
         _show(bar, bar.total or 1, bar.total or 1)
-        frame.save_dng(args.out)
+        frame.save_dng(args.out, overwrite=args.overwrite)
     if args.save_truth:
         truth = _save_truth(Path(args.out), rgb, depth, frame.data.shape)
         print(f"wrote ground truth {truth[0].name} (range, m) and {truth[1].name} (linear RGB)")
@@ -180,4 +197,6 @@ def register(subparsers) -> None:
                    help="also write the ground truth of the frame's window: <stem>_truth_range.npy (float32 range "
                         "in metres along each ray, NaN unknown) and <stem>_truth_rgb.npy (float32 linear RGB)")
     p.add_argument("--preview", action="store_true", help="also write PNG previews of the coded image and scene")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the files of an earlier run (default: refuse them, before rendering)")
     p.set_defaults(handler=_run)
