@@ -242,6 +242,16 @@ def test_checkpoint_resume_reproduces_the_next_step(tmp_path):
     with pytest.raises(ValueError, match="trained with"):
         Trainer(TrainConfig(preset="tiny", steps=4, batch_size=2, cache=spec), tmp_path / "cache").load(
             tmp_path / "ckpt.pt")
+    # `bmi train` with a changed command line into that run folder is refused before its render cache is built
+    from bmi_sdk.nn.train import CHECKPOINT, train
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (tmp_path / "ckpt.pt").rename(run / CHECKPOINT)
+    changed = TrainConfig(preset="tiny", steps=4, batch_size=2, cache=CacheSpec(samples=8, crop_px=16, jitter_px=2))
+    with pytest.raises(ValueError, match="trained with"):
+        train(changed, run, tmp_path / "another cache", progress=False)
+    assert not (tmp_path / "another cache").exists()
 
 
 def test_a_cache_rendered_through_another_geometry_is_refused(tmp_path):

@@ -204,13 +204,24 @@ class Trainer:
 
     def load(self, path: str | Path) -> None:
         state = torch.load(path, map_location=self.device, weights_only=True)
-        saved = TrainConfig.from_dict(json.loads(state["config"]))
-        if saved != self.config:
-            raise ValueError(f"{path} was trained with {saved}, not {self.config}; use another --out")
+        _refuse_another_config(path, state, self.config)
         self.net.load_state_dict(state["model"])
         self.opt.load_state_dict(state["optimizer"])
         self.step_index = int(state["step"])
         self.history = json.loads(state["history"])
+
+
+def _refuse_another_config(path: Path, state: dict, config: TrainConfig) -> None:
+    saved = TrainConfig.from_dict(json.loads(state["config"]))
+    if saved != config:
+        raise ValueError(f"{path} was trained with {saved}, not {config}; use another --out")
+
+
+def check_resumable(checkpoint: Path, config: TrainConfig) -> None:
+    """Refuse a checkpoint already in the run folder that another config trained, before the render cache is
+    built (hours for a large one): re-running a command resumes it, a changed command needs another --out."""
+    if checkpoint.exists():
+        _refuse_another_config(checkpoint, torch.load(checkpoint, map_location="cpu", weights_only=True), config)
 
 
 def load_weights(checkpoint: str | Path) -> tuple[DualHeadMimoUNet, TrainConfig]:
@@ -243,12 +254,13 @@ def train(config: TrainConfig, out_dir: str | Path, cache_dir: str | Path, save_
     checkpoint); returns the checkpoint."""
     check_sigma_head_source(config)
     out_dir = Path(out_dir)
+    ckpt = out_dir / CHECKPOINT
+    check_resumable(ckpt, config)
     out_dir.mkdir(parents=True, exist_ok=True)
     build_cache(cache_dir, config.cache, progress=progress, scheduler=scheduler)
     if config.refine is not None:
         build_refine_cache(cache_dir, config.refine, workers=workers, progress=progress)
     trainer = Trainer(config, cache_dir, device)
-    ckpt = out_dir / CHECKPOINT
     if ckpt.exists():
         trainer.load(ckpt)
     write_json(out_dir / "train_config.json", {**config.to_dict(), "device": str(trainer.device),
