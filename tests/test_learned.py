@@ -386,6 +386,26 @@ def test_eval_no_fusion_without_the_learned_decoder_is_refused():
     assert run.returncode == 1 and "--no-fusion" in run.stderr and "learned" in run.stderr
 
 
+def test_eval_refuses_options_its_decoders_would_ignore_and_no_tiles(capsys):
+    """`bmi eval --decoder learned --model M` ran the shipped refinement and never read M; a classical knob with
+    another decoder was ignored too; `--tiles 0` printed an empty table. Each is refused before any tile renders."""
+    from bmi_sdk.cli import main
+    from bmi_sdk.cli.eval import CLASSICAL_DEFAULTS
+
+    assert CLASSICAL_DEFAULTS == {knob: getattr(ClassicalConfig(), knob) for knob in CLASSICAL_DEFAULTS}
+    for argv, named in ((["--decoder", "learned", "--model", "nosuch.onnx"], "--learned-model"),
+                        (["--decoder", "cnn,learned", "--window-px", "48"], "--window-px"),
+                        (["--decoder", "classical", "--tiles", "0"], "tiles"),
+                        (["--decoder", "classical", "--tiles", "-3"], "tiles"),
+                        (["--decoder", "classical", "--tile-px", "0"], "tile-px 0"),
+                        (["--decoder", "learned", "--tile-px", "32"], "64-px evidence window"),
+                        (["--decoder", "cnn", "--tile-px", "90"], "multiple of 4"),
+                        (["--decoder", "classical", "--seed", "-1"], "seed")):
+        assert main(["eval", *argv]) == 1
+        captured = capsys.readouterr()
+        assert named in captured.err and "rendering" not in captured.err + captured.out
+
+
 def test_the_classical_options_defaults_are_the_decoders():
     """``bmi infer``'s classical options default to ``ClassicalConfig``'s knobs (the CLI keeps them as literals so
     that it starts without importing the decoder): a default changed in one place only fails here."""

@@ -6,6 +6,8 @@ import json
 from pathlib import Path
 
 DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "models" / "default.onnx"
+CLASSICAL_DEFAULTS = {"window_px": 64, "stride_px": 16, "candidates": 48}
+"""``--decoder classical``'s knobs and their defaults (ClassicalConfig's; a test holds them equal)."""
 KEYS = ("absrel", "rmse_m", "delta1", "delta2", "delta3", "psnr_db", "ssim")
 
 
@@ -16,7 +18,9 @@ def register(subparsers) -> None:
         "eval", help="depth and image metrics per condition and field region on the synthetic benchmark",
         description="Noise sweep, hardware errors without retraining and the fisheye baseline on seeded "
                     "procedural tiles at the field centre (0–20°) and edge (50–60°).")
-    p.add_argument("--model", default=str(DEFAULT_MODEL), help="ONNX model (default: the shipped default)")
+    p.add_argument("--model", default=None,
+                   help="the cnn decoder's ONNX model (default: the shipped default.onnx); the learned decoder's is "
+                        "--learned-model")
     p.add_argument("--fisheye-model", default=None, help="fisheye-baseline ONNX model (adds fisheye_standard)")
     p.add_argument("--learned-model", default=None,
                    help="learned refinement ONNX model for --decoder learned (default: the shipped learned.onnx)")
@@ -35,9 +39,9 @@ def register(subparsers) -> None:
     p.add_argument("--no-fusion", action="store_true",
                    help="learned: score the network's depth alone, not fused with its classical stage's (with the "
                         "weights of its manifest, as bmi infer returns it); its rows carry fusion false")
-    p.add_argument("--window-px", type=int, default=64, help="classical: evidence window (default 64)")
-    p.add_argument("--stride-px", type=int, default=16, help="classical: window stride (default 16)")
-    p.add_argument("--candidates", type=int, default=48, help="classical: depth candidates (default 48)")
+    p.add_argument("--window-px", type=int, default=CLASSICAL_DEFAULTS["window_px"], help="classical: evidence window (default 64)")
+    p.add_argument("--stride-px", type=int, default=CLASSICAL_DEFAULTS["stride_px"], help="classical: window stride (default 16)")
+    p.add_argument("--candidates", type=int, default=CLASSICAL_DEFAULTS["candidates"], help="classical: depth candidates (default 48)")
     p.add_argument("--json", action="store_true", help="one JSON object per line per condition and region")
     add_scheduler_argument(p)
     p.set_defaults(handler=_run)
@@ -51,21 +55,35 @@ def _run(args) -> int:
     from bmi_sdk.scaleout import scheduler_address
 
     decoders = tuple(d.strip() for d in args.decoder.split(",") if d.strip())
+    if args.model is not None and "cnn" not in decoders:
+        raise ValueError(f"--model {args.model} is the cnn decoder's model, and --decoder {args.decoder} does not run "
+                         "it (a learned refinement is --learned-model)")
+    args.model = args.model or str(DEFAULT_MODEL)
+    changed = [f"--{knob.replace('_', '-')}" for knob, default in CLASSICAL_DEFAULTS.items()
+               if getattr(args, knob) != default]
+    if changed and "classical" not in decoders:
+        raise ValueError(f"{', '.join(changed)} set(s) the classical decoder, and --decoder {args.decoder} does not "
+                         "run it (a learned refinement decodes with the knobs its manifest was trained with)")
     if "cnn" in decoders:
         verify_model(args.model)
     if args.fisheye_model:
         verify_model(args.fisheye_model)
+    windows = {"classical": args.window_px} if "classical" in decoders else {}
     if "learned" in decoders:
         from bmi_sdk.model_manifest import model_decoder
         from bmi_sdk.runtime.model import LEARNED_MODEL
 
         args.learned_model = args.learned_model or str(LEARNED_MODEL)
-        if model_decoder(verify_model(args.learned_model)) != "learned":
+        manifest = verify_model(args.learned_model)
+        if model_decoder(manifest) != "learned":
             raise ValueError(f"--learned-model {args.learned_model} is not a learned refinement model")
+        windows["learned"] = int(manifest["classical_config"].get("window_px", CLASSICAL_DEFAULTS["window_px"]))
+    for decoder, window_px in windows.items():
+        if args.tile_px < window_px:
+            raise ValueError(f"--tile-px {args.tile_px} holds no {window_px}-px evidence window of the {decoder} "
+                             "decoder: its depth would be a guess")
     if args.no_fusion and "learned" not in decoders:
         raise ValueError("--no-fusion scores the learned decoder's network alone; add learned to --decoder")
-    if args.tile_px % 4:
-        raise ValueError(f"--tile-px must be a multiple of 4, got {args.tile_px}")
     bench = Benchmark(tiles=args.tiles, tile_px=args.tile_px, seed=args.seed, threads=args.threads,
                       scene_scale=args.scene_scale)
     conditions = [c.strip() for c in args.conditions.split(",")] if args.conditions else None

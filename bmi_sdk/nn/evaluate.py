@@ -107,6 +107,13 @@ class Benchmark:
         if not self.scene_scale >= 1.0:
             raise ValueError(f"scene_scale must be >= 1 (1: scenes drawn at the tile's own scale), "
                              f"got {self.scene_scale}")
+        for name, least in (("tiles", 1), ("tile_px", 4), ("seed", 0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise ValueError(f"benchmark {name} must be a whole number >= {least}, got {value!r}")
+        if self.tile_px % 4:
+            raise ValueError(f"benchmark tile_px must be a multiple of 4 (whole Bayer cells, the networks' size "
+                             f"multiple), got {self.tile_px}")
 
     @property
     def margin_px(self) -> int:
