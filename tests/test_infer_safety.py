@@ -89,6 +89,24 @@ def test_an_unwritable_out_is_refused_before_inference(model, dng, tmp_path, mon
     assert code == 1 and err.startswith("bmi infer: error: cannot write the outputs") and "Traceback" not in err
 
 
+def test_a_point_cloud_step_or_thread_count_below_one_is_refused_before_inference(model, dng, tmp_path, monkeypatch,
+                                                                                    capsys):
+    """`--ply-step 0` failed only when the point cloud was written, after the whole decode; `--threads -2` was
+    handed to onnxruntime as it was. Both are refused first, for every decoder, and nothing is written."""
+    import bmi_sdk.runtime.job as job
+
+    def must_not_run(*args, **kw):
+        raise AssertionError("inference ran before its options were checked")
+    monkeypatch.setattr(job, "infer_frame", must_not_run)
+    for decoder in ("cnn", "classical", "learned"):
+        for flags, named in ((["--ply-step", "0"], "ply_step_px"), (["--threads", "-2"], "threads")):
+            model_flags = ["--model", str(model)] if decoder == "cnn" else []
+            code = main(["infer", str(dng), "--out", str(tmp_path / "o"), "--decoder", decoder, *model_flags, *flags])
+            err = capsys.readouterr().err
+            assert code == 1 and named in err and "Traceback" not in err, (decoder, flags, err)
+            assert not (tmp_path / "o").exists()
+
+
 def test_quality_metrics_tell_bad_frames_from_images():
     good = assess_frame(_capture("chart"))
     assert good.warnings == [] and good.structure > MIN_STRUCTURE

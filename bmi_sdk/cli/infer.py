@@ -124,7 +124,7 @@ def register(subparsers) -> None:
                    help="calibration file from bmi calibrate (validated; its id picks the model)")
     p.add_argument("--tile-px", type=int, default=512, help="tile size, a multiple of 4 (default 512)")
     p.add_argument("--overlap-px", type=int, default=None,
-                   help="tile overlap (default: receptive field + half the largest PSF, from the manifest)")
+                   help="tile overlap (default: the model's receptive field, from its manifest: tiled equals untiled)")
     p.add_argument("--provider", default=None, metavar="NAME",
                    help="onnxruntime execution provider for the network, e.g. cpu, cuda, tensorrt or "
                         "CUDAExecutionProvider (default: the best available: TensorRT, CUDA, then CPU)")

@@ -152,6 +152,7 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = Fals
     read the frame from), else None.
     """
     decoder = decoder_for(decoder, options.get("model"), options.get("model_path"))
+    _check_counts(options)
     job = {"cnn": _job_into, "classical": _classical_into, "learned": _learned_into}[decoder]
     with OutputSet(out_dir, overwrite=overwrite) as output_set:
         result, report = job(frame_or_path, output_set.staging, **options)
@@ -162,6 +163,15 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = Fals
         write_report(output_set.staging, report)  # with the paths the files will have
         output_set.commit()
     return result, report
+
+
+def _check_counts(options: dict) -> None:
+    """Refuse, before any work, a point-cloud step or thread count that the end of a decode would trip over (a
+    full frame's minutes spent first) or that onnxruntime would take silently."""
+    for name, value in (("ply_step_px", options.get("ply_step_px", 1)), ("threads", options.get("threads"))):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise ValueError(f"{name} must be a whole number >= 1{' (None: all cores)' if name == 'threads' else ''}, "
+                             f"got {value!r}")
 
 
 def _job_into(frame_or_path, out_dir: str | os.PathLike, *, model: Model | None = None,
