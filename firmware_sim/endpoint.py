@@ -32,6 +32,7 @@ late teardown never reaches the next host's session.
 from __future__ import annotations
 
 import atexit
+import errno
 import hmac
 import ipaddress
 import select
@@ -425,6 +426,8 @@ class FirmwareServer:
         if not idle_timeout_s > 0:
             raise ValueError(f"idle_timeout_s must be > 0 s (an idle host would hold the camera forever), "
                              f"got {idle_timeout_s}")
+        if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+            raise ValueError(f"a TCP port is 0–65535 (0: a free one), got {port!r}")
         self.device = device
         self.token = token
         self.idle_timeout_s = float(idle_timeout_s)
@@ -432,7 +435,14 @@ class FirmwareServer:
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         self._listener = socket.socket(family, socket.SOCK_STREAM)
         self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self._listener.bind((host, port))
+        try:
+            self._listener.bind((host, port))
+        except OSError as exc:
+            self._listener.close()
+            if exc.errno == errno.EADDRINUSE:
+                raise OSError(exc.errno, f"port {port} on {host} is in use (another server?); pick another port, "
+                                         "or 0 for a free one") from exc
+            raise
         self._listener.listen(4)
         self._listener.settimeout(POLL_S * 4)
         self.host, self.port = host, self._listener.getsockname()[1]

@@ -115,6 +115,24 @@ def test_idle_timeout_must_be_positive():
         FirmwareServer(FirmwareDevice(), idle_timeout_s=0)
 
 
+def test_a_port_out_of_range_or_in_use_gets_a_message_naming_it(capsys):
+    """`bmi firmware-sim serve --port 70000` (or -1) died with socket's OverflowError traceback; a port in use
+    read "[Errno 98] Address already in use". Both now say which port, and the CLI exits 1 with one line."""
+    from bmi_sdk.cli import main
+
+    for port in (-1, 65536, 70000):
+        with pytest.raises(ValueError, match="0–65535"):
+            FirmwareServer(FirmwareDevice(), port=port)
+        assert main(["firmware-sim", "serve", "--port", str(port), "--duration-s", "0.1"]) == 1
+        assert "0–65535" in capsys.readouterr().err
+    with FirmwareServer(FirmwareDevice()) as server:
+        with pytest.raises(OSError, match=f"port {server.port} on 127.0.0.1 is in use"):
+            FirmwareServer(FirmwareDevice(), port=server.port)
+        assert main(["firmware-sim", "serve", "--port", str(server.port), "--duration-s", "0.1"]) == 1
+        err = capsys.readouterr().err
+        assert f"port {server.port}" in err and "in use" in err and "Traceback" not in err
+
+
 # -- 2. token and the disconnect rule -------------------------------------------------------------
 def test_token_is_required_before_anything_and_unauthenticated_hosts_hold_nothing(tmp_path):
     with FirmwareServer(FirmwareDevice(source=FlatField()), token=b"s3cret", idle_timeout_s=30) as server:

@@ -127,12 +127,12 @@ def _serve(args) -> int:
     from bmi_sdk.protocol.wire import DEFAULT_IDLE_TIMEOUT_S
     from firmware_sim import FaultPlan, FirmwareDevice, FirmwareServer, make_source
 
-    _stop_on_signals()
     token = _read_token(args.token_file) if args.token_file else None
     device = FirmwareDevice(source=make_source(args.scene), seed=args.seed, serial=args.serial,
                             faults=FaultPlan.parse(args.faults) if args.faults else None)
     idle_s = DEFAULT_IDLE_TIMEOUT_S if args.idle_timeout_s is None else args.idle_timeout_s
     with FirmwareServer(device, host=args.host, port=args.port, token=token, idle_timeout_s=idle_s) as server:
+        _stop_on_signals()  # once it serves: a refused port or token leaves the caller's handlers alone
         deadline = time.monotonic() + args.duration_s if args.duration_s > 0 else None
         try:  # from the line that tells hosts where it serves, a stop signal stops it cleanly
             print(f"serving {device.describe()['serial']} ({args.scene}{', token required' if token else ''}) "
