@@ -386,6 +386,24 @@ def test_eval_no_fusion_without_the_learned_decoder_is_refused():
     assert run.returncode == 1 and "--no-fusion" in run.stderr and "learned" in run.stderr
 
 
+def test_an_int8_copy_of_a_refinement_is_still_a_refinement(identity_model, tmp_path):
+    """quantize_int8 wrote every int8 manifest with the end-to-end network's contract (6 inputs, two outputs): the
+    runtime refused an int8 refinement. The copy keeps the channels, the σ output and the classical config."""
+    from bmi_sdk.model_manifest import model_decoder, read_manifest
+    from bmi_sdk.runtime import Model
+    from bmi_sdk.runtime.quantize import quantize_int8
+
+    source = read_manifest(identity_model)
+    rng = np.random.default_rng(0)
+    inputs = [rng.uniform(-1, 1, (1, source["input_channels"], 64, 64)).astype(np.float32) for _ in range(2)]
+    copy = read_manifest(quantize_int8(identity_model, tmp_path / "identity_int8.onnx", inputs))
+    for key in ("input_channels", "output_names", "classical_config", "receptive_field_px", "size_multiple"):
+        assert copy[key] == source[key], key
+    assert model_decoder(copy) == "learned" and len(copy["output_names"]) == 3
+    model = Model(tmp_path / "identity_int8.onnx", tile_px=64, threads=1)
+    assert model.decoder == "learned" and len(model.run(inputs[0])) == 3
+
+
 def test_eval_refuses_options_its_decoders_would_ignore_and_no_tiles(capsys):
     """`bmi eval --decoder learned --model M` ran the shipped refinement and never read M; a classical knob with
     another decoder was ignored too; `--tiles 0` printed an empty table. Each is refused before any tile renders."""

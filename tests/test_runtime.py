@@ -88,6 +88,29 @@ def test_tiled_equals_untiled_on_frame_not_multiple_of_tile(unet):
     assert np.abs(seamy.aif - whole.aif).mean() > 1e-4
 
 
+def test_int8_copy_keeps_the_models_contract_and_stays_close_to_fp32(unet, tmp_path):
+    """quantize_int8: a verified int8 model with the fp32 manifest's fields (quantization and source hash added)
+    whose outputs follow the fp32 ones to within int8's resolution of the activations' range."""
+    from bmi_sdk.runtime.quantize import quantize_int8
+
+    rng = np.random.default_rng(0)
+    raw = [_raw(64, 64, seed=k) for k in range(4)]
+    fp32 = Model(unet, tile_px=64, threads=1)
+    inputs = [np.concatenate([raw_to_rgb(r, BLACK, WHITE).transpose(2, 0, 1),
+                              field_channels(BMI_SENSOR, 2000, 2800, 64, 64)])[None].astype(np.float32) for r in raw]
+    dst = quantize_int8(unet, tmp_path / "unet_int8.onnx", inputs)
+    source, copy = read_manifest(unet), read_manifest(dst)
+    same = {k for k in source if k not in ("sha256", "file", "preset")}
+    assert {k: copy[k] for k in same} == {k: source[k] for k in same}
+    assert copy["preset"] == "test-unet-int8" and copy["source_sha256"] == source["sha256"]
+    int8 = Model(dst, tile_px=64, threads=1)
+    probe = inputs[0] + np.float32(0.01) * rng.standard_normal(inputs[0].shape).astype(np.float32)
+    (aif32, depth32), (aif8, depth8) = fp32.run(probe), int8.run(probe)
+    assert np.abs(aif8 - aif32).mean() < 0.01 and np.abs(depth8 - depth32).mean() < 0.01 * np.abs(depth32).mean()
+    with pytest.raises(ValueError, match="reads 1 × 6 × H × W inputs"):
+        quantize_int8(unet, tmp_path / "bad.onnx", [inputs[0][:, :3]])
+
+
 def test_blend_weights_partition_unity_and_cover_frame():
     plan = TilePlan.for_model(300, 500, 96, receptive_field_px=13, overlap_px=2 * 8 + 24)  # a 24-px Hann ramp
     acc = np.zeros((300 + 2 * plan.pad_px + 200, 500 + 2 * plan.pad_px + 200))

@@ -3,7 +3,9 @@
 Activation ranges are calibrated on real network inputs (tiles of a frame,
 built by the same preprocessing as inference), so the int8 model is judged on
 the data it will see. The result gets its own manifest: the fp32 manifest's
-fields plus ``quantization`` and ``source_sha256`` (the fp32 model's hash).
+fields (its I/O contract included: a learned refinement stays one, with its
+classical channels, σ output, classical_config and fusion weights) plus
+``quantization`` and ``source_sha256`` (the fp32 model's hash).
 """
 
 from __future__ import annotations
@@ -18,13 +20,19 @@ from ..model_manifest import verify_model, write_manifest
 
 
 def quantize_int8(src: str | os.PathLike, dst: str | os.PathLike, calibration_inputs: list[np.ndarray]) -> Path:
-    """Write an int8 QDQ copy of ``src`` to ``dst`` (+ manifest), calibrated on ``calibration_inputs`` (1×6×H×W)."""
+    """Write an int8 QDQ copy of ``src`` to ``dst`` (+ manifest), calibrated on ``calibration_inputs`` (1 × C × H × W,
+    C the model's ``input_channels``: the inputs inference builds for it)."""
     from onnxruntime.quantization import (CalibrationDataReader, QuantFormat, QuantType, quant_pre_process,
                                           quantize_static)
 
     if not calibration_inputs:
         raise ValueError("int8 calibration needs at least one input tile")
     manifest = verify_model(src)
+    channels = int(manifest["input_channels"])
+    shapes = sorted({tuple(np.shape(x)) for x in calibration_inputs
+                     if np.ndim(x) != 4 or np.shape(x)[:2] != (1, channels)})
+    if shapes:
+        raise ValueError(f"{Path(src).name} reads 1 × {channels} × H × W inputs; calibration inputs of shape {shapes}")
     dst = Path(dst)
     dst.parent.mkdir(parents=True, exist_ok=True)
 
@@ -46,8 +54,8 @@ def quantize_int8(src: str | os.PathLike, dst: str | os.PathLike, calibration_in
     finally:
         for p in (pre, tmp):
             p.unlink(missing_ok=True)
-    keep = {k: v for k, v in manifest.items() if k not in ("schema", "sha256", "file", "input_name", "output_names",
-                                                          "input_channels", "size_multiple")}
+    keep = {k: v for k, v in manifest.items() if k not in ("schema", "sha256", "file")}
+    keep["output_names"] = tuple(keep["output_names"])
     write_manifest(dst, **{**keep, "preset": f"{manifest['preset']}-int8"},
                    quantization={"kind": "static QDQ int8", "weights": "per-channel QInt8", "activations": "QUInt8",
                                  "calibration_tiles": len(calibration_inputs)},
