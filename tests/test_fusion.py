@@ -60,6 +60,70 @@ def test_a_pixel_only_one_read_holds_takes_that_read_and_one_neither_holds_is_na
     assert np.isnan(depth[4]) and np.isnan(sigma[4]) and np.isnan(weight[4])
 
 
+def test_the_variation_term_enters_the_logit_and_weights_that_read_it_need_it():
+    """c_v log(v_a + v₀) is added to the four terms, by hand; a flat neighbourhood (v = 0) hands the pixel to read
+    a, a varying one to read b; weights with c_v need the variation, weights without ignore it."""
+    weights = FusionWeights(-7.0, -1.5, 1.0, -2.0, -1.2)
+    assert weights.reads_variation and not INVERSE_VARIANCE.reads_variation
+    depth_a, depth_b = np.full(3, 3.0), np.full(3, 3.6)
+    rel_a, rel_b, variation = 0.2, 0.1, np.array([0.0, 0.05, np.nan])
+    _, _, weight = fuse_log_depth(depth_a, rel_a * depth_a, depth_b, rel_b * depth_b, weights, None, variation)
+    logit = (-7.0 - 1.5 * np.log(rel_a) + np.log(rel_b) - 2.0 * np.log(np.log(1.2) + 0.01)
+             - 1.2 * np.log(np.nan_to_num(variation) + 0.01))
+    np.testing.assert_allclose(weight, 1.0 / (1.0 + np.exp(-logit)))
+    assert weight[0] > 0.5 > weight[1] and weight[2] == weight[0]  # no variation read (NaN): as flat
+    with pytest.raises(ValueError, match="variation; none was given"):
+        fuse_log_depth(depth_a, rel_a * depth_a, depth_b, rel_b * depth_b, weights)
+    plain = FusionWeights(-7.0, -1.5, 1.0, -2.0)
+    np.testing.assert_array_equal(fuse_log_depth(depth_a, rel_a * depth_a, depth_b, rel_b * depth_b, plain)[2],
+                                  fuse_log_depth(depth_a, rel_a * depth_a, depth_b, rel_b * depth_b, plain, None,
+                                                 variation)[2])
+
+
+def test_the_local_log_depth_variation_is_the_std_of_log_depth_over_3x3_windows():
+    """On a window grid of 1/d: 0 on a plane; across a step from 2 m to 5 m, the windows whose 3 × 3 holds k of
+    9 on the far side read |log 2.5| √(p(1 − p)), p = k/9; windows without a read are left out, not zeros."""
+    from bmi_sdk.decode.classical import local_log_depth_variation
+
+    plane = np.full((5, 6), 1 / 3.0)
+    np.testing.assert_allclose(local_log_depth_variation(plane), 0.0, atol=1e-12)
+    step = np.full((5, 6), 1 / 2.0)
+    step[:, 3:] = 1 / 5.0
+    v = local_log_depth_variation(step)
+    p = 3 / 9  # an interior window next to the step sees one column of three on the far side
+    np.testing.assert_allclose(v[2, 2], np.log(2.5) * np.sqrt(p * (1 - p)))
+    np.testing.assert_allclose(v[2, 0], 0.0, atol=1e-12)
+    holes = step.copy()
+    holes[1, 1] = np.nan
+    assert np.isnan(local_log_depth_variation(holes)[1, 1])
+    np.testing.assert_allclose(local_log_depth_variation(holes)[2, 1], 0.0, atol=1e-12)
+
+
+def test_a_fit_reads_the_variation_where_the_sigmas_cannot_tell_the_reads_apart():
+    """Read a is 1 % off where its neighbourhood is flat and 40 % off where it varies, with one σ throughout;
+    read b is 10 % off everywhere. Fitted with the variation, the weight trusts a on the flat part only and beats
+    the four-term fit on fresh draws."""
+    from dataclasses import replace
+
+    from bmi_sdk.nn.fusion_fit import ReadSet, fit_fusion_weights, mean_abs_log_error
+
+    def reads(seed, n=40_000):
+        rng = np.random.default_rng(seed)
+        truth = np.exp(rng.uniform(0.0, 2.0, n))
+        flat = rng.random(n) < 0.5
+        variation = np.where(flat, rng.uniform(0.0, 0.01, n), rng.uniform(0.1, 0.5, n))
+        depth_a = truth * np.exp(np.where(flat, 0.01, 0.40) * rng.standard_normal(n))
+        depth_b = truth * np.exp(0.10 * rng.standard_normal(n))
+        return ReadSet(f"seed {seed}", depth_a, 0.1 * depth_a, depth_b, 0.1 * depth_b, truth, 0.005, variation)
+
+    train, fresh = reads(1), reads(2)
+    with_v = fit_fusion_weights([train], pixels_per_set=20_000)
+    without_v = fit_fusion_weights([replace(train, classical_variation=None)], pixels_per_set=20_000)
+    assert with_v.variation_a < -0.5 and without_v.variation_a == 0.0
+    assert mean_abs_log_error(fresh, with_v) < 0.9 * mean_abs_log_error(replace(fresh, classical_variation=None),
+                                                                         without_v)
+
+
 def test_reads_of_different_shapes_are_refused():
     with pytest.raises(ValueError, match="one shape"):
         fuse_log_depth(np.ones(3), np.ones(3), np.ones(4), np.ones(4))
@@ -90,7 +154,7 @@ def test_inverse_variance_is_the_logistic_with_slopes_minus_two_and_two():
 
 @pytest.mark.parametrize("bad, match", [
     ({"intercept": 0.0, "rel_sigma_a": -2.0, "rel_sigma_b": float("nan")}, "rel_sigma_b must be a finite"),
-    ({"intercept": 0.0, "rel_sigma_a": -2.0, "rel_sigma_b": 2.0, "gap_floor": 0.0}, "gap_floor > 0"),
+    ({"intercept": 0.0, "rel_sigma_a": -2.0, "rel_sigma_b": 2.0, "gap_floor": 0.0}, "need gap_floor"),
     ({"intercept": 0.0, "rel_sigma_a": -2.0, "rel_sigma_b": 2.0, "slope": 1.0}, "unknown fusion weight"),
     ({"intercept": 0.0, "rel_sigma_a": -2.0}, "lack some of"),
     ({"intercept": "0", "rel_sigma_a": -2.0, "rel_sigma_b": 2.0}, "intercept must be a finite"),
@@ -143,9 +207,11 @@ def test_a_fit_without_pixels_is_refused():
 
 
 def test_the_weights_move_with_log_noise_between_the_levels_fitted_and_hold_beyond():
-    weights = FusionWeights(1.0, -2.0, 2.0, 0.0, noise_ref_sigma=0.005, noise_levels=(0.02, 0.08),
-                            noise_coefficients=((3.0, -1.0, 2.0, 0.0), (-1.0, -1.0, 4.0, 2.0)))
-    base, at_02, at_08 = np.array([1.0, -2.0, 2.0, 0.0]), np.array([3.0, -1.0, 2.0, 0.0]), np.array([-1.0, -1, 4, 2])
+    # the second level's row has four numbers, as weights fitted before the variation term: its c_v is 0
+    weights = FusionWeights(1.0, -2.0, 2.0, 0.0, 0.5, noise_ref_sigma=0.005, noise_levels=(0.02, 0.08),
+                            noise_coefficients=((3.0, -1.0, 2.0, 0.0, -1.5), (-1.0, -1.0, 4.0, 2.0)))
+    base, at_02, at_08 = (np.array([1.0, -2.0, 2.0, 0.0, 0.5]), np.array([3.0, -1.0, 2.0, 0.0, -1.5]),
+                          np.array([-1.0, -1, 4, 2, 0]))
     np.testing.assert_allclose(weights.coefficients(None), base)
     np.testing.assert_allclose(weights.coefficients(0.0), base)  # a noise-free frame
     np.testing.assert_allclose(weights.coefficients(0.001), base)  # below the least noise fitted: held
@@ -156,7 +222,7 @@ def test_the_weights_move_with_log_noise_between_the_levels_fitted_and_hold_beyo
     assert FusionWeights.from_dict(weights.to_dict()) == weights
     with pytest.raises(ValueError, match="noise σ must be a number ≥ 0"):
         weights.coefficients(-0.01)
-    with pytest.raises(ValueError, match="4 numbers for each of the 1 noise_levels"):
+    with pytest.raises(ValueError, match="5 numbers .4 before variation_a. for each of the 1 noise_levels"):
         FusionWeights(0.0, -2.0, 2.0, noise_levels=(0.02,), noise_coefficients=((1.0, 2.0),))
     with pytest.raises(ValueError, match="must rise above noise_ref_sigma"):
         FusionWeights(0.0, -2.0, 2.0, noise_levels=(0.004,), noise_coefficients=((0.0, -2.0, 2.0, 0.0),))

@@ -141,6 +141,7 @@ class DoubledRefinement(nn.Module):
 
 
 FITTED = {"intercept": 1.0, "rel_sigma_a": -2.0, "rel_sigma_b": 1.0, "gap": -0.5, "gap_floor": 0.01}
+FITTED_WITH_VARIATION = {**FITTED, "variation_a": -0.8}
 
 
 def _doubled_model(path, rel: float, fusion: dict | None = None):
@@ -156,7 +157,7 @@ def _doubled_model(path, rel: float, fusion: dict | None = None):
     return model
 
 
-@pytest.mark.parametrize("rel, fusion", [(30.0, None), (1e-4, None), (0.1, FITTED)])
+@pytest.mark.parametrize("rel, fusion", [(30.0, None), (1e-4, None), (0.1, FITTED), (0.1, FITTED_WITH_VARIATION)])
 def test_bmi_infer_returns_the_fusion_of_the_two_reads(tmp_path, rel, fusion):
     """Through ``bmi infer --decoder learned``: a network that reads 2× the classical depth with a huge σ leaves
     the classical read (within its weight's share of log 2); one with a tiny σ decides alone; a manifest's
@@ -177,8 +178,20 @@ def test_bmi_infer_returns_the_fusion_of_the_two_reads(tmp_path, rel, fusion):
     depth_l, sigma_l = np.load(tmp_path / "l" / "depth.npy"), np.load(tmp_path / "l" / "depth_sigma.npy")
     ok = np.isfinite(depth_l)
     assert np.array_equal(ok, np.isfinite(depth_c)) and ok.mean() > 0.9
+    variation = None
+    if weights.reads_variation:  # the classical read's log-depth variation, from the same decode in process
+        from bmi_sdk.built_camera import BuiltCamera
+        from bmi_sdk.decode.classical import log_depth_variation_px
+        from bmi_sdk.runtime.classical import classical_decoder, decode_frame
+        from devices.dng import load_raw
+
+        decoded = decode_frame(classical_decoder(BuiltCamera(), CONFIG), load_raw(tmp_path / "f.dng"),
+                               BuiltCamera()).decoded
+        np.testing.assert_array_equal(decoded.depth_m, depth_c)
+        variation = log_depth_variation_px(decoded, CONFIG.stride_px)
+        assert np.nanmax(variation) > 0.05 > np.nanmin(variation)  # the scene has both flat and cluttered parts
     want_depth, want_sigma, want_share = fuse_log_depth(depth_c, sigma_c, 2.0 * depth_c, 2.0 * rel * depth_c,
-                                                        weights)
+                                                        weights, None, variation)
     np.testing.assert_allclose(depth_l[ok], want_depth[ok], rtol=1e-3)
     np.testing.assert_allclose(sigma_l[ok], want_sigma[ok], rtol=1e-3)
     report = json.loads((tmp_path / "l" / "report.json").read_text())

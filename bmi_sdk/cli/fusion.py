@@ -12,7 +12,8 @@ def register(subparsers) -> None:
         "fit-fusion", help="fit how a learned refinement fuses its network's depth with its classical stage's",
         description="Decode benchmark tiles of a seed no reported number uses, at several scene scales and noise "
                     "levels, with the learned refinement's two stages; fit the fusion's weights (decode.fusion: "
-                    "both relative σs and the two reads' disagreement, at each noise level) to the least "
+                    "both relative σs, the two reads' disagreement and how much the classical depth varies around "
+                    "each pixel, at each noise level) to the least "
                     "mean |log depth error|; print the error of each read, the inverse-variance fusion and the "
                     "fitted one per set of tiles; and write the weights into the model's manifest, which bmi infer "
                     "and bmi eval read. Re-running it gives the same weights.")

@@ -491,6 +491,22 @@ def local_spread(inv: np.ndarray) -> np.ndarray:
     return np.where(ok, np.sqrt(np.maximum(mean_sq - mean ** 2, 0.0)), np.nan)
 
 
+def local_log_depth_variation(inv: np.ndarray) -> np.ndarray:
+    """Spread (std) of log depth over each window's 3 × 3 neighbourhood of a window grid of 1/d (NaN where a
+    window has no read): near 0 on a surface larger than the neighbourhood (±1 stride), large where windows
+    straddle depth edges, as in tile-scale clutter. The learned decoder's fusion reads it (``fusion``)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return local_spread(np.log(np.where(inv > 0, inv, np.nan)))
+
+
+def log_depth_variation_px(result: DecodeResult, stride_px: int, row0: int = 0, height: int | None = None) -> np.ndarray:
+    """``local_log_depth_variation`` of a decode's final window grid, interpolated (``upsample_grid``) to the
+    pixels of its rows [row0, row0 + height) (default: all), every column; float32, NaN where no window reads."""
+    rows, width = result.depth_m.shape
+    height = rows - row0 if height is None else height
+    return upsample_grid(local_log_depth_variation(result.grid_inv_depth), stride_px, height, width, row0, 0)
+
+
 def confidence_fill(inv: np.ndarray, sig: np.ndarray, radius_windows: float) -> tuple[np.ndarray, np.ndarray]:
     """Inverse-variance weighted Gaussian pooling of 1/d over the window grid (module doc, step 5).
 

@@ -1,10 +1,11 @@
 """Fit a learned refinement's fusion weights (``decode.fusion``) on benchmark tiles no reported number uses.
 
 The refinement's network and its classical stage each return a depth and a 1σ; the decoder's output is
-their fusion in log depth, whose weight is a logistic of both relative σs and of how far the two reads
-disagree. The inverse-variance weight is one point of that family, and the best one only if both reads'
-errors were Gaussian with the σs reported. They are not: most pixels read far better than their σ and
-a few far worse, and the ratio depends on the scene's scale (docs/results.md, session 16). So the four
+their fusion in log depth, whose weight is a logistic of both relative σs, of how far the two reads
+disagree and of how much the classical read's depth varies around the pixel. The inverse-variance weight
+is one point of that family, and the best one only if both reads' errors were Gaussian with the σs
+reported. They are not: most pixels read far better than their σ and a few far worse, and the ratio
+depends on the scene's scale (docs/results.md, sessions 16 and 17), which the variation tells. So the five
 weights are fitted, by minimising the fused depth's mean |log error| (AbsRel to first order), on the
 procedural benchmark's tiles of a seed that no reported table reads, drawn at several scene scales
 (1: tile-scale clutter, 16: surfaces larger than a tile, as a full frame's are) and noise levels, each
@@ -25,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bmi_sdk.decode.classical import log_depth_variation_px
 from bmi_sdk.decode.fusion import INVERSE_VARIANCE, FusionWeights, fuse_log_depth
 from bmi_sdk.nn.data import STANDARD_SIGMA
 from bmi_sdk.nn.evaluate import Benchmark, NetworkTiles, tile_raw
@@ -40,8 +42,9 @@ GAP_FLOOR = 0.01
 
 @dataclass
 class ReadSet:
-    """Both reads of the valid pixels of one set of tiles (1-D float64 arrays), the true range there and the
-    noise σ the tiles were taken at (fraction of full scale)."""
+    """Both reads of the valid pixels of one set of tiles (1-D float64 arrays), the true range there, the
+    noise σ the tiles were taken at (fraction of full scale) and the classical read's log-depth variation there
+    (``classical.log_depth_variation_px``; None: a fit leaves its coefficient at 0)."""
 
     name: str
     classical_m: np.ndarray
@@ -50,6 +53,7 @@ class ReadSet:
     network_sigma_m: np.ndarray
     truth_m: np.ndarray
     noise_sigma: float = STANDARD_SIGMA
+    classical_variation: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.truth_m)
@@ -59,12 +63,13 @@ class ReadSet:
         if len(self) <= n:
             return self
         idx = np.sort(np.random.default_rng(seed).choice(len(self), n, replace=False))
+        variation = None if self.classical_variation is None else self.classical_variation[idx]
         return ReadSet(self.name, *(a[idx] for a in (self.classical_m, self.classical_sigma_m, self.network_m,
-                                                     self.network_sigma_m, self.truth_m)), self.noise_sigma)
+                                                     self.network_sigma_m, self.truth_m)), self.noise_sigma, variation)
 
     def fused(self, weights: FusionWeights) -> np.ndarray:
         return fuse_log_depth(self.classical_m, self.classical_sigma_m, self.network_m, self.network_sigma_m,
-                              weights, self.noise_sigma)[0]
+                              weights, self.noise_sigma, self.classical_variation)[0]
 
 
 def collect_reads(model_path: str | Path, scene_scale: float, *, seed: int = FIT_SEED, tiles: int = 12,
@@ -81,7 +86,7 @@ def collect_reads(model_path: str | Path, scene_scale: float, *, seed: int = FIT
         raise ValueError(f"model {Path(model_path).name} is not a learned refinement: it has no classical read to "
                          "fuse with (bmi train --decoder learned)")
     noise = NoiseProfile.additive(sigma)
-    columns: list[list[np.ndarray]] = [[] for _ in range(5)]
+    columns: list[list[np.ndarray]] = [[] for _ in range(6)]
     t = bench.tile_px
     for k, item in enumerate(bench.renders(nominal)):
         raw = tile_raw(bench, item, k, sigma)
@@ -92,9 +97,11 @@ def collect_reads(model_path: str | Path, scene_scale: float, *, seed: int = FIT
         with np.errstate(invalid="ignore"):
             ok = geometry.valid_mask(r0, c0, t, t) & np.logical_and.reduce(
                 [np.isfinite(a) & (a > 0) for a in reads])
-        for column, values in zip(columns, reads):
+        variation = log_depth_variation_px(decoded, decoder.stage.config.stride_px)
+        for column, values in zip(columns, (*reads, variation)):
             column.append(np.asarray(values, np.float64)[ok])
-    return ReadSet(f"scale {scene_scale:g}, σ {sigma:g}", *(np.concatenate(c) for c in columns), sigma)
+    *arrays, variation = (np.concatenate(c) for c in columns)
+    return ReadSet(f"scale {scene_scale:g}, σ {sigma:g}", *arrays, sigma, variation)
 
 
 def abs_log_error(depth_m: np.ndarray, truth_m: np.ndarray) -> float:
@@ -120,24 +127,38 @@ def fit_objective(sets: list[ReadSet], weights: FusionWeights, pixels_per_set: i
 def fit_fusion_weights(sets: list[ReadSet], gap_floor: float = GAP_FLOOR,
                        pixels_per_set: int = FIT_PIXELS_PER_SET) -> FusionWeights:
     """The weights minimising, at each noise σ among ``sets``, the mean over that σ's sets of each set's mean
-    |log error| (module doc), each from the inverse-variance ones; the least σ is the weights' reference."""
+    |log error| (module doc), each from the inverse-variance ones; the least σ is the weights' reference.
+
+    The classical read's variation (c_v) is fitted at the least σ only. There the variation is the scene's: a
+    surface reads flat, clutter varies. At σ 0.02 and 0.05 the classical read's own noise makes it vary as much,
+    which its σ already says; fitted there too, the term bought the fit sets under 1 % and read the benchmark's
+    σ 0.05 tiles 10 % worse (docs/results.md, session 17), so the noisier levels keep c_v = 0 and the weights
+    interpolate to it in log σ."""
     if not sets or any(len(s) == 0 for s in sets):
         raise ValueError("the fusion fit needs at least one set of tiles, each with valid pixels")
     samples = _samples(sets, pixels_per_set)
     noise = sorted({s.noise_sigma for s in sets})
-    levels = [_fit_level([s for s in samples if s.noise_sigma == sigma], gap_floor, pixels_per_set)
-              for sigma in noise]
+    levels = [_fit_level([s for s in samples if s.noise_sigma == sigma], gap_floor, pixels_per_set,
+                         variation=sigma == noise[0]) for sigma in noise]
     return FusionWeights(*levels[0], gap_floor=gap_floor, noise_ref_sigma=noise[0], noise_levels=tuple(noise[1:]),
                          noise_coefficients=tuple(levels[1:]))
 
 
-def _fit_level(samples: list[ReadSet], gap_floor: float, pixels_per_set: int) -> tuple[float, ...]:
-    """(c₀, c_a, c_b, c_g) minimising ``fit_objective`` over sets of one noise σ, from the inverse-variance ones."""
+def _fit_level(samples: list[ReadSet], gap_floor: float, pixels_per_set: int,
+               variation: bool = True) -> tuple[float, ...]:
+    """(c₀, c_a, c_b, c_g, c_v) minimising ``fit_objective`` over sets of one noise σ, from the inverse-variance
+    ones; c_v stays 0 unless ``variation`` and every set carries the classical read's variation."""
     from scipy.optimize import minimize
 
-    def loss(x: np.ndarray) -> float:
-        return fit_objective(samples, FusionWeights(*(float(v) for v in x), gap_floor=gap_floor), pixels_per_set)
+    with_variation = variation and all(s.classical_variation is not None for s in samples)
 
-    start = np.array([INVERSE_VARIANCE.intercept, INVERSE_VARIANCE.rel_sigma_a, INVERSE_VARIANCE.rel_sigma_b, 0.0])
+    def weights_of(x: np.ndarray) -> FusionWeights:
+        return FusionWeights(*(float(v) for v in x), gap_floor=gap_floor)
+
+    def loss(x: np.ndarray) -> float:
+        return fit_objective(samples, weights_of(x), pixels_per_set)
+
+    start = np.array([INVERSE_VARIANCE.intercept, INVERSE_VARIANCE.rel_sigma_a, INVERSE_VARIANCE.rel_sigma_b, 0.0]
+                     + ([0.0] if with_variation else []))
     result = minimize(loss, start, method="BFGS", options={"gtol": 1e-6, "maxiter": 400})
-    return tuple(float(v) for v in result.x)
+    return tuple(float(v) for v in result.x) + (() if with_variation else (0.0,))

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..built_camera import BuiltCamera
 from ..decode import ClassicalConfig, ClassicalDecoder
-from ..decode.classical import DecodeResult
+from ..decode.classical import DecodeResult, log_depth_variation_px
 from ..decode.features import FeatureTiles, extra_channels
 from ..decode.fusion import INVERSE_VARIANCE, FusionWeights, fuse_log_depth
 from ..model_io import INPUT_CHANNELS
@@ -109,7 +109,7 @@ def refine_decoded(model: Model, decoder: ClassicalDecoder, decoded: DecodeResul
     t0 = time.perf_counter()
     weights = model.fusion_weights
     noise_sigma = decoded.stats.get("noise_sigma")
-    classical_share = fuse_into(decoded.depth_m, decoded.depth_sigma_m, net.depth_m, net.depth_sigma_m, weights,
+    classical_share = fuse_into(decoded, decoder.config.stride_px, net.depth_m, net.depth_sigma_m, weights,
                                 noise_sigma)
     fusion = {"classical_weight_mean": classical_share, "fusion_s": time.perf_counter() - t0,
               "weights": "inverse-variance" if weights == INVERSE_VARIANCE else "fitted", "noise_sigma": noise_sigma,
@@ -122,17 +122,20 @@ FUSION_ROWS = 256
 """Rows fused at a time: a full frame's temporaries stay a few tens of MB."""
 
 
-def fuse_into(classical_depth_m: np.ndarray, classical_sigma_m: np.ndarray, depth_m: np.ndarray,
-              sigma_m: np.ndarray, weights: FusionWeights = INVERSE_VARIANCE, noise_sigma: float | None = None) -> float:
-    """Replace the network's ``depth_m`` and ``sigma_m`` (NaN where invalid) by their fusion with the classical
-    read (``decode.fusion`` with ``weights`` at the frame's ``noise_sigma``), band by band; returns the classical
-    read's mean weight over the valid pixels."""
+def fuse_into(classical: DecodeResult, stride_px: int, depth_m: np.ndarray, sigma_m: np.ndarray,
+              weights: FusionWeights = INVERSE_VARIANCE, noise_sigma: float | None = None) -> float:
+    """Replace the network's ``depth_m`` and ``sigma_m`` (NaN where invalid) by their fusion with the ``classical``
+    read of the same window (``decode.fusion`` with ``weights`` at the frame's ``noise_sigma``, and the classical
+    read's log-depth variation when the weights read it), band by band; returns the classical read's mean weight
+    over the valid pixels."""
     weight_sum, count = 0.0, 0
     for top in range(0, depth_m.shape[0], FUSION_ROWS):
         band = slice(top, top + FUSION_ROWS)
         valid = np.isfinite(depth_m[band])
-        fused, sigma, weight = fuse_log_depth(classical_depth_m[band], classical_sigma_m[band], depth_m[band],
-                                              sigma_m[band], weights, noise_sigma)
+        variation = (log_depth_variation_px(classical, stride_px, top, valid.shape[0])
+                     if weights.reads_variation else None)
+        fused, sigma, weight = fuse_log_depth(classical.depth_m[band], classical.depth_sigma_m[band], depth_m[band],
+                                              sigma_m[band], weights, noise_sigma, variation)
         depth_m[band] = np.where(valid, fused, np.nan)
         sigma_m[band] = np.where(valid, sigma, np.nan)
         weight_sum += float(weight[valid].sum())
