@@ -39,9 +39,12 @@ def register(subparsers) -> None:
     p.add_argument("--no-fusion", action="store_true",
                    help="learned: score the network's depth alone, not fused with its classical stage's (with the "
                         "weights of its manifest, as bmi infer returns it); its rows carry fusion false")
-    p.add_argument("--window-px", type=int, default=CLASSICAL_DEFAULTS["window_px"], help="classical: evidence window (default 64)")
-    p.add_argument("--stride-px", type=int, default=CLASSICAL_DEFAULTS["stride_px"], help="classical: window stride (default 16)")
-    p.add_argument("--candidates", type=int, default=CLASSICAL_DEFAULTS["candidates"], help="classical: depth candidates (default 48)")
+    p.add_argument("--window-px", type=int, default=CLASSICAL_DEFAULTS["window_px"],
+                   help="classical: evidence window (default 64)")
+    p.add_argument("--stride-px", type=int, default=CLASSICAL_DEFAULTS["stride_px"],
+                   help="classical: window stride (default 16)")
+    p.add_argument("--candidates", type=int, default=CLASSICAL_DEFAULTS["candidates"],
+                   help="classical: depth candidates (default 48)")
     p.add_argument("--json", action="store_true", help="one JSON object per line per condition and region")
     add_scheduler_argument(p)
     p.set_defaults(handler=_run)

@@ -72,7 +72,8 @@ def _run(args) -> int:
               f"noise σ {stats['noise_sigma']:.4f} ({stats['noise_source']})")
         print(f"classical blocks run {stats['blocks_run']}, skipped {stats['blocks_skipped']}; network tiles run "
               f"{report['tiles_run']}, skipped {report['tiles_skipped']}; peak memory {report['peak_rss_mb']:.0f} MB")
-        how = {"fitted": "by their 1σ, their disagreement and the classical depth's local variation, with the model's fitted weights",
+        how = {"fitted": "by their 1σ, their disagreement and the classical depth's local variation, with the "
+                         "model's fitted weights",
                "inverse-variance": "by their 1σ"}[report["fusion"]["weights"]]
         print(f"depth: the network's fused with the classical stage's {how} (the classical read's mean weight "
               f"{report['fusion']['classical_weight_mean']:.2f})")

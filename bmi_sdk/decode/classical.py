@@ -499,7 +499,8 @@ def local_log_depth_variation(inv: np.ndarray) -> np.ndarray:
         return local_spread(np.log(np.where(inv > 0, inv, np.nan)))
 
 
-def log_depth_variation_px(result: DecodeResult, stride_px: int, row0: int = 0, height: int | None = None) -> np.ndarray:
+def log_depth_variation_px(result: DecodeResult, stride_px: int, row0: int = 0,
+                           height: int | None = None) -> np.ndarray:
     """``local_log_depth_variation`` of a decode's final window grid, interpolated (``upsample_grid``) to the
     pixels of its rows [row0, row0 + height) (default: all), every column; float32, NaN where no window reads."""
     rows, width = result.depth_m.shape

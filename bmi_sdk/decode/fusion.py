@@ -20,8 +20,8 @@ few far worse (docs/results.md, session 16), so how far the reads disagree (g) t
 Neither σ nor g tells a large surface from tile-scale clutter, where the two reads disagree by as much
 but the classical one is right on the surface and wrong in the clutter (docs/results.md, session 17): v_a
 does, and c_v (0 in weights fitted before it) lets the weight read it. How much each read's σ can be
-trusted also changes with the frame's noise, so the coefficients may be fitted at several noise levels and interpolated linearly in log σ_noise between them. A model's manifest may carry
-weights fitted to minimise the fused log error on scenes apart from every reported one
+trusted also changes with the frame's noise, so the coefficients may be fitted at several noise levels
+and interpolated linearly in log σ_noise between them. A model's manifest may carry weights fitted to minimise the fused log error on scenes apart from every reported one
 (``nn.fusion_fit``, ``bmi fit-fusion``); without them the fusion is the inverse-variance one.
 
 The fused σ is the one the two reads would have if their errors were fully correlated (ρ = 1): the
@@ -44,6 +44,7 @@ from scipy.special import expit
 
 N_COEFFICIENTS = 5
 """c₀, c_a, c_b, c_g, c_v: the numbers of one noise level's row."""
+
 
 @dataclass(frozen=True)
 class FusionWeights:
@@ -71,7 +72,8 @@ class FusionWeights:
         table = tuple(tuple(row) for row in self.noise_coefficients)
         if len(table) != len(levels) or any(len(row) not in (4, N_COEFFICIENTS) for row in table):
             raise ValueError(f"fusion weight noise_coefficients holds {N_COEFFICIENTS} numbers (4 before "
-                             f"variation_a) for each of the {len(levels)} noise_levels, got {[len(row) for row in table]}")
+                             f"variation_a) for each of the {len(levels)} noise_levels, "
+                             f"got {[len(row) for row in table]}")
         table = tuple(row + (0.0,) * (N_COEFFICIENTS - len(row)) for row in table)
         object.__setattr__(self, "noise_levels", levels)
         object.__setattr__(self, "noise_coefficients", table)

@@ -20,8 +20,8 @@ from ..model_manifest import verify_model, write_manifest
 
 
 def quantize_int8(src: str | os.PathLike, dst: str | os.PathLike, calibration_inputs: list[np.ndarray]) -> Path:
-    """Write an int8 QDQ copy of ``src`` to ``dst`` (+ manifest), calibrated on ``calibration_inputs`` (1 × C × H × W,
-    C the model's ``input_channels``: the inputs inference builds for it)."""
+    """Write an int8 QDQ copy of ``src`` to ``dst`` (+ manifest), calibrated on ``calibration_inputs``
+    (1 × C × H × W, C the model's ``input_channels``: the inputs inference builds for it)."""
     from onnxruntime.quantization import (CalibrationDataReader, QuantFormat, QuantType, quant_pre_process,
                                           quantize_static)
 
@@ -32,7 +32,8 @@ def quantize_int8(src: str | os.PathLike, dst: str | os.PathLike, calibration_in
     shapes = sorted({tuple(np.shape(x)) for x in calibration_inputs
                      if np.ndim(x) != 4 or np.shape(x)[:2] != (1, channels)})
     if shapes:
-        raise ValueError(f"{Path(src).name} reads 1 × {channels} × H × W inputs; calibration inputs of shape {shapes}")
+        raise ValueError(f"{Path(src).name} reads 1 × {channels} × H × W inputs; calibration inputs of shape "
+                         f"{shapes}")
     dst = Path(dst)
     dst.parent.mkdir(parents=True, exist_ok=True)
 
