@@ -5,8 +5,9 @@ camera's kernels, nominal or calibrated) with the knobs the model was trained wi
 ``classical_config``), turns its result into per-pixel channels (``decode.features``) and runs the
 refinement network tile by tile (``pipeline.infer_raw`` with ``extra``), which returns depth, AiF and a
 depth 1σ. The depth returned is the network's read fused with the classical stage's (``decode.fusion``), by
-their σs and their disagreement with the weights the model's manifest carries (``bmi fit-fusion``; else the
-inverse-variance ones): the physics decides where it is confident, the network elsewhere. The calibration
+their σs, their disagreement and the classical depth's local variation, with the weights the model's manifest
+carries (``bmi fit-fusion``; else the inverse-variance ones): the physics decides where it is confident and
+the surface is larger than its windows, the network elsewhere. The calibration
 reaches the network through the evidence and the fusion: the model is not retrained.
 """
 
