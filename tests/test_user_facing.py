@@ -242,8 +242,8 @@ def test_simulate_save_truth_writes_the_window_the_frame_shows(tmp_path):
 
 
 def test_simulate_and_calibrate_refuse_an_earlier_runs_files_before_their_work(tmp_path, capsys):
-    """A repeated `bmi simulate` or `bmi calibrate` command line would silently replace a rendered frame or a
-    calibration: both now refuse, naming every file, before rendering or capturing (so the refusal is quick),
+    """A repeated `bmi simulate`, `bmi calibrate` or `bmi psf build` command line would silently replace a rendered
+    frame, a calibration or a PSF tensor (and its metadata JSON, which may be a calibration's name): each refuses, naming every file, before rendering or capturing (so the refusal is quick),
     and leave the files as they were; --overwrite replaces them."""
     from bmi_sdk.cli import main
 
@@ -275,6 +275,10 @@ def test_simulate_and_calibrate_refuse_an_earlier_runs_files_before_their_work(t
     assert main(["calibrate", "--simulate", "decenter_um=8,0", "--out", str(tmp_path / "d.json"),
                  "--save-captures", str(captures)]) == 1
     assert "is not empty" in capsys.readouterr().err and not (tmp_path / "d.json").exists()
+    # `bmi psf build --out c.npz` writes its metadata to c.json: the calibration above would have been replaced
+    assert main(["psf", "build", "--out", str(tmp_path / "c.npz")]) == 1
+    assert "c.json already exists" in capsys.readouterr().err
+    assert calib.read_text() == '{"an": "earlier calibration"}' and not (tmp_path / "c.npz").exists()
 
 
 # -- logging -----------------------------------------------------------------------------------------------------

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import time
+from pathlib import Path
 
 
 def _depth(text: str) -> float:
@@ -69,14 +70,19 @@ def _export(args) -> int:
 def _build(args) -> int:
     from bmi_sdk.optics import PsfTensor, TensorSpec, get_lens, spectral_channels
 
+    from ._outputs import refuse_existing
+
     lens = get_lens(args.lens)
+    out = Path(args.out or f"psf_tensor_{lens.name}.npz").with_suffix(".npz")
+    if not args.overwrite:  # before minutes of tracing; the metadata X.json could be another file's (a calibration)
+        refuse_existing([out, out.with_suffix(".json")])
     channels = spectral_channels(args.spectral)
     spec = TensorSpec(channels=channels, kernel_px=args.kernel_px)
     tensor = PsfTensor(lens, spec, use_cache=False)  # from scratch, ignoring any cache
     start = time.perf_counter()
     tensor.ensure_all(progress=True)
     elapsed = time.perf_counter() - start
-    out = tensor.save(args.out or f"psf_tensor_{lens.name}.npz", float16=args.float16)
+    out = tensor.save(out, float16=args.float16)
     print(f"wrote {out} and {out.with_suffix('.json')}: {tensor.data.shape} in {elapsed:.1f} s")
     return 0
 
@@ -144,6 +150,8 @@ def register(subparsers) -> None:
     b.add_argument("--spectral", action="store_true",
                    help="integrate each channel over 13 wavelengths of the RGB response instead of one")
     b.add_argument("--float16", action="store_true", help="store float16 at rest (half the size)")
+    b.add_argument("--overwrite", action="store_true",
+                   help="replace an existing --out and its .json (default: refuse them, before tracing)")
     b.set_defaults(handler=_build)
     w = sub.add_parser("warm", help="trace a camera's decoder kernels into the PSF cache before its first frame",
                        description="Traces every kernel a frame's classical (or learned) decode can read, at every "
