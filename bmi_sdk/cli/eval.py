@@ -6,12 +6,11 @@ import json
 from pathlib import Path
 
 DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "models" / "default.onnx"
-CLASSICAL_DEFAULTS = {"window_px": 64, "stride_px": 16, "candidates": 48}
-"""``--decoder classical``'s knobs and their defaults (ClassicalConfig's; a test holds them equal)."""
 KEYS = ("absrel", "rmse_m", "delta1", "delta2", "delta3", "psnr_db", "ssim")
 
 
 def register(subparsers) -> None:
+    from bmi_sdk.cli.infer import add_window_arguments
     from bmi_sdk.scaleout import add_scheduler_argument
 
     p = subparsers.add_parser(
@@ -39,12 +38,7 @@ def register(subparsers) -> None:
     p.add_argument("--no-fusion", action="store_true",
                    help="learned: score the network's depth alone, not fused with its classical stage's (with the "
                         "weights of its manifest, as bmi infer returns it); its rows carry fusion false")
-    p.add_argument("--window-px", type=int, default=CLASSICAL_DEFAULTS["window_px"],
-                   help="classical: evidence window (default 64)")
-    p.add_argument("--stride-px", type=int, default=CLASSICAL_DEFAULTS["stride_px"],
-                   help="classical: window stride (default 16)")
-    p.add_argument("--candidates", type=int, default=CLASSICAL_DEFAULTS["candidates"],
-                   help="classical: depth candidates (default 48)")
+    add_window_arguments(p)
     p.add_argument("--json", action="store_true", help="one JSON object per line per condition and region")
     add_scheduler_argument(p)
     p.set_defaults(handler=_run)
@@ -52,6 +46,8 @@ def register(subparsers) -> None:
 
 def _run(args) -> int:
     from dataclasses import replace
+
+    from bmi_sdk.cli.infer import CLASSICAL_KNOBS, WINDOW_KNOBS
 
     from bmi_sdk.model_manifest import verify_model
     from bmi_sdk.nn.evaluate import Benchmark, run_benchmark
@@ -62,8 +58,7 @@ def _run(args) -> int:
         raise ValueError(f"--model {args.model} is the cnn decoder's model, and --decoder {args.decoder} does not run "
                          "it (a learned refinement is --learned-model)")
     args.model = args.model or str(DEFAULT_MODEL)
-    changed = [f"--{knob.replace('_', '-')}" for knob, default in CLASSICAL_DEFAULTS.items()
-               if getattr(args, knob) != default]
+    changed = [f"--{knob.replace('_', '-')}" for knob in WINDOW_KNOBS if getattr(args, knob) != CLASSICAL_KNOBS[knob]]
     if changed and "classical" not in decoders:
         raise ValueError(f"{', '.join(changed)} set(s) the classical decoder, and --decoder {args.decoder} does not "
                          "run it (a learned refinement decodes with the knobs its manifest was trained with)")
@@ -80,7 +75,7 @@ def _run(args) -> int:
         manifest = verify_model(args.learned_model)
         if model_decoder(manifest) != "learned":
             raise ValueError(f"--learned-model {args.learned_model} is not a learned refinement model")
-        windows["learned"] = int(manifest["classical_config"].get("window_px", CLASSICAL_DEFAULTS["window_px"]))
+        windows["learned"] = int(manifest["classical_config"].get("window_px", CLASSICAL_KNOBS["window_px"]))
     for decoder, window_px in windows.items():
         if args.tile_px < window_px:
             raise ValueError(f"--tile-px {args.tile_px} holds no {window_px}-px evidence window of the {decoder} "

@@ -21,6 +21,20 @@ CLASSICAL_KNOBS = {"window_px": 64, "stride_px": 16, "candidates": 48, "noise_si
 value with another decoder is refused."""
 
 
+WINDOW_KNOBS = ("window_px", "stride_px", "candidates")
+"""The classical decoder's window grid options, which ``bmi eval`` takes too (``add_window_arguments``)."""
+
+
+def add_window_arguments(p) -> None:
+    """``--window-px``, ``--stride-px`` and ``--candidates`` (defaults ``CLASSICAL_KNOBS``) on parser ``p``."""
+    p.add_argument("--window-px", type=int, default=CLASSICAL_KNOBS["window_px"],
+                   help="classical: evidence window (default 64)")
+    p.add_argument("--stride-px", type=int, default=CLASSICAL_KNOBS["stride_px"],
+                   help="classical: window stride (default 16)")
+    p.add_argument("--candidates", type=int, default=CLASSICAL_KNOBS["candidates"],
+                   help="classical: depth candidates spaced in 1/d, snapped to the kernel grid (default 48)")
+
+
 def classical_config(args):
     """The ``ClassicalConfig`` of ``--decoder classical``'s options."""
     from bmi_sdk.decode import ClassicalConfig
@@ -139,12 +153,7 @@ def register(subparsers) -> None:
                         f"(calibrated) kernels, no network, writes the depth 1σ; learned: the classical evidence "
                         f"refined by a network (learned.onnx), with a depth 1σ (default: the kind of --model, "
                         f"else {DEFAULT_DECODER}; docs/decoder.md)")
-    p.add_argument("--window-px", type=int, default=CLASSICAL_KNOBS["window_px"],
-                   help="classical: evidence window (default 64)")
-    p.add_argument("--stride-px", type=int, default=CLASSICAL_KNOBS["stride_px"],
-                   help="classical: window stride (default 16)")
-    p.add_argument("--candidates", type=int, default=CLASSICAL_KNOBS["candidates"],
-                   help="classical: depth candidates spaced in 1/d, snapped to the kernel grid (default 48)")
+    add_window_arguments(p)
     p.add_argument("--noise-sigma", type=float, default=None,
                    help="classical: a constant raw noise σ in units of full scale (default: the frame's NoiseProfile "
                         "tag, the camera's photon transfer; estimated from the picture when the file has none)")
