@@ -234,13 +234,10 @@ class NetworkTiles:
         if decoded is not None and (self.fuse if fuse is None else fuse) and sigma is not None:
             if self.model.fusion_weights is None:
                 raise ValueError("this decoder was built with fuse=False: its model's fusion weights were not read")
-            from bmi_sdk.decode.classical import log_depth_variation_px
-            from bmi_sdk.decode.fusion import fuse_log_depth
+            from bmi_sdk.runtime.learned import fuse_into
 
-            depth, sigma, _ = fuse_log_depth(decoded.depth_m, decoded.depth_sigma_m, depth, sigma,
-                                             self.model.fusion_weights, decoded.stats.get("noise_sigma"),
-                                             log_depth_variation_px(decoded, self.stage.config.stride_px)
-                                             if self.model.fusion_weights.reads_variation else None)
+            fuse_into(decoded, self.stage.config.stride_px, depth, sigma, self.model.fusion_weights,
+                      decoded.stats.get("noise_sigma"))  # as bmi infer fuses, in place
         return aif[0].transpose(1, 2, 0), depth, sigma
 
 
