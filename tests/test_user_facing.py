@@ -211,6 +211,13 @@ def test_psf_export_writes_a_png_when_the_name_says_png(tmp_path, capsys):
     assert "normalised to the peak" in capsys.readouterr().out
     assert main(args + ["--out", str(tmp_path / "k.tif")]) == 1
     assert "name it .npy" in capsys.readouterr().err and not (tmp_path / "k.tif").exists()
+    # an existing kernel is kept unless --overwrite says otherwise
+    other = ["psf", "export", "--wavelength-nm", "450", "--depth-m", "1", "--field-deg", "50"]
+    assert main(other + ["--out", str(tmp_path / "k.npy")]) == 1
+    assert "--overwrite" in capsys.readouterr().err
+    np.testing.assert_array_equal(np.load(tmp_path / "k.npy"), kernel)
+    assert main(other + ["--out", str(tmp_path / "k.npy"), "--overwrite"]) == 0
+    assert not np.array_equal(np.load(tmp_path / "k.npy"), kernel)
 
 
 def test_simulate_save_truth_writes_the_window_the_frame_shows(tmp_path):

@@ -55,7 +55,11 @@ def _export(args) -> int:
 
     from bmi_sdk.optics.export_limits import check_export_request, check_kernel
 
+    from ._outputs import refuse_existing
+
     _kernel_format(args.out)  # a wrong name fails before the PSF is traced
+    if not args.overwrite:
+        refuse_existing([args.out])
     lens = get_lens(args.lens)
     check_export_request(lens, args.field_deg, args.depth_m, args.wavelength_nm, args.pitch_um)
     fit = fit_pupil(lens, args.field_deg, args.depth_m, args.wavelength_nm * 1e-3)
@@ -140,6 +144,7 @@ def register(subparsers) -> None:
     e.add_argument("--kernel-px", type=int, default=41, help="odd kernel size (default 41: ≥ 99 %% energy at 0.7 m)")
     e.add_argument("--pitch-um", type=float, default=2.0)
     e.add_argument("--oversample", type=int, default=3, help="odd sub-samples per pixel for pixel integration")
+    e.add_argument("--overwrite", action="store_true", help="replace an existing --out (default: refuse it)")
     e.set_defaults(handler=_export)
     b = sub.add_parser("build", help="build the whole default tensor from scratch and write it",
                        description="PSF(c, θ, d): 3 channels × θ 0–60° every 0.6° × d 0.7–10 m every 0.1 m, "
