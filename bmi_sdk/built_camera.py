@@ -87,6 +87,12 @@ class BuiltCamera:
                       centre_calibrated=centre_calibrated and not self.is_nominal,
                       cache_dir=default_cache_dir() if disk_cache else None)
 
+    def render_zone_px(self, mode: str | None = None) -> int:
+        """The largest render zone (px) over which this camera's kernels (``psf_map(mode)``, optical centre
+        calibrated) change no more than the design's over its default 512-px zone (``render.zone_size``): 512 for
+        the design, finer for a camera whose kernels change faster with θ (a sensor-radius error)."""
+        return _render_zone_px(self, mode or "exact")
+
     def ray_geometry(self) -> SensorGeometry:
         """``traced_ray_geometry`` of this camera (memoised: a batch of frames traces it once)."""
         return traced_ray_geometry(self)
@@ -97,6 +103,17 @@ class BuiltCamera:
         lens = calibration.doc.get("lens", {}).get("name") or "bmi_monocentric"
         return cls(lens_name=lens, perturbation=calibration.perturbation, geometry=geometry,
                    calibration_id=calibration.id)
+
+
+@functools.lru_cache(maxsize=16)
+def _render_zone_px(camera: BuiltCamera, mode: str) -> int:
+    from .render import DEFAULT_ZONE_PX
+    from .render.zone_size import zone_px_for
+
+    if camera.is_nominal:
+        return DEFAULT_ZONE_PX
+    design = BuiltCamera(camera.lens_name, geometry=camera.geometry)
+    return zone_px_for(camera.psf_map(mode, centre_calibrated=True), design.psf_map(mode))
 
 
 @functools.lru_cache(maxsize=8)

@@ -45,7 +45,8 @@ class RenderedScene:
                  lens: str = "bmi_monocentric", geometry: SensorGeometry = BMI_SENSOR, name: str = "scene",
                  psf_mode: str = "exact", zone_px: int | None = None, block_px: int = BLOCK_PX, label: str = "",
                  tensor=None, perturbation=None):
-        """``zone_px``: the renderer's zone size (None: its ``DEFAULT_ZONE_PX``). ``tensor`` (a PsfTensor)
+        """``zone_px``: the renderer's zone size (None: its ``DEFAULT_ZONE_PX``, or for a built camera its
+        ``BuiltCamera.render_zone_px``, finer where its kernels change fast with θ). ``tensor`` (a PsfTensor)
         overrides the lens's default one; ``perturbation``
         (``optics.perturb.Perturbation``, ``exact`` mode only) makes the camera a built one with those
         hardware errors: every zone's kernels are traced through the perturbed lens, and the image
@@ -60,17 +61,19 @@ class RenderedScene:
         self.geometry = geometry
         self.name = name
         self.psf_mode = psf_mode
-        if zone_px is None:
-            from bmi_sdk.render import DEFAULT_ZONE_PX
-
-            zone_px = DEFAULT_ZONE_PX
-        self.zone_px = zone_px
         self.block_px = block_px
         self.label = label
         self.perturbation = perturbation if perturbation is not None and np.any(perturbation.to_vector()) else None
         if self.perturbation is not None and psf_mode != "exact":
             raise ValueError("a built camera's hardware errors need psf_mode='exact' (the radial tensor cannot "
                              "hold decenter or tilt)")
+        if zone_px is None:
+            from bmi_sdk.built_camera import BuiltCamera
+            from bmi_sdk.render import DEFAULT_ZONE_PX
+
+            zone_px = DEFAULT_ZONE_PX if self.perturbation is None else BuiltCamera(
+                self.lens, self.perturbation, geometry).render_zone_px("exact")
+        self.zone_px = zone_px
         self._blocks: dict[tuple[int, int], np.ndarray] = {}
         self._psf_map = None  # one kernel memo for all blocks: zones straddle block borders
 

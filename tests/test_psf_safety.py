@@ -15,7 +15,7 @@ MONO = get_lens("bmi_monocentric")
 
 
 def _export(tmp_path, capsys, *args):
-    out = tmp_path / "k.npy"
+    out = tmp_path / f"k{len(list(tmp_path.glob('k*.npy')))}.npy"  # a new file each call: export keeps old ones
     code = main(["psf", "export", "--out", str(out), *args])
     return code, capsys.readouterr(), out
 

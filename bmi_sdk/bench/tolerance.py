@@ -11,11 +11,11 @@ target asks how much information the errors leave, which no decoder can exceed. 
 * the classical decoder's AbsRel on the same planes (each window's evidence pooled, so a large plane can read
   below one window's bound);
 
-both rendered and decoded with the camera's own exact kernels (its optical centre calibrated, as ``bmi eval``
-renders its hardware rows), then averaged over the true ranges of the benchmark's edge tiles
-(``benchmark_edge_ranges_m``), interpolated linearly in 1/d between the planes (``depth_weighted``). The cameras:
-the nominal one, sensor-radius errors alone (``SENSOR_RADIUS_ERRORS_PCT``), the issue's camera, and it without
-its radius error.
+both rendered (on ``RENDER_ZONE_PX`` render zones) and decoded with the camera's own exact kernels (its optical
+centre calibrated, as ``bmi eval`` renders its hardware rows), then averaged over the true ranges of the benchmark's
+edge tiles (``benchmark_edge_ranges_m``), interpolated linearly in 1/d between the planes (``depth_weighted``). The
+cameras: the nominal one, sensor-radius errors alone (``SENSOR_RADIUS_ERRORS_PCT``), the issue's camera, and it
+without its radius error.
 
 The physics being measured: the sensor sphere's vertex is held, so a radius error defocuses the field by an
 amount growing with θ. At the edge a larger radius moves the focus from beyond 10 m into the working range
@@ -35,6 +35,10 @@ from .decoder import MEAN_ABS_PER_SIGMA, classical_depth, decoded_absrel, plane_
 TOLERANCE_FIELD_DEG = 55.0
 TOLERANCE_DEPTHS_M = (0.8, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0, 7.0, 8.0, 9.5)
 SENSOR_RADIUS_ERRORS_PCT = (-0.5, -0.25, 0.05, 0.1, 0.2, 0.3, 0.5)
+RENDER_ZONE_PX = 64
+"""The planes' render zones (±0.25° of field around each zone's kernels): a sensor-radius error changes the edge's
+kernels fast with θ, and on the renderer's default 512-px zones (±4°) a +0.5 % camera's 3–7 m planes were drawn
+with kernels of other field angles and read 0.28–0.46 instead of 0.03–0.05 (docs/results.md, session 18)."""
 
 
 def benchmark_edge_ranges_m(bench) -> np.ndarray:
@@ -82,7 +86,7 @@ def camera_curves(camera, depths_m=TOLERANCE_DEPTHS_M, field_deg: float = TOLERA
     bound, decoded = [], []
     for depth_m in depths_m:
         raw, row0, col0 = plane_raw(psf_map.tensor, psf_map.geometry, field_deg, depth_m, texture="pink",
-                                    psf_map=psf_map)
+                                    psf_map=psf_map, zone_px=RENDER_ZONE_PX)
         bound.append(MEAN_ABS_PER_SIGMA * window_depth_bound(decoder, raw, row0, col0, field_deg, depth_m))
         decoded.append(decoded_absrel(decode, raw, row0, col0, depth_m))
     return np.array(bound), np.array(decoded)
@@ -103,14 +107,16 @@ def run(full: bool = False) -> str:
             reference = bound, decoded
         rows.append([name, bound, f"{bound / reference[0]:.2f}×", decoded, f"{decoded / reference[1]:.2f}×", cpu_s])
     quartiles = np.percentile(ranges, [5, 25, 50, 75, 95])
-    out = [f"Depth information at the field edge (θ {TOLERANCE_FIELD_DEG:g}°, φ 30°, σ 0.005; 1/f² planes, each camera's "
-           f"own exact kernels render and decode, its optical centre calibrated), averaged over the true ranges of "
-           f"the `bmi eval` benchmark's {bench.tiles} edge tiles (seed {bench.seed}; {len(ranges)} pixels, 5 / 25 / 50 / "
-           f"75 / 95 % at {' / '.join(f'{q:.2f}' for q in quartiles)} m) in 1/d between the planes. At bound: the "
-           "AbsRel of an estimator at one tapered window's Cramér–Rao bound (√(2/π) σ_d / d); decoded: the classical "
-           "decoder's on the same planes (pooled windows). CPU s: the camera's kernels traced, its planes rendered "
-           "and decoded.", ""]
-    out.append(markdown_table(["camera", "AbsRel at bound", "× nominal", "AbsRel decoded", "× nominal", "CPU s"], rows))
+    spread = " / ".join(f"{q:.2f}" for q in quartiles)
+    out = [f"Depth information at the field edge (θ {TOLERANCE_FIELD_DEG:g}°, φ 30°, σ 0.005; 1/f² planes, each "
+           f"camera's own exact kernels render (on {RENDER_ZONE_PX}-px zones) and decode, its optical centre "
+           f"calibrated), averaged over the true ranges of the `bmi eval` benchmark's {bench.tiles} edge tiles (seed "
+           f"{bench.seed}; {len(ranges)} pixels, 5 / 25 / 50 / 75 / 95 % at {spread} m) in 1/d between the planes. "
+           "At bound: the AbsRel of an estimator at one tapered window's Cramér–Rao bound (√(2/π) σ_d / d); "
+           "decoded: the classical decoder's on the same planes (pooled windows). CPU s: the camera's kernels "
+           "traced, its planes rendered and decoded.", ""]
+    out.append(markdown_table(["camera", "AbsRel at bound", "× nominal", "AbsRel decoded", "× nominal", "CPU s"],
+                              rows))
     names = ["nominal", "sensor radius +0.5 %", "the issue's perturbed camera"]
     out += ["", "Per range, the nominal camera, the sensor radius +0.5 % and the issue's perturbed camera "
                 "(at bound · decoded):", ""]

@@ -265,11 +265,12 @@ def render_sample(spec: CacheSpec, index: int, tensor, geometry: SensorGeometry,
     render_range = np.where(np.isfinite(range_m), range_m, FAR_FILL_M).astype(np.float32)
     extra = {}
     if spec.camera_errors:
-        # the camera's own exact kernels, its whole-image shift taken out (a calibrated optical centre), as
-        # `bmi eval` renders its built-camera conditions
+        # the camera's own exact kernels, its whole-image shift taken out (a calibrated optical centre), on the
+        # render zones its kernels need, as `bmi eval` renders its built-camera conditions
         camera = spec.camera(index)
         psf_map = camera.psf_map(mode="exact", centre_calibrated=True)
-        optical = render_coded(rgb, render_range, psf_map.tensor, geometry, row0=row0, col0=col0, psf_map=psf_map)
+        optical = render_coded(rgb, render_range, psf_map.tensor, geometry, row0=row0, col0=col0, psf_map=psf_map,
+                               zone_px=camera.render_zone_px("exact"))
         extra["perturbation"] = camera.perturbation.to_vector().astype(np.float32)
     else:
         optical = render_coded(rgb, render_range, tensor, geometry, row0=row0, col0=col0, psf_mode="tensor")

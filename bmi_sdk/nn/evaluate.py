@@ -139,17 +139,18 @@ class Benchmark:
         return mirror_extend(rgb, range_m, self.margin_px - SCENE_MARGIN_PX)
 
     def renders(self, tensor, progress: bool = False, psf_mode: str = "tensor",
-                centre_calibrated: bool = True) -> list[dict]:
+                centre_calibrated: bool = True, zone_px: int | None = None) -> list[dict]:
         """Scene, optical image (relative illumination applied) and position of every tile, for one tensor.
 
         ``psf_mode`` makes the zone kernels (``render.PsfMap``) from ``tensor``, with the hardware errors
         it was built with (``BuiltCamera.psf_tensor``); ``centre_calibrated`` (default) takes the
         whole-image shift of those errors out in ``exact`` mode, as a camera whose optical centre is
-        calibrated sees it.
+        calibrated sees it. ``zone_px``: the render zones (default the renderer's 512 px; a built camera's
+        ``BuiltCamera.render_zone_px``, finer where its kernels change fast with θ).
         """
         from bmi_sdk.scaleout import fan_out, open_client
 
-        state = _WindowRenderer(self, tensor, psf_mode, centre_calibrated)
+        state = _WindowRenderer(self, tensor, psf_mode, centre_calibrated, zone_px)
         with open_client(self.scheduler, announce=False) as client:
             return fan_out(_render_window, self.windows(), client=client, state=state,
                            desc="rendering benchmark tiles", unit="tile", progress=progress)
@@ -163,13 +164,15 @@ class _WindowRenderer:
     tensor: object
     psf_mode: str
     centre_calibrated: bool
+    zone_px: int | None = None
 
     def __call__(self) -> dict:
         from bmi_sdk.render import PsfMap
 
         geometry = lens_geometry(self.bench.lens)
         psf_map = PsfMap(self.tensor, geometry, mode=self.psf_mode, centre_calibrated=self.centre_calibrated)
-        return {"bench": self.bench, "tensor": self.tensor, "geometry": geometry, "psf_map": psf_map}
+        zones = {} if self.zone_px is None else {"zone_px": self.zone_px}
+        return {"bench": self.bench, "tensor": self.tensor, "geometry": geometry, "psf_map": psf_map, "zones": zones}
 
 
 def _render_window(state: dict, window: tuple) -> dict:
@@ -180,7 +183,8 @@ def _render_window(state: dict, window: tuple) -> dict:
     size, m = bench.tile_px + 2 * bench.margin_px, bench.margin_px
     region, i, row0, col0 = window
     rgb, range_m = bench.scene(region, i)
-    optical = render_coded(rgb, range_m, state["tensor"], geometry, row0=row0, col0=col0, psf_map=state["psf_map"])
+    optical = render_coded(rgb, range_m, state["tensor"], geometry, row0=row0, col0=col0, psf_map=state["psf_map"],
+                           **state["zones"])
     optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
     return {"region": region, "tile": i, "row0": row0 + m, "col0": col0 + m, "optical_full": optical,
             "rgb": rgb[m:-m, m:-m], "range_m": range_m[m:-m, m:-m]}
@@ -389,12 +393,13 @@ def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(),
             rows += score(model, renders, bench, noise[name], name)
     for name in [c for c in conditions if c in HARDWARE]:
         camera = BuiltCamera(bench.lens, HARDWARE[name])
-        renders_p = bench.renders(camera.psf_tensor(), progress)
+        renders_p = bench.renders(camera.psf_tensor(), progress, zone_px=camera.render_zone_px("tensor"))
         for model in models + calibrated(camera.psf_map(mode="tensor")):
             rows += score(model, renders_p, bench, STANDARD_SIGMA, name)
     for name in [c for c in conditions if c in EXACT]:
         camera = BuiltCamera(bench.lens, EXACT[name])
-        renders_p = bench.renders(camera.psf_tensor(), progress, psf_mode="exact")
+        renders_p = bench.renders(camera.psf_tensor(), progress, psf_mode="exact",
+                                  zone_px=camera.render_zone_px("exact"))
         for model in models + calibrated(camera.psf_map(mode="exact", centre_calibrated=True)):
             rows += score(model, renders_p, bench, STANDARD_SIGMA, name)
     if "fisheye_standard" in conditions:
