@@ -112,8 +112,18 @@ def _render_zone_px(camera: BuiltCamera, mode: str) -> int:
 
     if camera.is_nominal:
         return DEFAULT_ZONE_PX
-    design = BuiltCamera(camera.lens_name, geometry=camera.geometry)
-    return zone_px_for(camera.psf_map(mode, centre_calibrated=True), design.psf_map(mode))
+    return zone_px_for(camera.psf_map(mode, centre_calibrated=True),
+                       _design_kernel_change(camera.lens_name, camera.geometry, mode))
+
+
+@functools.lru_cache(maxsize=8)
+def _design_kernel_change(lens_name: str, geometry: SensorGeometry | None, mode: str) -> float:
+    """The design's kernel change over its default zone (``render.zone_size.kernel_change``): the same for every
+    built camera of one lens, so traced once (sampled-camera training asks for it per pair)."""
+    from .render import DEFAULT_ZONE_PX
+    from .render.zone_size import kernel_change
+
+    return kernel_change(BuiltCamera(lens_name, geometry=geometry).psf_map(mode), DEFAULT_ZONE_PX)
 
 
 @functools.lru_cache(maxsize=8)

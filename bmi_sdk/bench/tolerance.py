@@ -26,6 +26,7 @@ focus; a smaller one pushes the focus further out, where the far blur changes fa
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -68,9 +69,8 @@ def tolerance_cameras() -> list[tuple[str, object]]:
     cameras += [(f"sensor radius {pct:+g} %", BuiltCamera(perturbation=Perturbation(sensor_radius_error_pct=pct)))
                 for pct in SENSOR_RADIUS_ERRORS_PCT]
     cameras.append(("the issue's perturbed camera", BuiltCamera(perturbation=issue)))
-    without = Perturbation(decenter_um=issue.decenter_um, psf_shift_px=issue.psf_shift_px,
-                           stray_light_fraction=issue.stray_light_fraction)
-    cameras.append(("it without its radius error", BuiltCamera(perturbation=without)))
+    cameras.append(("it without its radius error",
+                    BuiltCamera(perturbation=replace(issue, sensor_radius_error_pct=0.0))))
     return cameras
 
 

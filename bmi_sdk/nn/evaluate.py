@@ -167,12 +167,12 @@ class _WindowRenderer:
     zone_px: int | None = None
 
     def __call__(self) -> dict:
-        from bmi_sdk.render import PsfMap
+        from bmi_sdk.render import DEFAULT_ZONE_PX, PsfMap
 
         geometry = lens_geometry(self.bench.lens)
         psf_map = PsfMap(self.tensor, geometry, mode=self.psf_mode, centre_calibrated=self.centre_calibrated)
-        zones = {} if self.zone_px is None else {"zone_px": self.zone_px}
-        return {"bench": self.bench, "tensor": self.tensor, "geometry": geometry, "psf_map": psf_map, "zones": zones}
+        return {"bench": self.bench, "tensor": self.tensor, "geometry": geometry, "psf_map": psf_map,
+                "zone_px": self.zone_px or DEFAULT_ZONE_PX}
 
 
 def _render_window(state: dict, window: tuple) -> dict:
@@ -184,7 +184,7 @@ def _render_window(state: dict, window: tuple) -> dict:
     region, i, row0, col0 = window
     rgb, range_m = bench.scene(region, i)
     optical = render_coded(rgb, range_m, state["tensor"], geometry, row0=row0, col0=col0, psf_map=state["psf_map"],
-                           **state["zones"])
+                           zone_px=state["zone_px"])
     optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
     return {"region": region, "tile": i, "row0": row0 + m, "col0": col0 + m, "optical_full": optical,
             "rgb": rgb[m:-m, m:-m], "range_m": range_m[m:-m, m:-m]}

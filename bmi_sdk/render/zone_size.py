@@ -47,10 +47,11 @@ def kernel_change(psf_map, zone_px: int) -> float:
     return float(np.abs(np.asarray(inner, np.float64) - outer).sum(axis=(-2, -1)).max())
 
 
-def zone_px_for(psf_map, design_map) -> int:
+def zone_px_for(psf_map, design_change: float) -> int:
     """The largest of ``ZONE_CHOICES_PX`` over which ``psf_map``'s kernels change no more than ``TOLERANCE`` × the
-    design's (``design_map``) over ``DEFAULT_ZONE_PX``; the smallest choice if none does."""
-    limit = TOLERANCE * kernel_change(design_map, DEFAULT_ZONE_PX)
+    design's change over ``DEFAULT_ZONE_PX`` (``design_change``, its ``kernel_change``); the smallest choice if none
+    does."""
+    limit = TOLERANCE * design_change
     for zone_px in ZONE_CHOICES_PX:
         if kernel_change(psf_map, zone_px) <= limit:
             return zone_px
