@@ -39,3 +39,16 @@ def test_a_focus_moved_into_range_takes_the_window_bound_there():
     assert built_bound[1] > 4 * nominal_bound[1]
     assert 0.6 < built_bound[0] / nominal_bound[0] < 1.4
     assert np.all(nominal_decoded < 0.1)  # the design's planes decode near their bound
+
+
+def test_only_targets_with_a_full_size_measurement_take_full():
+    """``bmi bench tolerance`` has no full-size run: ``--full`` is refused by the parser instead of ignored."""
+    import pytest
+
+    from bmi_sdk.cli import build_parser
+
+    parser = build_parser()
+    assert parser.parse_args(["bench", "decoder", "--full"]).full
+    with pytest.raises(SystemExit):
+        parser.parse_args(["bench", "tolerance", "--full"])
+    assert not hasattr(parser.parse_args(["bench", "tolerance"]), "full")

@@ -81,17 +81,20 @@ def timed_cpu(fn):
     return out, time.perf_counter() - wall, cpu_seconds() - cpu
 
 
-def register_target(subparsers, name: str, help_text: str, description: str, section: str, run) -> None:
-    """Add ``bmi bench NAME [--full] [--write-docs]`` printing ``run(full)`` (a markdown text)."""
+def register_target(subparsers, name: str, help_text: str, description: str, section: str, run,
+                    full: bool = True) -> None:
+    """Add ``bmi bench NAME [--full] [--write-docs]`` printing ``run(full)`` (a markdown text); ``full`` False: the
+    target has no full-size measurement, takes no ``--full`` (argparse refuses it) and prints ``run()``."""
 
     def handler(args) -> int:
-        text = run(full=args.full)
+        text = run(full=args.full) if full else run()
         print(text)
         if args.write_docs:
             update_section(section, text)
         return 0
 
     p = subparsers.add_parser(name, help=help_text, description=description)
-    p.add_argument("--full", action="store_true", help="also run the full-size measurement (minutes)")
+    if full:
+        p.add_argument("--full", action="store_true", help="also run the full-size measurement (minutes)")
     p.add_argument("--write-docs", action="store_true", help=f"replace the '{section}' section of docs/benchmarks.md")
     p.set_defaults(handler=handler)

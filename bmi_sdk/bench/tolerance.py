@@ -92,7 +92,7 @@ def camera_curves(camera, depths_m=TOLERANCE_DEPTHS_M, field_deg: float = TOLERA
     return np.array(bound), np.array(decoded)
 
 
-def run(full: bool = False) -> str:
+def run() -> str:
     from bmi_sdk.nn.evaluate import Benchmark
 
     bench = Benchmark()
@@ -128,4 +128,4 @@ def run(full: bool = False) -> str:
 
 def register(subparsers) -> None:
     register_target(subparsers, "tolerance", "depth information a built camera's errors take from the field edge",
-                    __doc__, "Hardware tolerance at the field edge", run)
+                    __doc__, "Hardware tolerance at the field edge", run, full=False)
