@@ -43,8 +43,6 @@ def test_a_focus_moved_into_range_takes_the_window_bound_there():
 
 def test_only_targets_with_a_full_size_measurement_take_full():
     """``bmi bench tolerance`` has no full-size run: ``--full`` is refused by the parser instead of ignored."""
-    import pytest
-
     from bmi_sdk.cli import build_parser
 
     parser = build_parser()
