@@ -170,8 +170,7 @@ def window_raw(rgb: np.ndarray, range_m: np.ndarray, tensor, geometry, field_deg
     m, size = PLANE_MARGIN_PX, rgb.shape[0]
     r, c = geometry.pixel_of_field(field_deg, azimuth_deg)
     row0, col0 = int(r - size / 2) // 2 * 2, int(c - size / 2) // 2 * 2
-    zones = {} if zone_px is None else {"zone_px": zone_px}
-    optical = render_coded(rgb, range_m, tensor, geometry, row0, col0, psf_map=psf_map, **zones)
+    optical = render_coded(rgb, range_m, tensor, geometry, row0, col0, psf_map=psf_map, zone_px=zone_px)
     optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
     raw = simulate_raw(optical[m:-m, m:-m], STANDARD_SIGMA, np.random.default_rng(seed), row0 + m, col0 + m)
     return raw, row0 + m, col0 + m

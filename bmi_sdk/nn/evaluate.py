@@ -167,12 +167,12 @@ class _WindowRenderer:
     zone_px: int | None = None
 
     def __call__(self) -> dict:
-        from bmi_sdk.render import DEFAULT_ZONE_PX, PsfMap
+        from bmi_sdk.render import PsfMap
 
         geometry = lens_geometry(self.bench.lens)
         psf_map = PsfMap(self.tensor, geometry, mode=self.psf_mode, centre_calibrated=self.centre_calibrated)
         return {"bench": self.bench, "tensor": self.tensor, "geometry": geometry, "psf_map": psf_map,
-                "zone_px": self.zone_px or DEFAULT_ZONE_PX}
+                "zone_px": self.zone_px}
 
 
 def _render_window(state: dict, window: tuple) -> dict:

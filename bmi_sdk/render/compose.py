@@ -85,13 +85,14 @@ def _convolve_into(acc, box, images, kernels, rows, cols):
 
 
 def render_coded(rgb: np.ndarray, range_m: np.ndarray, tensor: PsfTensor, geometry: SensorGeometry = BMI_SENSOR,
-                 row0: int = 0, col0: int = 0, *, zone_px: int = DEFAULT_ZONE_PX, ramp_px: int | None = None,
+                 row0: int = 0, col0: int = 0, *, zone_px: int | None = None, ramp_px: int | None = None,
                  interpolation: str = "linear", psf_mode: str = "exact", psf_map: PsfMap | None = None,
                  progress: bool = False) -> np.ndarray:
     """Coded optical image (H × W × 3 float32) of a scene window placed at (row0, col0) of the sensor.
 
     ``psf_mode`` chooses how zone kernels are made (``render.psf_map``): ``exact`` traces each
     zone's own (θ, φ); ``tensor`` interpolates and rotates the radial tensor like the paper.
+    ``zone_px``: the zone size (default ``DEFAULT_ZONE_PX``; a built camera's ``BuiltCamera.render_zone_px``).
     ``ramp_px`` is the blend width across zone borders (``render.convolve``); the default,
     ``zone_px`` / 8 up to 64 px, errs by 7e-5 against 64 px zones at a sixth of the cost of
     bilinear tents (``bmi bench render``). Pass a ``psf_map`` built for the same tensor and
@@ -108,6 +109,8 @@ def render_coded(rgb: np.ndarray, range_m: np.ndarray, tensor: PsfTensor, geomet
     elif psf_map.tensor is not tensor or psf_map.geometry != geometry:
         raise ValueError("psf_map was built for another tensor or geometry")
     kpx = psf_map.kernel_px
+    if zone_px is None:
+        zone_px = DEFAULT_ZONE_PX
     if ramp_px is None:
         ramp_px = max(1, min(DEFAULT_RAMP_PX, zone_px // 8))
     zone_list = zones(height, width, zone_px, row0, col0, ramp_px)
