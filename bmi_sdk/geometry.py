@@ -29,9 +29,14 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
+
+_CIRCLE_BAND = 1e-9
+"""Relative band of squared distances about the image circle's rim inside which ``valid_mask`` evaluates θ itself:
+far wider than the float rounding that separates the two tests (~1e-16), and a fraction of a pixel wide."""
 
 
 @dataclass(frozen=True)
@@ -161,12 +166,58 @@ class SensorGeometry:
         return radial, cos_phi, dy * inv
 
     def valid_mask(self, row0: int = 0, col0: int = 0, height: int | None = None, width: int | None = None):
-        """Pixels inside the image circle (θ ≤ max_field_deg)."""
+        """Pixels inside the image circle (θ ≤ max_field_deg).
+
+        θ never falls as a pixel moves away from the optical centre (the chief-ray table rises), so the image circle
+        is a disc of radius ``image_circle_radius_px``: a pixel's squared distance from the centre decides it, and θ
+        itself is evaluated only for the pixels within a relative ``_CIRCLE_BAND`` of the rim, where rounding could
+        tell the two tests apart. The same mask as θ ≤ max_field_deg at every pixel (``valid_mask_by_field``), at a
+        tenth of the work: it runs on every network tile and output band of a frame.
+        """
+        height = self.height_px - row0 if height is None else height
+        width = self.width_px - col0 if width is None else width
+        rim_px = self.image_circle_radius_px
+        if rim_px is None:
+            return self.valid_mask_by_field(row0, col0, height, width)
+        cy, cx = self.centre_px
+        dy2 = ((np.arange(row0, row0 + height, dtype=np.float64) - cy) ** 2)[:, None]
+        dx2 = ((np.arange(col0, col0 + width, dtype=np.float64) - cx) ** 2)[None, :]
+        dist2 = dy2 + dx2
+        inside = dist2 <= rim_px ** 2 * (1.0 - _CIRCLE_BAND)
+        rim = (dist2 <= rim_px ** 2 * (1.0 + _CIRCLE_BAND)) & ~inside
+        if rim.any():
+            rows, cols = np.nonzero(rim)
+            theta = self.field_deg_from_radial_mm(self.pixel_polar(rows + row0, cols + col0)[0])
+            inside[rim] = np.isfinite(theta) & (theta <= self.max_field_deg)
+        return inside
+
+    def valid_mask_by_field(self, row0: int = 0, col0: int = 0, height: int | None = None, width: int | None = None):
+        """``valid_mask`` by its definition, θ ≤ max_field_deg evaluated at every pixel: the reference it is tested
+        against, and its fallback where θ is not monotone in the distance from the centre."""
         height = self.height_px - row0 if height is None else height
         width = self.width_px - col0 if width is None else width
         radial, _, _ = self.window_polar(row0, col0, height, width)
         theta = self.field_deg_from_radial_mm(radial)
         return np.isfinite(theta) & (theta <= self.max_field_deg)
+
+    @cached_property
+    def image_circle_radius_px(self) -> float | None:
+        """Distance from the optical centre (px) out to which θ ≤ max_field_deg: the chief-ray table's radial at
+        max_field_deg (its last radial when the table stops short of it: θ is undefined beyond), or R·θ_max on a
+        sphere without a table. None where that does not describe the circle: a field table that does not rise throughout
+        (θ not strictly monotone in the distance), one starting beyond max_field_deg, or a plane sensor with no
+        table."""
+        pitch_mm = self.pitch_um * 1e-3
+        if len(self.radial_table_mm):
+            field_deg = np.asarray(self.field_table_deg, np.float64)
+            if np.any(np.diff(field_deg) <= 0) or field_deg[0] > self.max_field_deg:
+                return None
+            if self.max_field_deg >= field_deg[-1]:
+                return float(self.radial_table_mm[-1]) / pitch_mm
+            return float(np.interp(self.max_field_deg, field_deg, self.radial_table_mm)) / pitch_mm
+        if self.radius_mm is None:
+            return None
+        return float(np.radians(self.max_field_deg) * self.radius_mm) / pitch_mm
 
     def ray_directions(self, rows, cols):
         """Unit object-space chief-ray directions (…, 3), camera frame x right, y down, z forward."""

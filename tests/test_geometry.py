@@ -114,3 +114,33 @@ def test_a_built_camera_s_rays_land_where_its_traced_chief_rays_do():
     assert SensorGeometry.from_dict(rays.to_dict()) == rays
     assert BuiltCamera(perturbation=Perturbation(stray_light_fraction=0.03, psf_scale_pct=2.0)).ray_geometry() is \
         BuiltCamera().sensor()
+
+
+def test_valid_mask_by_distance_equals_the_field_test_at_every_pixel():
+    """valid_mask decides by the squared distance from the centre and evaluates θ only at the rim; the brute-force
+    reference evaluates θ ≤ max_field_deg at every pixel. They agree on whole sensors (traced table, R·θ, the
+    fisheye's plane, an off-centre axis, a displaced built camera) and on a rim drawn exactly through a pixel, where
+    only θ itself can decide; a field table that does not rise falls back to the reference."""
+    from dataclasses import replace
+
+    from bmi_sdk.built_camera import BuiltCamera
+    from bmi_sdk.optics.perturb import Perturbation
+
+    small = dict(width_px=1200, height_px=900)
+    geometries = [replace(BMI_SENSOR, **small, max_field_deg=11.0), replace(IDEAL_BMI_SENSOR, **small, max_field_deg=10.0),
+                  replace(SensorGeometry.for_lens(get_lens("fisheye")), **small, max_field_deg=10.0),
+                  replace(BMI_SENSOR, **small, cx_px=601.3, cy_px=440.0, max_field_deg=10.0),
+                  BuiltCamera(perturbation=Perturbation(decenter_um=(10.0, -4.0))).ray_geometry()]
+    for g in geometries:
+        np.testing.assert_array_equal(g.valid_mask(), g.valid_mask_by_field())
+        assert 0 < g.valid_mask().sum() < g.width_px * g.height_px
+    # a rim through pixel (450, 999): dy 0.5, dx 399.5 px from the centre (449.5, 599.5)
+    rim_deg = float(np.degrees(np.hypot(0.5, 399.5) * 2e-3 / 7.199))
+    for nudge in (-1e-13, 0.0, 1e-13):
+        g = replace(IDEAL_BMI_SENSOR, **small, max_field_deg=rim_deg + nudge)
+        assert abs(g.image_circle_radius_px - np.hypot(0.5, 399.5)) < 1e-9  # the pixel lies in the evaluated band
+        np.testing.assert_array_equal(g.valid_mask(440, 980, 20, 40), g.valid_mask_by_field(440, 980, 20, 40))
+    falling = replace(BMI_SENSOR, **small, field_table_deg=(0.0, 20.0, 15.0), radial_table_mm=(0.0, 1.0, 2.0),
+                      max_field_deg=17.0)
+    assert falling.image_circle_radius_px is None
+    np.testing.assert_array_equal(falling.valid_mask(), falling.valid_mask_by_field())
