@@ -7,6 +7,7 @@ import errno
 import json
 import warnings
 
+import numpy as np
 import pytest
 import torch
 
@@ -121,6 +122,23 @@ def test_quality_metrics_tell_bad_frames_from_images():
                                      noise_frame.data.shape, generator=torch.Generator().manual_seed(0)).numpy()
     noise = assess_frame(noise_frame)
     assert abs(noise.structure) < 0.1 and any("noise" in w for w in noise.warnings)
+
+
+def test_neighbour_correlation_in_bands_equals_numpy_s_over_every_pair():
+    """The gate's structure number, summed band by band on shifted raw values, against np.corrcoef of the same-colour
+    pairs inside the circle taken at once (a frame of three bands, a smooth image plus noise, a disc mask)."""
+    from bmi_sdk.runtime import quality
+
+    rng = np.random.default_rng(3)
+    rows, cols = np.mgrid[0:1100, 0:300]
+    data = (2000 + 800 * np.sin(rows / 37.0) * np.cos(cols / 23.0) + rng.normal(0, 40, rows.shape)).astype(np.uint16)
+    mask = (rows - 550) ** 2 + (cols - 150) ** 2 < 500 ** 2
+    both = mask[:, :-2] & mask[:, 2:]
+    expected = np.corrcoef(data[:, :-2][both].astype(float), data[:, 2:][both].astype(float))[0, 1]
+    assert data.shape[0] > 2 * quality.CORRELATION_ROWS
+    for offset_dn in (0.0, 2000.0):
+        assert quality._neighbour_correlation(data, mask, offset_dn) == pytest.approx(expected, rel=1e-12)
+    assert quality._neighbour_correlation(np.full((4, 4), 7, np.uint16), np.ones((4, 4), bool)) == 0.0
 
 
 def test_test_pattern_frames_are_refused_unless_asked(model, tmp_path, capsys):

@@ -58,28 +58,44 @@ def _image_circle(frame) -> np.ndarray:
     return mask if mask.shape == frame.data.shape and mask.any() else np.ones(frame.data.shape, bool)
 
 
-def _neighbour_correlation(signal: np.ndarray, mask: np.ndarray) -> float:
-    """Correlation of pixel (r, c) with (r, c + 2): same CFA colour, one cell apart."""
-    a, b = signal[:, :-2], signal[:, 2:]
-    both = mask[:, :-2] & mask[:, 2:]
-    a, b = a[both], b[both]
-    if a.size < 2:
+CORRELATION_ROWS = 512
+"""Rows of a frame correlated at a time: the sums stay float64, the temporaries a few tens of MB."""
+
+
+def _neighbour_correlation(data: np.ndarray, mask: np.ndarray, offset_dn: float = 0.0) -> float:
+    """Correlation of pixel (r, c) with (r, c + 2) (same CFA colour, one cell apart) over the pairs inside ``mask``.
+
+    The correlation does not change under an affine map of the values, so it is taken on the raw numbers less
+    ``offset_dn`` (a typical level: the sums' cancellation then costs no digits), accumulated band by band in
+    float64: a full frame's float copies would take 0.4 GB at once."""
+    n = 0
+    sums = np.zeros(5)  # Σa, Σb, Σa², Σb², Σab
+    for top in range(0, data.shape[0], CORRELATION_ROWS):
+        band = np.asarray(data[top:top + CORRELATION_ROWS], np.float64) - offset_dn
+        inside = mask[top:top + CORRELATION_ROWS]
+        both = inside[:, :-2] & inside[:, 2:]
+        a, b = band[:, :-2][both], band[:, 2:][both]
+        n += a.size
+        sums += (a.sum(), b.sum(), np.dot(a, a), np.dot(b, b), np.dot(a, b))
+    if n < 2:
         return 0.0
-    a = a - a.mean()
-    b = b - b.mean()
-    denom = np.sqrt((a * a).sum() * (b * b).sum())
-    return float((a * b).sum() / denom) if denom > 0 else 0.0
+    sa, sb, saa, sbb, sab = sums
+    var_a, var_b, cov = saa - sa * sa / n, sbb - sb * sb / n, sab - sa * sb / n
+    denom = np.sqrt(max(var_a, 0.0) * max(var_b, 0.0))
+    return float(cov / denom) if denom > 0 else 0.0
 
 
 def assess_frame(frame) -> FrameQuality:
     """Measure ``frame`` (a ``devices.RawFrame``) and list what is wrong with it, in words a user can act on."""
-    data = np.asarray(frame.data, dtype=np.float64)
+    data = np.asarray(frame.data)
     mask = _image_circle(frame)
     span = max(1.0, float(frame.white_level_dn - frame.black_level_dn))
-    signal = (data - frame.black_level_dn) / span
-    saturated = float((data[mask] >= frame.white_level_dn).mean())
-    level = float(np.median(signal[mask]))
-    structure = _neighbour_correlation(signal, mask)
+    inside = data[mask]
+    saturated = float(np.count_nonzero(inside >= frame.white_level_dn) / inside.size)
+    median_dn = float(np.median(inside))
+    del inside
+    level = (median_dn - frame.black_level_dn) / span
+    structure = _neighbour_correlation(data, mask, median_dn)
     quality = FrameQuality(saturated, level, structure, bool(getattr(frame, "test_pattern", False)))
     if quality.test_pattern:
         quality.warnings.append("the frame is a test pattern (TEST_PATTERN register set), not a sensor image")
