@@ -172,6 +172,22 @@ SIGMA_OUTPUT_NAMES = ("depth_sigma.npy", "confidence.png")
 """The files it adds when the decoder reports a depth 1σ (the classical decoder)."""
 
 
+WRITE_THREADS = 2
+"""Output files written at once: a full frame's writing is 7 CPU-s (PNG encoding, the sRGB curve, z-depth), and two
+threads keep the sRGB temporaries of the AiF (~250 MB) beside one other file's."""
+
+
+def _run_all(jobs: list) -> list:
+    """Run the callables ``jobs`` on ``WRITE_THREADS`` threads; their results in order, or the first one's error
+    (in ``jobs``' order) once every job has finished, so that no file is still being written when it is raised."""
+    from concurrent.futures import ThreadPoolExecutor, wait
+
+    with ThreadPoolExecutor(max_workers=WRITE_THREADS, thread_name_prefix="write-outputs") as pool:
+        futures = [pool.submit(job) for job in jobs]
+        wait(futures)
+    return [future.result() for future in futures]
+
+
 def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarray, geometry: SensorGeometry,
                   row0: int = 0, col0: int = 0, *, ply_step_px: int = 1, preview_px: int = 1500,
                   depth_sigma_m: np.ndarray | None = None,
@@ -187,25 +203,36 @@ def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarr
     near_m, far_m = check_depth_range(depth_range_m) if depth_range_m is not None else (None, None)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    save_npy(out / "aif.npy", np.asarray(aif, np.float32))
-    bgr16, bgr8 = srgb_images(aif)
-    _imwrite(out / "aif.png", bgr16)
-    del bgr16
-    _imwrite(out / "aif_preview.png", _downscale(bgr8, preview_px))
-    del bgr8
-    save_npy(out / "depth.npy", np.asarray(depth_m, np.float32))
-    save_npy(out / "depth_z.npy", range_to_z_map(depth_m, geometry, row0, col0))
-    mm = np.where(np.isfinite(depth_m), np.clip(np.round(depth_m * 1000), 1, 65535), 0).astype(np.uint16)
-    _imwrite(out / "depth_mm.png", mm)
-    del mm
-    _imwrite(out / "depth_preview.png", depth_preview(depth_m, preview_px, near_m, far_m))
-    names = list(OUTPUT_NAMES)
-    if depth_sigma_m is not None:
+
+    def aif_images():
+        bgr16, bgr8 = srgb_images(aif)
+        _imwrite(out / "aif.png", bgr16)
+        del bgr16
+        _imwrite(out / "aif_preview.png", _downscale(bgr8, preview_px))
+
+    def depth_files():
+        save_npy(out / "depth.npy", np.asarray(depth_m, np.float32))
+        save_npy(out / "depth_z.npy", range_to_z_map(depth_m, geometry, row0, col0))
+        mm = np.where(np.isfinite(depth_m), np.clip(np.round(depth_m * 1000), 1, 65535), 0).astype(np.uint16)
+        _imwrite(out / "depth_mm.png", mm)
+        del mm
+        _imwrite(out / "depth_preview.png", depth_preview(depth_m, preview_px, near_m, far_m))
+
+    def sigma_files():
         save_npy(out / "depth_sigma.npy", np.where(np.isfinite(depth_m), depth_sigma_m, np.nan).astype(np.float32))
         _imwrite(out / "confidence.png", confidence_image(depth_m, depth_sigma_m))
+
+    def point_cloud():
+        return write_ply(out / "points.ply", depth_m, aif, geometry, row0, col0, ply_step_px,
+                         depth_sigma_m=depth_sigma_m)
+
+    # longest first; the files are independent, and numpy, OpenCV and file writes release the GIL
+    jobs = [aif_images, depth_files, lambda: save_npy(out / "aif.npy", np.asarray(aif, np.float32)), point_cloud]
+    names = list(OUTPUT_NAMES)
+    if depth_sigma_m is not None:
+        jobs.insert(2, sigma_files)
         names += list(SIGMA_OUTPUT_NAMES)
-    points = write_ply(out / "points.ply", depth_m, aif, geometry, row0, col0, ply_step_px,
-                       depth_sigma_m=depth_sigma_m)
+    points = _run_all(jobs)[jobs.index(point_cloud)]
     files = {name: str(out / name) for name in names}
     return {"files": files, "ply_points": points, "ply_step_px": ply_step_px}
 
