@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 
 import cv2
@@ -114,7 +115,7 @@ class ClassicalConfig:
     noise_model: str = "profile"  # "profile": the frame's NoiseProfile when it has one; "estimate": from the picture
     window_model: str = "tapered"  # "untapered": the evidence model before the taper's smoothing (``evidence``), which
     #                                learned models trained on its channels name in their manifests
-    threads: int | None = None  # FFT threads (default: all cores; 1 on a one-thread Dask worker)
+    threads: int | None = None  # blocks read at once (default: all cores; 1 on a one-thread Dask worker)
 
     def __post_init__(self):
         if self.window_px % 4 or self.window_px < 16:
@@ -182,6 +183,13 @@ class ClassicalDecoder:
     def for_psf_map(cls, psf_map, config: ClassicalConfig = ClassicalConfig()) -> "ClassicalDecoder":
         """A decoder over ``psf_map``'s kernels at ``config.candidates`` depths spaced in 1/d on its depth grid."""
         return cls(psf_map, inverse_depth_candidates(psf_map.tensor.depth_m, config.candidates), config)
+
+    def _block_threads(self, n_blocks: int) -> tuple[int, int]:
+        """(block threads, FFT threads per block): a frame's blocks are read on ``threads`` threads at once, each
+        block's transforms on one (a block's Python and numpy work between its transforms then no longer leaves a
+        core idle); a window of one block runs its transforms on ``threads``."""
+        workers = max(1, min(self.threads, n_blocks))
+        return workers, (1 if workers > 1 else self.threads)
 
     # -- evidence ---------------------------------------------------------------------------------
     def _block_nll(self, spectra: list, models: np.ndarray, noise_vars: list, taper_energy: float,
@@ -261,19 +269,13 @@ class ClassicalDecoder:
             colour = np.zeros((grid_rows, grid_cols, 3), np.float32)
         evaluations = {"full": 0, "done": 0}
         blocks = evidence_blocks(cfg, height, width)
-        skipped = windows_clipped = 0
-        bar = None
-        if progress:
-            from tqdm import tqdm
+        workers, fft_threads = self._block_threads(len(blocks))
 
-            bar = tqdm(total=len(blocks), unit="block", desc="evidence")
-        for block in blocks:
+        def read_block(block):
+            """A block's reads (steps 2–4) and the seconds they took, or None for a block outside the image circle."""
             br, bc, nr, nc = block
-            if bar is not None:
-                bar.update()
             if not frame_valid[evidence_block_extent(cfg, block, height, width)].any():
-                skipped += 1
-                continue
+                return None
             t0 = time.perf_counter()
             centre_row, centre_col = evidence_block_centre(cfg, block)
             zone = ZoneKernels.zone_at(geometry, row0 + centre_row, col0 + centre_col)
@@ -281,18 +283,15 @@ class ClassicalDecoder:
                                             col0 + (bc + np.arange(nc)) * cfg.stride_px, zone, cfg.theta_step_deg)
             window_reads = sum(len(idx) for _, idx, _ in reads)  # nr · nc, or more where windows blend zones
             ps = slice(br * sp, br * sp + (nr - 1) * sp + n), slice(bc * sp, bc * sp + (nc - 1) * sp + n)
-            windows = [window_spectra(padded[p][ps], n, sp, taper, self.threads) for p in range(4)]
+            windows = [window_spectra(padded[p][ps], n, sp, taper, fft_threads) for p in range(4)]
             spectra = [w[0] for w in windows]
             noise_vars = [noise.variance(w[1]) for w in windows]
             clipped = ([windows_touching(clipped_padded[p][ps], n, sp) for p in range(4)] if clipped_padded is not None
                        else [np.zeros(nr * nc, bool)] * 4)
-            windows_clipped += int(np.logical_or.reduce(clipped).sum())
-            blind[br:br + nr, bc:bc + nc] = np.logical_and.reduce(clipped).reshape(nr, nc)
             t1 = time.perf_counter()
             coarse_models = [self.zones.models(z, coarse) for z, _, _ in reads]
             t2 = time.perf_counter()
             coarse_nll = self._field_nll(spectra, reads, coarse_models, noise_vars, taper_energy, clipped)
-            evidence[br:br + nr, bc:bc + nc] = (coarse_nll - coarse_nll.min(axis=1, keepdims=True)).reshape(nr, nc, -1)
             best = np.unique(coarse[np.argmin(coarse_nll, axis=1)])
             reach = np.arange(-cfg.coarse_step, cfg.coarse_step + 1)
             which = np.unique(np.clip(best[:, None] + reach[None, :], 0, n_cand - 1))
@@ -308,15 +307,42 @@ class ClassicalDecoder:
                 nll[:, np.isin(which, fine)] = self._field_nll(spectra, reads, models, noise_vars, taper_energy,
                                                                clipped, coarse_models)
             depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
-            inv[br:br + nr, bc:bc + nc] = 1.0 / depth_b
-            sig[br:br + nr, bc:bc + nc] = sigma_b * self.laplace_inflation
-            if pooling:
-                curves[br:br + nr, bc:bc + nc] = whole_curves(coarse, coarse_nll, which, nll, n_cand).reshape(nr, nc, -1)
-                colour[br:br + nr, bc:bc + nc] = window_colour([w[1] for w in windows]).reshape(nr, nc, 3)
-            evaluations["full"] += window_reads * n_cand
-            evaluations["done"] += window_reads * (len(coarse) + len(fine))
-            timings["evidence_s"] += (t1 - t0) + (t3 - t2) + (time.perf_counter() - t4)
-            timings["kernels_s"] += (t2 - t1) + (t4 - t3)
+            return {"evidence": (coarse_nll - coarse_nll.min(axis=1, keepdims=True)).reshape(nr, nc, -1),
+                    "clipped": int(np.logical_or.reduce(clipped).sum()),
+                    "blind": np.logical_and.reduce(clipped).reshape(nr, nc),
+                    "inv": 1.0 / depth_b, "sig": sigma_b * self.laplace_inflation,
+                    "curves": (whole_curves(coarse, coarse_nll, which, nll, n_cand).reshape(nr, nc, -1)
+                               if pooling else None),
+                    "colour": window_colour([w[1] for w in windows]).reshape(nr, nc, 3) if pooling else None,
+                    "full": window_reads * n_cand, "done": window_reads * (len(coarse) + len(fine)),
+                    "evidence_s": (t1 - t0) + (t3 - t2) + (time.perf_counter() - t4), "kernels_s": (t2 - t1) + (t4 - t3)}
+
+        skipped = windows_clipped = 0
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(blocks), unit="block", desc="evidence")
+        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="evidence") as pool:
+            for (br, bc, nr, nc), read in zip(blocks, pool.map(read_block, blocks)):
+                if bar is not None:
+                    bar.update()
+                if read is None:
+                    skipped += 1
+                    continue
+                cells = slice(br, br + nr), slice(bc, bc + nc)
+                evidence[cells] = read["evidence"]
+                windows_clipped += read["clipped"]
+                blind[cells] = read["blind"]
+                inv[cells] = read["inv"]
+                sig[cells] = read["sig"]
+                if pooling:
+                    curves[cells] = read["curves"]
+                    colour[cells] = read["colour"]
+                for key in ("full", "done"):
+                    evaluations[key] += read[key]
+                for key in ("evidence_s", "kernels_s"):
+                    timings[key] += read[key]
         if bar is not None:
             bar.close()
         t0 = time.perf_counter()
@@ -370,10 +396,15 @@ class ClassicalDecoder:
         n_cand = len(self.candidates)
         aif_cands = coarse_indices(n_cand, cfg.aif_step)
         cand_inv = self.candidates.inv_depth_per_m[aif_cands]
-        for r, r1, c, c1 in aif_blocks(cfg, height, width):
+        blocks = aif_blocks(cfg, height, width)
+        workers, fft_threads = self._block_threads(len(blocks))
+
+        def restore_block(block):
+            """The AiF of one block's core (core h × w × 3), or None for a block outside the image circle."""
+            r, r1, c, c1 = block
             core_valid = valid[r:r1, c:c1]
             if not core_valid.any():
-                continue
+                return None
             window = raw[np.ix_(reflect_indices(r - halo, fft_span_px(r1 - r, halo), height),
                                 reflect_indices(c - halo, fft_span_px(c1 - c, halo), width))]
             rgb = raw_to_rgb(window, black, white, window_cfa(cfa, row0 + r - halo, col0 + c - halo))
@@ -383,10 +414,15 @@ class ClassicalDecoder:
             signal = float(np.mean(rgb[core]))
             block_sigma = float(np.sqrt(noise.variance(signal) + (cfg.aif_model_error * signal) ** 2))
             aif = wiener_blend(rgb, inv_core, cand_inv, lambda idx, z=zone: self.zones.kernels(z, aif_cands[idx]),
-                               block_sigma, core, self.threads)
+                               block_sigma, core, fft_threads)
             falloff = relative_illumination(geometry, row0 + r, col0 + c, r1 - r, c1 - c)
-            out[r:r1, c:c1] = np.where(core_valid[..., None] & (falloff[..., None] > 0),
-                                       aif / np.maximum(falloff, 1e-6)[..., None], 0.0)
+            return np.where(core_valid[..., None] & (falloff[..., None] > 0),
+                            aif / np.maximum(falloff, 1e-6)[..., None], 0.0)
+
+        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="aif") as pool:
+            for (r, r1, c, c1), restored in zip(blocks, pool.map(restore_block, blocks)):
+                if restored is not None:
+                    out[r:r1, c:c1] = restored
         return out
 
     def frame_zones(self, geometry: SensorGeometry, height: int, width: int, row0: int = 0,

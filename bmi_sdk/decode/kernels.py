@@ -9,6 +9,8 @@ Only the candidates a tile asks for are computed.
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from .bayer import PLANE_CHANNELS
@@ -18,7 +20,10 @@ ZONE_STEP_DEG = 0.5
 
 
 class ZoneKernels:
-    """Memoised (C, D, K, K) kernels and folded evidence models for (θ, φ) zones of one ``PsfMap``."""
+    """Memoised (C, D, K, K) kernels and folded evidence models for (θ, φ) zones of one ``PsfMap``.
+
+    Safe to share between the decoder's block threads: what is missing is made under one lock (the ``PsfMap``'s own
+    memo, disk shards and trace counters are not thread-safe), once, while memoised entries are read without it."""
 
     def __init__(self, psf_map, candidates, slopes: tuple[float, ...], window_px: int, tapered: bool = True):
         if window_px % 2 or window_px < 8:
@@ -31,6 +36,15 @@ class ZoneKernels:
         self._kernels: dict[tuple, np.ndarray] = {}
         self._models: dict[tuple, np.ndarray] = {}
         self.kernel_sets_computed = 0
+        self._lock = threading.RLock()  # ``models`` makes its kernels under it
+
+    def __getstate__(self) -> dict:
+        """Pickled without its lock (a decoder travels to scale-out workers): each copy makes its own."""
+        return {k: v for k, v in self.__dict__.items() if k != "_lock"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.RLock()
 
     @staticmethod
     def zone(theta_deg: float, phi_deg: float) -> tuple[float, float]:
@@ -79,24 +93,28 @@ class ZoneKernels:
     def kernels(self, zone: tuple[float, float], which: np.ndarray) -> np.ndarray:
         """(C, len(which), K, K) unit-sum kernels of candidates ``which`` (indices into ``candidates``)."""
         which = np.atleast_1d(np.asarray(which, dtype=int))
-        missing = [int(j) for j in which if zone + (int(j),) not in self._kernels]
-        if missing:
-            k = self.psf_map.kernels(zone[0], zone[1], self.candidates.index[missing])
-            for n, j in enumerate(missing):
-                self._kernels[zone + (j,)] = k[:, n]
-            self.kernel_sets_computed += len(missing)
+        if any(zone + (int(j),) not in self._kernels for j in which):
+            with self._lock:  # another thread may have made them meanwhile: look again under the lock
+                missing = [int(j) for j in which if zone + (int(j),) not in self._kernels]
+                if missing:
+                    k = self.psf_map.kernels(zone[0], zone[1], self.candidates.index[missing])
+                    for n, j in enumerate(missing):
+                        self._kernels[zone + (j,)] = k[:, n]
+                    self.kernel_sets_computed += len(missing)
         return np.stack([self._kernels[zone + (int(j),)] for j in which], axis=1)
 
     def models(self, zone: tuple[float, float], which: np.ndarray) -> np.ndarray:
         """(planes, slopes, len(which), n, n//2+1) folded model power of each Bayer plane (``evidence``)."""
         which = np.atleast_1d(np.asarray(which, dtype=int))
         n_plane = self.window_px // 2
-        missing = [int(j) for j in which if zone + (int(j),) not in self._models]
-        if missing:
-            k = self.kernels(zone, np.asarray(missing))                       # (C, m, K, K)
-            per_channel = np.stack([[folded_model(k[c], n_plane, a, self.tapered) for a in self.slopes]
-                                    for c in range(k.shape[0])])               # (C, A, m, n, n/2+1)
-            for n, j in enumerate(missing):
-                self._models[zone + (j,)] = per_channel[:, :, n].astype(np.float32)
+        if any(zone + (int(j),) not in self._models for j in which):
+            with self._lock:
+                missing = [int(j) for j in which if zone + (int(j),) not in self._models]
+                if missing:
+                    k = self.kernels(zone, np.asarray(missing))                       # (C, m, K, K)
+                    per_channel = np.stack([[folded_model(k[c], n_plane, a, self.tapered) for a in self.slopes]
+                                            for c in range(k.shape[0])])               # (C, A, m, n, n/2+1)
+                    for n, j in enumerate(missing):
+                        self._models[zone + (j,)] = per_channel[:, :, n].astype(np.float32)
         stacked = np.stack([self._models[zone + (int(j),)] for j in which], axis=2)  # (C, A, D, n, m)
         return stacked[list(PLANE_CHANNELS)]
