@@ -68,6 +68,8 @@ class FeatureTiles:
         out[2 + len(self._evidence):] = np.clip(res.aif[box], 0.0, AIF_CLIP).transpose(2, 0, 1)
         out[:, ~valid] = 0.0
         np.nan_to_num(out, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+        if np.array_equal(rows, np.arange(r0, r1)) and np.array_equal(cols, np.arange(c0, c1)):
+            return out  # a tile inside the frame: its pixels in order, no reflected edge to copy them into
         return out[np.ix_(np.arange(self.count), rows - r0, cols - c0)]
 
 
