@@ -148,6 +148,10 @@ class ClassicalConfig:
         return d
 
 
+UPSAMPLE_ROWS = 512
+"""Rows of a frame taken from the window grid to pixels at a time (on the decoder's threads)."""
+
+
 @dataclass
 class DecodeResult:
     depth_m: np.ndarray            # H × W float32 range along each pixel's chief ray, NaN outside the image circle
@@ -362,11 +366,24 @@ class ClassicalDecoder:
         timings["fill_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         valid = frame_valid.copy()
-        inv_px = upsample_grid(inv, cfg.stride_px, height, width)
-        sig_px = upsample_grid(sig, cfg.stride_px, height, width)
-        valid &= np.isfinite(inv_px) & (inv_px > 0)
-        depth = np.where(valid, 1.0 / np.where(valid, inv_px, 1.0), np.nan).astype(np.float32)
-        depth_sigma = np.where(valid, sig_px * depth.astype(np.float64) ** 2, np.nan).astype(np.float32)
+        inv_px = np.empty((height, width), np.float32)
+        depth = np.empty((height, width), np.float32)
+        depth_sigma = np.empty((height, width), np.float32)
+
+        def to_pixels(top: int) -> None:
+            """Rows [top, top + UPSAMPLE_ROWS) of the per-pixel 1/d, validity, depth and its 1σ (step 6): any band of
+            ``upsample_grid`` reads what the whole frame's interpolation reads there."""
+            rows = slice(top, min(top + UPSAMPLE_ROWS, height))
+            n_rows = rows.stop - top
+            inv_px[rows] = upsample_grid(inv, cfg.stride_px, n_rows, width, top)
+            sig_px = upsample_grid(sig, cfg.stride_px, n_rows, width, top)
+            ok = valid[rows] & np.isfinite(inv_px[rows]) & (inv_px[rows] > 0)
+            valid[rows] = ok
+            depth[rows] = np.where(ok, 1.0 / np.where(ok, inv_px[rows], 1.0), np.nan)
+            depth_sigma[rows] = np.where(ok, sig_px * depth[rows].astype(np.float64) ** 2, np.nan)
+
+        with ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="upsample") as pool:
+            list(pool.map(to_pixels, range(0, height, UPSAMPLE_ROWS)))
         timings["upsample_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         aif = self._aif(raw, black_level_dn, white_level_dn, cfa, inv_px, valid, geometry, row0, col0, noise)
