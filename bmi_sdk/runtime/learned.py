@@ -14,6 +14,7 @@ reaches the network through the evidence and the fusion: the model is not retrai
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -111,7 +112,7 @@ def refine_decoded(model: Model, decoder: ClassicalDecoder, decoded: DecodeResul
     weights = model.fusion_weights
     noise_sigma = decoded.stats.get("noise_sigma")
     classical_share = fuse_into(decoded, decoder.config.stride_px, net.depth_m, net.depth_sigma_m, weights,
-                                noise_sigma)
+                                noise_sigma, decoder.threads)
     fusion = {"classical_weight_mean": classical_share, "fusion_s": time.perf_counter() - t0,
               "weights": "inverse-variance" if weights == INVERSE_VARIANCE else "fitted", "noise_sigma": noise_sigma,
               "coefficients": [float(c) for c in weights.coefficients(noise_sigma)], **weights.to_dict()}
@@ -124,13 +125,13 @@ FUSION_ROWS = 256
 
 
 def fuse_into(classical: DecodeResult, stride_px: int, depth_m: np.ndarray, sigma_m: np.ndarray,
-              weights: FusionWeights = INVERSE_VARIANCE, noise_sigma: float | None = None) -> float:
+              weights: FusionWeights = INVERSE_VARIANCE, noise_sigma: float | None = None, threads: int = 1) -> float:
     """Replace the network's ``depth_m`` and ``sigma_m`` (NaN where invalid) by their fusion with the ``classical``
     read of the same window (``decode.fusion`` with ``weights`` at the frame's ``noise_sigma``, and the classical
-    read's log-depth variation when the weights read it), band by band; returns the classical read's mean weight
-    over the valid pixels."""
-    weight_sum, count = 0.0, 0
-    for top in range(0, depth_m.shape[0], FUSION_ROWS):
+    read's log-depth variation when the weights read it), band by band on ``threads`` threads; returns the classical
+    read's mean weight over the valid pixels."""
+
+    def fuse_band(top: int) -> tuple[float, int]:
         band = slice(top, top + FUSION_ROWS)
         valid = np.isfinite(depth_m[band])
         variation = (log_depth_variation_px(classical, stride_px, top, valid.shape[0])
@@ -139,6 +140,12 @@ def fuse_into(classical: DecodeResult, stride_px: int, depth_m: np.ndarray, sigm
                                               sigma_m[band], weights, noise_sigma, variation)
         depth_m[band] = np.where(valid, fused, np.nan)
         sigma_m[band] = np.where(valid, sigma, np.nan)
-        weight_sum += float(weight[valid].sum())
-        count += int(valid.sum())
+        return float(weight[valid].sum()), int(valid.sum())
+
+    with ThreadPoolExecutor(max_workers=max(1, threads), thread_name_prefix="fusion") as pool:
+        bands = list(pool.map(fuse_band, range(0, depth_m.shape[0], FUSION_ROWS)))
+    weight_sum, count = 0.0, 0
+    for band_sum, band_count in bands:  # in band order: the same sum as one thread's
+        weight_sum += band_sum
+        count += band_count
     return weight_sum / count if count else float("nan")
