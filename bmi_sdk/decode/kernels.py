@@ -22,8 +22,9 @@ ZONE_STEP_DEG = 0.5
 class ZoneKernels:
     """Memoised (C, D, K, K) kernels and folded evidence models for (θ, φ) zones of one ``PsfMap``.
 
-    Safe to share between the decoder's block threads: what is missing is made under one lock (the ``PsfMap``'s own
-    memo, disk shards and trace counters are not thread-safe), once, while memoised entries are read without it."""
+    Safe to share between the decoder's block threads: kernels are asked of the ``PsfMap`` under one lock (its own
+    memo, disk shards and trace counters are not thread-safe), a zone's evidence models are made under that zone's
+    lock (once, and other zones' at the same time), and memoised entries are read without either."""
 
     def __init__(self, psf_map, candidates, slopes: tuple[float, ...], window_px: int, tapered: bool = True):
         if window_px % 2 or window_px < 8:
@@ -36,15 +37,17 @@ class ZoneKernels:
         self._kernels: dict[tuple, np.ndarray] = {}
         self._models: dict[tuple, np.ndarray] = {}
         self.kernel_sets_computed = 0
-        self._lock = threading.RLock()  # ``models`` makes its kernels under it
+        self._lock = threading.Lock()  # around the PsfMap
+        self._zone_locks: dict[tuple, threading.Lock] = {}
 
     def __getstate__(self) -> dict:
-        """Pickled without its lock (a decoder travels to scale-out workers): each copy makes its own."""
-        return {k: v for k, v in self.__dict__.items() if k != "_lock"}
+        """Pickled without its locks (a decoder travels to scale-out workers): each copy makes its own."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("_lock", "_zone_locks")}
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
-        self._lock = threading.RLock()
+        self._lock = threading.Lock()
+        self._zone_locks = {}
 
     @staticmethod
     def zone(theta_deg: float, phi_deg: float) -> tuple[float, float]:
@@ -108,7 +111,7 @@ class ZoneKernels:
         which = np.atleast_1d(np.asarray(which, dtype=int))
         n_plane = self.window_px // 2
         if any(zone + (int(j),) not in self._models for j in which):
-            with self._lock:
+            with self._zone_locks.setdefault(zone, threading.Lock()):  # setdefault: one lock per zone, atomically
                 missing = [int(j) for j in which if zone + (int(j),) not in self._models]
                 if missing:
                     k = self.kernels(zone, np.asarray(missing))                       # (C, m, K, K)
