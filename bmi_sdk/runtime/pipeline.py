@@ -112,8 +112,9 @@ def infer_raw(model: Model, raw: np.ndarray, *, black_level_dn: float, white_lev
     depth = np.full((height, width), np.nan, np.float32)
     depth_sigma = np.full((height, width), np.nan, np.float32) if with_sigma else None
     valid = np.zeros((height, width), bool)
-    band = np.zeros((tile, width, 6), np.float32)  # Σ w·rgb, Σ w·depth, Σ w, Σ w·σ over the band's rows
-    band_top = 0                                    # frame row of band[0]
+    band = np.zeros((6, tile, width), np.float32)  # Σ w·rgb, Σ w·depth, Σ w, Σ w·σ over the band's rows: planes,
+    #                                                 so that every sum and quotient runs over contiguous rows
+    band_top = 0                                    # frame row of band[:, 0]
 
     def finalise(stop_row: int) -> None:
         """Move frame rows [band_top, stop_row) from the band into the outputs."""
@@ -121,17 +122,18 @@ def infer_raw(model: Model, raw: np.ndarray, *, black_level_dn: float, white_lev
         if n <= 0:
             return
         t0 = time.perf_counter()
-        acc = band[:n]
-        wsum = acc[..., 4]
+        acc = band[:, :n]
+        wsum = acc[4]
         ok = geometry.valid_mask(row0 + band_top, col0, n, width) & (wsum > 0)
         safe = np.where(ok, wsum, 1.0)
-        aif[band_top:stop_row] = np.where(ok[..., None], acc[..., :3] / safe[..., None], 0.0)
-        depth[band_top:stop_row] = np.where(ok, acc[..., 3] / safe, np.nan)
+        for ch in range(3):
+            aif[band_top:stop_row, :, ch] = np.where(ok, acc[ch] / safe, 0.0)
+        depth[band_top:stop_row] = np.where(ok, acc[3] / safe, np.nan)
         if depth_sigma is not None:
-            depth_sigma[band_top:stop_row] = np.where(ok, acc[..., 5] / safe, np.nan)
+            depth_sigma[band_top:stop_row] = np.where(ok, acc[5] / safe, np.nan)
         valid[band_top:stop_row] = ok
-        band[:tile - n] = band[n:].copy()
-        band[tile - n:] = 0
+        band[:, :tile - n] = band[:, n:].copy()
+        band[:, tile - n:] = 0
         timings["finalise_s"] += time.perf_counter() - t0
 
     m = _DEMOSAIC_MARGIN_PX
@@ -186,12 +188,12 @@ def infer_raw(model: Model, raw: np.ndarray, *, black_level_dn: float, white_lev
                 fr0, fc0 = top, max(c, 0)
                 fr1, fc1 = fr0 + w.shape[0], fc0 + w.shape[1]
                 sl = (slice(fr0 - r, fr1 - r), slice(fc0 - c, fc1 - c))
-                dst = band[fr0 - band_top:fr1 - band_top, fc0:fc1]
-                dst[..., :3] += out_rgb[0][(slice(None), *sl)].transpose(1, 2, 0) * w[..., None]
-                dst[..., 3] += out_depth[0, 0][sl] * w
-                dst[..., 4] += w
+                dst = band[:, fr0 - band_top:fr1 - band_top, fc0:fc1]
+                dst[:3] += out_rgb[0][(slice(None), *sl)] * w
+                dst[3] += out_depth[0, 0][sl] * w
+                dst[4] += w
                 if out_sigma:
-                    dst[..., 5] += out_sigma[0][0, 0][sl] * w
+                    dst[5] += out_sigma[0][0, 0][sl] * w
                 timings["network_s"] += t1 - t0
                 timings["blend_s"] += time.perf_counter() - t1
                 run += 1
