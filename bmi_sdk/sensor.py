@@ -26,6 +26,7 @@ window read out at an offset keeps its colours.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -108,7 +109,9 @@ def relative_illumination(geometry: SensorGeometry, row0: int, col0: int, height
     radial distance. Since the falloff depends on that distance only, it is
     tabulated through ``geometry`` every ``step_px`` of radius and looked up
     (nearest entry: error ≤ ½ step × dθ/dr, about 1e-6 at the default), which
-    makes a full frame ~10× cheaper than per-pixel trigonometry. H×W float32.
+    makes a full frame ~10× cheaper than per-pixel trigonometry. The table reaches
+    the sensor's farthest corner and is made once per geometry (``_falloff_table``):
+    the classical decoder asks for a falloff per AiF block (432 on a full frame). H×W float32.
     """
     cy, cx = geometry.centre_px
     mm_per_px = geometry.pitch_um * 1e-3
@@ -116,12 +119,22 @@ def relative_illumination(geometry: SensorGeometry, row0: int, col0: int, height
     dx = ((np.arange(col0, col0 + width) - cx) * mm_per_px).astype(np.float32)[None, :]
     radial_mm = np.hypot(dy, dx)
     step_mm = step_px * mm_per_px
-    table_mm = np.arange(0.0, float(radial_mm.max()) + 2 * step_mm, step_mm)
+    corner_mm = float(np.hypot(max(cy, geometry.height_px - 1 - cy), max(cx, geometry.width_px - 1 - cx))) * mm_per_px
+    table = _falloff_table(geometry, step_mm, max(corner_mm, float(radial_mm.max())))
+    radial_mm *= np.float32(1 / step_mm)
+    return table[np.rint(radial_mm).astype(np.intp)]
+
+
+@functools.lru_cache(maxsize=8)
+def _falloff_table(geometry: SensorGeometry, step_mm: float, reach_mm: float) -> np.ndarray:
+    """cos θ (0 outside the image circle) at radii 0, step, 2·step, … past ``reach_mm`` (float32, read-only). The
+    entries are start + k·step whatever the reach, so a table reaching further holds the same values."""
+    table_mm = np.arange(0.0, reach_mm + 2 * step_mm, step_mm)
     theta_deg = geometry.field_deg_from_radial_mm(table_mm)
     inside = np.isfinite(theta_deg) & (theta_deg <= geometry.max_field_deg)
     table = np.where(inside, np.cos(np.radians(np.where(inside, theta_deg, 0.0))), 0.0).astype(np.float32)
-    radial_mm *= np.float32(1 / step_mm)
-    return table[np.rint(radial_mm).astype(np.intp)]
+    table.flags.writeable = False
+    return table
 
 
 @dataclass(frozen=True)
