@@ -159,3 +159,11 @@ def test_relative_illumination_cos_theta():
     assert relative_illumination(g, 0, 0, 1, 1)[0, 0] == 0.0
     narrow = type(g)(max_field_deg=50.0)
     assert relative_illumination(narrow, 0, 0, 1, 1)[0, 0] == 0.0
+    # the table is made once per geometry, to the farthest corner: blocks at the field edge and past the sensor (a
+    # reflected margin) still read each pixel's own cos θ, or 0 beyond the circle
+    for row0, col0 in ((4244, 5744), (-40, -60), (1200, 5900)):
+        ri = relative_illumination(IDEAL_BMI_SENSOR, row0, col0, 256, 256)
+        rows, cols = np.mgrid[row0:row0 + 256, col0:col0 + 256]
+        theta = IDEAL_BMI_SENSOR.field_angles(rows, cols)[0]
+        expected = np.where(theta <= IDEAL_BMI_SENSOR.max_field_deg, np.cos(np.radians(theta)), 0.0)
+        np.testing.assert_allclose(ri, expected, atol=2e-6)
