@@ -95,3 +95,17 @@ def map_jobs(fn: Callable[[Any, Any], Any], jobs: Sequence, workers: int, *,
             pool.shutdown(cancel_futures=True)
         if bar is not None:
             bar.close()
+
+
+def map_threads(fn: Callable[[Any], Any], items: Sequence, threads: int, name: str = "worker") -> Iterator:
+    """Yield ``(item, fn(item))`` for each item, in order, computed on ``threads`` threads of this process (numpy,
+    scipy's FFT and OpenCV release the GIL in their loops). The items are all queued at once; when the loop ends early (an
+    exception in ``fn``, a consumer that stops, Ctrl-C) the ones not yet started are cancelled, so that the error
+    surfaces after at most the ``threads`` running ones instead of after every queued item."""
+    pool = cf.ThreadPoolExecutor(max_workers=max(1, threads), thread_name_prefix=name)
+    try:
+        futures = [(item, pool.submit(fn, item)) for item in items]
+        for item, future in futures:
+            yield item, future.result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)

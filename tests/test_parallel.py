@@ -68,3 +68,28 @@ def test_the_pools_processes_start_with_one_blas_thread_and_leave_the_environmen
         pool.shutdown()
     assert seen == "1"
     assert os.environ["OMP_NUM_THREADS"] == "7" and "MKL_NUM_THREADS" not in os.environ
+
+
+def test_map_threads_keeps_order_and_a_failure_cancels_what_has_not_started():
+    """Items come back in order with their results; an item that raises ends the loop with its error, and the items
+    queued behind it never run (a Ctrl-C or an error inside a frame's 432 blocks must not wait for all of them)."""
+    import threading
+    import time
+
+    started = []
+    lock = threading.Lock()
+
+    def slow_square(x):
+        with lock:
+            started.append(x)
+        if x == 3:
+            raise ValueError("item 3 is bad")
+        time.sleep(0.01)
+        return x * x
+
+    assert list(parallel.map_threads(slow_square, [5, 0, 7], 2)) == [(5, 25), (0, 0), (7, 49)]
+    started.clear()
+    with pytest.raises(ValueError, match="item 3 is bad"):
+        for _ in parallel.map_threads(slow_square, list(range(3, 200)), 2):
+            pass
+    assert len(started) < 20

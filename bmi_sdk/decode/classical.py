@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 
 import cv2
@@ -58,6 +57,7 @@ from scipy import ndimage
 
 from ..geometry import SensorGeometry
 from ..model_io import raw_to_rgb, reflect_indices, window_cfa
+from ..parallel import map_threads
 from ..sensor import NoiseProfile, relative_illumination
 from .aif import wiener_blend
 from .bayer import clipped_samples, estimate_noise_sigma, normalised_planes
@@ -319,7 +319,8 @@ class ClassicalDecoder:
                                if pooling else None),
                     "colour": window_colour([w[1] for w in windows]).reshape(nr, nc, 3) if pooling else None,
                     "full": window_reads * n_cand, "done": window_reads * (len(coarse) + len(fine)),
-                    "evidence_s": (t1 - t0) + (t3 - t2) + (time.perf_counter() - t4), "kernels_s": (t2 - t1) + (t4 - t3)}
+                    "evidence_s": (t1 - t0) + (t3 - t2) + (time.perf_counter() - t4),
+                    "kernels_s": (t2 - t1) + (t4 - t3)}
 
         skipped = windows_clipped = 0
         bar = None
@@ -327,26 +328,25 @@ class ClassicalDecoder:
             from tqdm import tqdm
 
             bar = tqdm(total=len(blocks), unit="block", desc="evidence")
-        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="evidence") as pool:
-            for (br, bc, nr, nc), read in zip(blocks, pool.map(read_block, blocks)):
-                if bar is not None:
-                    bar.update()
-                if read is None:
-                    skipped += 1
-                    continue
-                cells = slice(br, br + nr), slice(bc, bc + nc)
-                evidence[cells] = read["evidence"]
-                windows_clipped += read["clipped"]
-                blind[cells] = read["blind"]
-                inv[cells] = read["inv"]
-                sig[cells] = read["sig"]
-                if pooling:
-                    curves[cells] = read["curves"]
-                    colour[cells] = read["colour"]
-                for key in ("full", "done"):
-                    evaluations[key] += read[key]
-                for key in ("evidence_s", "kernels_s"):
-                    timings[key] += read[key]
+        for (br, bc, nr, nc), read in map_threads(read_block, blocks, workers, "evidence"):
+            if bar is not None:
+                bar.update()
+            if read is None:
+                skipped += 1
+                continue
+            cells = slice(br, br + nr), slice(bc, bc + nc)
+            evidence[cells] = read["evidence"]
+            windows_clipped += read["clipped"]
+            blind[cells] = read["blind"]
+            inv[cells] = read["inv"]
+            sig[cells] = read["sig"]
+            if pooling:
+                curves[cells] = read["curves"]
+                colour[cells] = read["colour"]
+            for key in ("full", "done"):
+                evaluations[key] += read[key]
+            for key in ("evidence_s", "kernels_s"):
+                timings[key] += read[key]
         if bar is not None:
             bar.close()
         t0 = time.perf_counter()
@@ -382,8 +382,8 @@ class ClassicalDecoder:
             depth[rows] = np.where(ok, 1.0 / np.where(ok, inv_px[rows], 1.0), np.nan)
             depth_sigma[rows] = np.where(ok, sig_px * depth[rows].astype(np.float64) ** 2, np.nan)
 
-        with ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="upsample") as pool:
-            list(pool.map(to_pixels, range(0, height, UPSAMPLE_ROWS)))
+        for _ in map_threads(to_pixels, range(0, height, UPSAMPLE_ROWS), self.threads, "upsample"):
+            pass
         timings["upsample_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         aif = self._aif(raw, black_level_dn, white_level_dn, cfa, inv_px, valid, geometry, row0, col0, noise)
@@ -436,10 +436,9 @@ class ClassicalDecoder:
             return np.where(core_valid[..., None] & (falloff[..., None] > 0),
                             aif / np.maximum(falloff, 1e-6)[..., None], 0.0)
 
-        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="aif") as pool:
-            for (r, r1, c, c1), restored in zip(blocks, pool.map(restore_block, blocks)):
-                if restored is not None:
-                    out[r:r1, c:c1] = restored
+        for (r, r1, c, c1), restored in map_threads(restore_block, blocks, workers, "aif"):
+            if restored is not None:
+                out[r:r1, c:c1] = restored
         return out
 
     def frame_zones(self, geometry: SensorGeometry, height: int, width: int, row0: int = 0,

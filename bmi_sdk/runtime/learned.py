@@ -14,7 +14,6 @@ reaches the network through the evidence and the fusion: the model is not retrai
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -25,6 +24,7 @@ from ..decode.classical import DecodeResult, log_depth_variation_px
 from ..decode.features import FeatureTiles, extra_channels
 from ..decode.fusion import INVERSE_VARIANCE, FusionWeights, fuse_log_depth
 from ..model_io import INPUT_CHANNELS
+from ..parallel import map_threads
 from .classical import classical_decoder, decode_frame
 from .model import Model
 from .pipeline import InferenceResult, infer_raw
@@ -142,8 +142,8 @@ def fuse_into(classical: DecodeResult, stride_px: int, depth_m: np.ndarray, sigm
         sigma_m[band] = np.where(valid, sigma, np.nan)
         return float(weight[valid].sum()), int(valid.sum())
 
-    with ThreadPoolExecutor(max_workers=max(1, threads), thread_name_prefix="fusion") as pool:
-        bands = list(pool.map(fuse_band, range(0, depth_m.shape[0], FUSION_ROWS)))
+    tops = range(0, depth_m.shape[0], FUSION_ROWS)
+    bands = [band for _, band in map_threads(fuse_band, tops, threads, "fusion")]
     weight_sum, count = 0.0, 0
     for band_sum, band_count in bands:  # in band order: the same sum as one thread's
         weight_sum += band_sum
