@@ -13,7 +13,8 @@ size. The learned refinement's extra input channels (``extra``: the classical
 decoder's per-pixel channels, ``decode.features.FeatureTiles``) are made per
 tile for the same reflected pixels, never for the whole frame at once (a full
 frame's would be 1.4 GB), and its depth 1σ is blended like the depth. Tiles whose kept pixels all lie outside the image circle are skipped;
-outside the circle the depth is NaN and the AiF image 0.
+outside the circle the depth is NaN and the AiF image 0. The next tiles' inputs are made on a second thread while
+the network runs the current one (``_TILES_AHEAD`` of them): both cores stay busy between network runs.
 """
 
 from __future__ import annotations
