@@ -463,17 +463,23 @@ def test_blocks_outside_the_image_circle_are_skipped(nominal_decoder):
     assert not out.valid.any() and np.isnan(out.depth_m).all() and not out.aif.any()
 
 
-def test_the_coarse_to_fine_pass_reads_what_scoring_every_candidate_reads_with_fewer_evaluations():
-    """A procedural scene from 0.7 to 10 m: the coarse pass (every 4th candidate) and a fine pass over each window's
-    coarse best ± 4 that reuses the coarse scores read the windows' depths as scoring every candidate does (the
-    β grids differ, so not bit for bit: 95 % of windows within 1 %), and never score more than that."""
+def _scene_window():
+    """(raw, row0, col0, psf_map, noise) of a 320² procedural scene from 0.7 to 10 m at θ ≈ 10° (four evidence
+    blocks), rendered and decoded with the nominal tensor kernels at σ 0.005."""
     scene = generate_scene(320, 320, np.random.default_rng(11))
     tensor = lens_tensor("bmi_monocentric")
     psf_map = PsfMap(tensor, GEOMETRY, mode="tensor")
     row0, col0 = 1200, 1600
     optical = render_coded(scene.rgb, scene.range_m, tensor, GEOMETRY, row0, col0, psf_map=psf_map)
-    raw = simulate_raw(optical, 0.005, np.random.default_rng(2), row0, col0)
-    noise = NoiseProfile.additive(0.005)
+    return simulate_raw(optical, 0.005, np.random.default_rng(2), row0, col0), row0, col0, psf_map, \
+        NoiseProfile.additive(0.005)
+
+
+def test_the_coarse_to_fine_pass_reads_what_scoring_every_candidate_reads_with_fewer_evaluations():
+    """A procedural scene from 0.7 to 10 m: the coarse pass (every 4th candidate) and a fine pass over each window's
+    coarse best ± 4 that reuses the coarse scores read the windows' depths as scoring every candidate does (the
+    β grids differ, so not bit for bit: 95 % of windows within 1 %), and never score more than that."""
+    raw, row0, col0, psf_map, noise = _scene_window()
     coarse_fine = ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig()).decode(
         raw, BLACK, WHITE, GEOMETRY, row0, col0, noise_profile=noise)
     every = ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig(coarse_step=1)).decode(
@@ -491,15 +497,10 @@ def test_blocks_read_on_two_threads_give_the_one_thread_decode_bit_for_bit():
     """The decoder reads a frame's evidence and AiF blocks on ``threads`` threads (each block's FFTs on one) and
     makes each zone's models once under a lock: a 320² scene of four blocks, decoded by fresh decoders on one and on
     two threads, gives the same depth, 1σ, AiF, evidence and counts to the last bit."""
-    scene = generate_scene(320, 320, np.random.default_rng(11))
-    tensor = lens_tensor("bmi_monocentric")
-    psf_map = PsfMap(tensor, GEOMETRY, mode="tensor")
-    row0, col0 = 1200, 1600
-    optical = render_coded(scene.rgb, scene.range_m, tensor, GEOMETRY, row0, col0, psf_map=psf_map)
-    raw = simulate_raw(optical, 0.005, np.random.default_rng(2), row0, col0)
-    noise = NoiseProfile.additive(0.005)
-    one, two = (ClassicalDecoder.for_psf_map(PsfMap(tensor, GEOMETRY, mode="tensor"), ClassicalConfig(threads=n))
-                .decode(raw, BLACK, WHITE, GEOMETRY, row0, col0, noise_profile=noise) for n in (1, 2))
+    raw, row0, col0, psf_map, noise = _scene_window()
+    fresh = [PsfMap(psf_map.tensor, GEOMETRY, mode="tensor") for _ in range(2)]  # nothing memoised by the other
+    one, two = (ClassicalDecoder.for_psf_map(kernels, ClassicalConfig(threads=n)).decode(
+        raw, BLACK, WHITE, GEOMETRY, row0, col0, noise_profile=noise) for kernels, n in zip(fresh, (1, 2)))
     assert one.stats["blocks_run"] == two.stats["blocks_run"] == 4
     for name in ("depth_m", "depth_sigma_m", "aif", "valid", "grid_inv_depth", "grid_sigma_inv", "grid_evidence"):
         assert np.array_equal(getattr(one, name), getattr(two, name), equal_nan=True), name

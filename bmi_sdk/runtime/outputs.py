@@ -25,6 +25,7 @@ import numpy as np
 from ..color import linear_to_srgb
 from ..geometry import SensorGeometry
 from ..io_atomic import atomic_path, save_npy, write_json
+from ..parallel import map_threads
 
 
 def _imwrite(path: Path, image: np.ndarray) -> None:
@@ -177,17 +178,6 @@ WRITE_THREADS = 2
 threads keep the sRGB temporaries of the AiF (~250 MB) beside one other file's."""
 
 
-def _run_all(jobs: list) -> list:
-    """Run the callables ``jobs`` on ``WRITE_THREADS`` threads; their results in order, or the first one's error
-    (in ``jobs``' order) once every job has finished, so that no file is still being written when it is raised."""
-    from concurrent.futures import ThreadPoolExecutor, wait
-
-    with ThreadPoolExecutor(max_workers=WRITE_THREADS, thread_name_prefix="write-outputs") as pool:
-        futures = [pool.submit(job) for job in jobs]
-        wait(futures)
-    return [future.result() for future in futures]
-
-
 def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarray, geometry: SensorGeometry,
                   row0: int = 0, col0: int = 0, *, ply_step_px: int = 1, preview_px: int = 1500,
                   depth_sigma_m: np.ndarray | None = None,
@@ -232,7 +222,9 @@ def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarr
     if depth_sigma_m is not None:
         jobs.insert(2, sigma_files)
         names += list(SIGMA_OUTPUT_NAMES)
-    points = _run_all(jobs)[jobs.index(point_cloud)]
+    # an error surfaces once the running writers have stopped and the queued ones are cancelled (map_threads)
+    done = dict(map_threads(lambda job: job(), jobs, WRITE_THREADS, "write-outputs"))
+    points = done[point_cloud]
     files = {name: str(out / name) for name in names}
     return {"files": files, "ply_points": points, "ply_step_px": ply_step_px}
 
