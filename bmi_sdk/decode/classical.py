@@ -10,7 +10,8 @@ Steps (each in its own module):
    processed in blocks of ``block_windows``² windows; each block is one zone (θ, φ of its centre)
    whose kernels come from ``kernels.ZoneKernels``, or (``theta_step_deg``) each window reads the
    zones of a θ grid around its own θ, for a built camera whose kernels change within a block's 2°
-   of field. Blocks whose pixels all lie outside the image circle are skipped.
+   of field. Blocks whose pixels all lie outside the image circle are skipped. A frame's blocks are read
+   on ``threads`` threads at once, each block's FFTs on one (the same result as one thread, bit for bit).
 3. ``evidence``: a plane's windows holding a sample at the white level get no evidence from that
    plane (a censored sample fits no noise model; the report counts them), and windows clipped in
    every plane take their neighbours' 1/d (``fill_blind_windows``). A coarse pass over every
