@@ -405,14 +405,42 @@ class ClassicalDecoder:
                             cand_inv[coarse], stats)
 
     # -- all-in-focus -----------------------------------------------------------------------------
-    def _aif(self, raw, black, white, cfa, inv_px, valid, geometry, row0, col0, noise: NoiseProfile) -> np.ndarray:
+    def restore_aif(self, raw: np.ndarray, black_level_dn: float, white_level_dn: float, geometry: SensorGeometry,
+                    depth_m: np.ndarray, prior_aif: np.ndarray, noise: NoiseProfile, row0: int = 0, col0: int = 0,
+                    cfa: str = "RGGB", out: np.ndarray | None = None, aif_step: int | None = None) -> np.ndarray:
+        """Another decoder's AiF (``prior_aif``, H × W × 3 linear RGB, relative illumination undone) made consistent
+        with an H × W raw window through this decoder's kernels at ``depth_m`` (H × W, NaN where invalid): the
+        Wiener step of ``aif`` with that AiF as the image model's mean, block by block (``aif.wiener_blend``).
+        ``noise``: the frame's raw noise as the decoder used it (``DecodeResult.stats["noise_profile"]``).
+        0 where ``depth_m`` is invalid. H × W × 3 float32, written into ``out`` when given (an array of that shape
+        and type whose values are no longer needed, not ``prior_aif``: blocks read their neighbours' prior).
+        ``aif_step``: blur and deconvolve on every n-th candidate (default: the config's ``aif_step``)."""
+        if prior_aif.shape != raw.shape + (3,) or depth_m.shape != raw.shape:
+            raise ValueError(f"restore_aif needs an H × W × 3 prior AiF and an H × W depth over the {raw.shape} raw "
+                             f"window, got {prior_aif.shape} and {depth_m.shape}")
+        if out is not None and (out.shape != prior_aif.shape or out.dtype != np.float32 or out is prior_aif):
+            raise ValueError("restore_aif writes into an H × W × 3 float32 array other than the prior AiF")
+        valid = np.isfinite(depth_m) & (depth_m > 0)
+        inv_px = np.where(valid, 1.0 / np.where(valid, depth_m, 1.0), np.nan).astype(np.float32)
+        return self._aif(raw, black_level_dn, white_level_dn, cfa, inv_px, valid, geometry, row0, col0, noise,
+                         prior_aif, out, aif_step)
+
+    def _aif(self, raw, black, white, cfa, inv_px, valid, geometry, row0, col0, noise: NoiseProfile,
+             prior_aif: np.ndarray | None = None, out: np.ndarray | None = None,
+             aif_step: int | None = None) -> np.ndarray:
+        """The AiF of the frame's valid pixels at 1/d ``inv_px``: the Wiener estimate of each block (mean 0), or, with
+        ``prior_aif`` (H × W × 3, relative illumination undone), that image pulled to the raw frame (``restore_aif``);
+        into ``out`` when given; on every ``aif_step``-th candidate (default the config's)."""
         cfg = self.config
         height, width = raw.shape
         halo = self.zones.psf_map.kernel_px + 8
         halo += halo % 2
-        out = np.zeros((height, width, 3), np.float32)
+        if out is None:
+            out = np.zeros((height, width, 3), np.float32)
+        else:
+            out[...] = 0.0
         n_cand = len(self.candidates)
-        aif_cands = coarse_indices(n_cand, cfg.aif_step)
+        aif_cands = coarse_indices(n_cand, aif_step or cfg.aif_step)
         cand_inv = self.candidates.inv_depth_per_m[aif_cands]
         blocks = aif_blocks(cfg, height, width)
         workers, fft_threads = self._block_threads(len(blocks))
@@ -423,16 +451,26 @@ class ClassicalDecoder:
             core_valid = valid[r:r1, c:c1]
             if not core_valid.any():
                 return None
-            window = raw[np.ix_(reflect_indices(r - halo, fft_span_px(r1 - r, halo), height),
-                                reflect_indices(c - halo, fft_span_px(c1 - c, halo), width))]
+            rows = reflect_indices(r - halo, fft_span_px(r1 - r, halo), height)
+            cols = reflect_indices(c - halo, fft_span_px(c1 - c, halo), width)
+            window = raw[np.ix_(rows, cols)]
             rgb = raw_to_rgb(window, black, white, window_cfa(cfa, row0 + r - halo, col0 + c - halo))
             zone = ZoneKernels.zone_at(geometry, row0 + (r + r1) / 2, col0 + (c + c1) / 2)
-            inv_core = np.where(core_valid, inv_px[r:r1, c:c1], np.nanmedian(inv_px[r:r1, c:c1][core_valid]))
+            median_inv = np.nanmedian(inv_px[r:r1, c:c1][core_valid])
+            inv_core = np.where(core_valid, inv_px[r:r1, c:c1], median_inv)
             core = (slice(halo, halo + r1 - r), slice(halo, halo + c1 - c))
             signal = float(np.mean(rgb[core]))
             block_sigma = float(np.sqrt(noise.variance(signal) + (cfg.aif_model_error * signal) ** 2))
+            prior = prior_inv = None
+            if prior_aif is not None:  # the prior in the raw frame's units, over the whole window
+                r_lo, c_lo = int(rows.min()), int(cols.min())
+                window_falloff = relative_illumination(geometry, row0 + r_lo, col0 + c_lo, int(rows.max()) - r_lo + 1,
+                                                       int(cols.max()) - c_lo + 1)[np.ix_(rows - r_lo, cols - c_lo)]
+                prior = prior_aif[np.ix_(rows, cols)] * window_falloff[..., None]
+                prior_inv = inv_px[np.ix_(rows, cols)]
+                prior_inv = np.where(np.isfinite(prior_inv), prior_inv, median_inv)
             aif = wiener_blend(rgb, inv_core, cand_inv, lambda idx, z=zone: self.zones.kernels(z, aif_cands[idx]),
-                               block_sigma, core, fft_threads)
+                               block_sigma, core, fft_threads, prior, prior_inv)
             falloff = relative_illumination(geometry, row0 + r, col0 + c, r1 - r, c1 - c)
             return np.where(core_valid[..., None] & (falloff[..., None] > 0),
                             aif / np.maximum(falloff, 1e-6)[..., None], 0.0)
