@@ -396,6 +396,31 @@ def test_a_noiseless_frames_aif_is_not_inverse_filtered(nominal_decoder):
         ClassicalConfig(aif_model_error=-0.1)
 
 
+@pytest.mark.parametrize("texture", ["pink", "scene"])
+def test_another_decoders_aif_is_pulled_to_the_frame_through_the_kernels(nominal_decoder, texture):
+    """The Wiener step with a prior mean (``ClassicalDecoder.restore_aif``, the learned decoder's AiF step): the true
+    image as the prior explains the frame up to its noise and is kept; the same image drawn 3 px off (a network
+    that draws a built camera's image where the nominal camera would put it) is pulled back towards the frame; a
+    zero prior is the plain Wiener AiF."""
+    from bmi_sdk.metrics import image_metrics
+
+    raw, row0, col0, _, rgb = _plane_frame(2.0, 10.0, texture=texture)
+    truth = rgb[24:-24, 24:-24]
+    noise = NoiseProfile.additive(0.005)
+    depth = np.full(raw.shape, 2.0, np.float32)
+    kept = nominal_decoder.restore_aif(raw, BLACK, WHITE, GEOMETRY, depth, truth.astype(np.float32), noise, row0, col0)
+    assert np.sqrt(np.mean((kept - truth) ** 2)) < 1e-3
+    shifted = np.roll(rgb, (3, 3), axis=(0, 1))[24:-24, 24:-24].astype(np.float32)
+    pulled = nominal_decoder.restore_aif(raw, BLACK, WHITE, GEOMETRY, depth, shifted, noise, row0, col0)
+    assert image_metrics(pulled, truth)["psnr_db"] > image_metrics(shifted, truth)["psnr_db"] + 1.5
+    out = nominal_decoder.decode(raw, BLACK, WHITE, GEOMETRY, row0, col0, noise_profile=noise)
+    plain = nominal_decoder.restore_aif(raw, BLACK, WHITE, GEOMETRY, out.depth_m, np.zeros_like(out.aif), noise,
+                                        row0, col0)
+    assert np.allclose(plain, out.aif, rtol=0, atol=1e-5)
+    with pytest.raises(ValueError, match="prior AiF"):
+        nominal_decoder.restore_aif(raw, BLACK, WHITE, GEOMETRY, depth, shifted[:-2], noise, row0, col0)
+
+
 def test_without_a_profile_the_noise_is_estimated_from_the_frame(nominal_decoder):
     raw, row0, col0, _, _ = _plane_frame(2.0, 10.0)
     out = nominal_decoder.decode(raw, BLACK, WHITE, GEOMETRY, row0, col0)
@@ -557,7 +582,8 @@ def test_infer_classical_writes_depth_sigma_confidence_and_ply_sigma(tmp_path):
 
 def test_simulate_calibrate_infer_loop_uses_the_calibrated_kernels(tmp_path):
     """A built camera (decenter 8 µm) → calibrated from its own point-source captures → its frames decoded
-    with the calibrated kernels; the report carries the fitted errors and the camera's hash."""
+    with the calibrated kernels, by the classical and the default (learned) decoder, whose AiF then goes through
+    those kernels too; the report carries the fitted errors and the camera's hash."""
     from calibration import CapturePlan, PointSource, Target, extract_spots, fit_calibration, simulate_captures
     from calibration.io import write_calibration
 
@@ -586,6 +612,12 @@ def test_simulate_calibrate_infer_loop_uses_the_calibrated_kernels(tmp_path):
     sidecar = json.loads((tmp_path / "f.json").read_text())
     assert sidecar["source"]["injected_perturbation"]["decenter_um"] == [8.0, 0.0]
     assert np.isfinite(np.load(tmp_path / "o" / "depth.npy")).any()
+    # the default (learned) decoder on the calibrated camera: its AiF goes through the camera's kernels
+    _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "l", "--calibration", tmp_path / "calib.json", "--quiet")
+    report = json.loads((tmp_path / "l" / "report.json").read_text())
+    assert report["decoder"] == "learned" and report["calibration_id"] == calib.id
+    assert report["aif_consistency_step"] is True
+    assert np.isfinite(np.load(tmp_path / "l" / "aif.npy")).all()
 
 
 def test_overwriting_a_classical_run_with_the_network_leaves_no_stale_sigma(tmp_path, passthrough_model):
