@@ -107,7 +107,8 @@ def test_a_refinement_warm_started_from_a_refinement_keeps_its_trained_sigma_hea
 
 def test_an_identity_refinement_returns_the_classical_decode_through_the_tiled_runtime(tmp_path, identity_model):
     """Tiles of 64 px over a 128² frame, each fed its slice of the classical channels: the learned decoder's
-    depth, 1σ and AiF must be the classical decoder's (the channels' clips aside)."""
+    depth, 1σ and AiF must be the classical decoder's (the channels' clips aside); the design camera's AiF takes no
+    step through its kernels (``runtime.learned.consistent_aif``)."""
     _bmi("simulate", "--procedural", 5, "--size", 128, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
          "--out", tmp_path / "f.dng")
     _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "c", "--decoder", "classical", "--candidates", 12,
@@ -117,7 +118,7 @@ def test_an_identity_refinement_returns_the_classical_decode_through_the_tiled_r
     assert "learned refinement" in out
     report = json.loads((tmp_path / "l" / "report.json").read_text())
     assert report["decoder"] == "learned" and report["tiles_run"] > 1 and report["model"]["decoder"] == "learned"
-    assert report["decoder_stats"]["config"]["candidates"] == 12
+    assert report["decoder_stats"]["config"]["candidates"] == 12 and report["aif_consistency_step"] is False
     depth_c, depth_l = np.load(tmp_path / "c" / "depth.npy"), np.load(tmp_path / "l" / "depth.npy")
     assert np.array_equal(np.isnan(depth_c), np.isnan(depth_l)) and np.isfinite(depth_l).mean() > 0.9
     np.testing.assert_allclose(depth_l, depth_c, rtol=1e-4)

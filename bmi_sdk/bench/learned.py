@@ -5,9 +5,11 @@
   model's knobs, by the refinement network on top of it, and by the learned decoder (the two fused with
   the weights of the model's manifest, ``decode.fusion``, as ``bmi infer`` returns it): depth AbsRel per
   distance.
-* Cost: CPU and wall seconds per 192² tile of each stage (classical, network), median of the plane runs.
+* Cost: CPU and wall seconds per 192² tile of each stage (classical; network with its fusion and AiF step), median
+  of the plane runs.
 * ``--full``: a 6000×4500 procedural frame through ``bmi infer --decoder learned``'s runtime steps
-  (classical stage over the whole frame, the network tile by tile, the fusion): wall and CPU time per stage,
+  (classical stage over the whole frame, the network tile by tile, the fusion, the AiF's consistency step): wall
+  and CPU time per stage,
   and the AbsRel of the classical stage alone, the network alone and the fused depth. The frame is rendered
   with the tensor kernels and decoded with them (as ``bmi bench decoder --full`` and ``bmi bench pooling
   --full`` do): the runtime's exact kernels would read it through a render-model mismatch (session 15:
@@ -66,9 +68,11 @@ def _full_frame(model_path, nominal, geometry) -> str:
     fusion_s = result.fusion["fusion_s"]
     network_s = sum(result.network.timings_s.values())
     rows = [["classical stage", f"{w1 - w0:.1f}", f"{c1 - c0:.1f}"],
-            ["channels + network + fusion", f"{w2 - w1:.1f}", f"{c2 - c1:.1f}"],
+            ["channels + network + fusion + AiF step", f"{w2 - w1:.1f}", f"{c2 - c1:.1f}"],
             ["of which the network's tiles (input, ONNX, blend)", f"{network_s:.1f}", ""],
             ["of which the fusion", f"{fusion_s:.1f}", ""],
+            ["of which the AiF's consistency step", f"{result.classical_stats['timings_s']['aif_consistency_s']:.1f}",
+             ""],
             ["total", f"{w2 - w0:.1f}", f"{c2 - c0:.1f}"]]
     classical_absrel, network_absrel, absrel = (absrel_of(d) for d in (decoded.depth_m, result.network_depth_m,
                                                                        result.depth_m))

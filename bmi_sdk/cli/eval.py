@@ -36,8 +36,9 @@ def register(subparsers) -> None:
                    help="comma list of decoders: cnn (the ONNX model), classical (bmi_sdk.decode, no network), "
                         "learned (the classical evidence refined by --learned-model); e.g. cnn,classical,learned")
     p.add_argument("--no-fusion", action="store_true",
-                   help="learned: score the network's depth alone, not fused with its classical stage's (with the "
-                        "weights of its manifest, as bmi infer returns it); its rows carry fusion false")
+                   help="learned: score the network's depth and AiF alone, not fused with its classical stage's (with the "
+                        "weights of its manifest, as bmi infer returns it) nor, on a built camera, pulled to the "
+                        "frame through its kernels; its rows carry fusion false")
     add_window_arguments(p)
     p.add_argument("--json", action="store_true", help="one JSON object per line per condition and region")
     add_scheduler_argument(p)

@@ -198,8 +198,9 @@ class NetworkTiles:
     refinement (decoder ``learned``) also the classical decoder's channels (``decode.features``), made with
     its manifest's knobs over ``psf_map``'s kernels (the nominal camera's, or the built camera's own), and
     its depth is the network's fused with the classical stage's (``decode.fusion``, with the weights of the
-    model's manifest, as ``bmi infer`` does);
-    ``fuse=False`` keeps the network's own (and leaves the manifest's fusion weights unread).
+    model's manifest, as ``bmi infer`` does), and its AiF the network's made consistent with the tile through
+    those kernels at the fused depth (``runtime.learned.consistent_aif``, as ``bmi infer`` does);
+    ``fuse=False`` keeps the network's own depth and AiF (and leaves the manifest's fusion weights unread).
     """
 
     def __init__(self, path: str | Path, tile_px: int, threads: int = 2, psf_map=None, name: str | None = None,
@@ -226,7 +227,8 @@ class NetworkTiles:
 
     def network_read(self, raw: np.ndarray, geometry, row0: int, col0: int, decoded=None, fuse: bool | None = None):
         """(AiF H × W × 3, depth, 1σ or None) of the network on a raw tile; a refinement also reads ``decoded``'s
-        channels and, when ``fuse`` (default: this decoder's), returns its depth fused with ``decoded``'s."""
+        channels and, when ``fuse`` (default: this decoder's), returns its depth fused with ``decoded``'s and its AiF
+        made consistent with the tile at that depth."""
         seen = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, window_cfa(CFA_PATTERN, row0, col0))
         x = network_input(seen, geometry, row0, col0)
         if decoded is not None:
@@ -235,14 +237,18 @@ class NetworkTiles:
             x = np.concatenate([x, refinement_features(decoded, self.stage.config.stride_px)[None]], axis=1)
         aif, depth, *sigma = self.model.run(np.ascontiguousarray(x, np.float32))
         depth, sigma = depth[0, 0], (sigma[0][0, 0] if sigma else None)
+        aif = aif[0].transpose(1, 2, 0)
         if decoded is not None and (self.fuse if fuse is None else fuse) and sigma is not None:
             if self.model.fusion_weights is None:
                 raise ValueError("this decoder was built with fuse=False: its model's fusion weights were not read")
-            from bmi_sdk.runtime.learned import fuse_into
+            from bmi_sdk.runtime.learned import consistent_aif, fuse_into
 
             fuse_into(decoded, self.stage.config.stride_px, depth, sigma, self.model.fusion_weights,
                       decoded.stats.get("noise_sigma"))  # as bmi infer fuses, in place
-        return aif[0].transpose(1, 2, 0), depth, sigma
+            aif = consistent_aif(self.stage, decoded, raw, np.ascontiguousarray(aif), depth,
+                                 black_level_dn=BLACK_LEVEL_DN, white_level_dn=WHITE_LEVEL_DN,
+                                 cfa=CFA_PATTERN, geometry=geometry, row0=row0, col0=col0)
+        return aif, depth, sigma
 
 
 class ClassicalTiles:

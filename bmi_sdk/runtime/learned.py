@@ -7,8 +7,11 @@ refinement network tile by tile (``pipeline.infer_raw`` with ``extra``), which r
 depth 1σ. The depth returned is the network's read fused with the classical stage's (``decode.fusion``), by
 their σs, their disagreement and the classical depth's local variation, with the weights the model's manifest
 carries (``bmi fit-fusion``; else the inverse-variance ones): the physics decides where it is confident and
-the surface is larger than its windows, the network elsewhere. The calibration
-reaches the network through the evidence and the fusion: the model is not retrained.
+the surface is larger than its windows, the network elsewhere. On a built camera (kernels with hardware
+errors, e.g. ``--calibration``'s) the AiF returned is the network's made consistent with the raw frame
+through that camera's kernels at the fused depth (``consistent_aif``): a network trained on the design
+draws a built camera's image shifted and reshaped, and the camera's own kernels pull it back. The
+calibration reaches the network through the evidence, the fusion and that step: the model is not retrained.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from ..decode import ClassicalConfig, ClassicalDecoder
 from ..decode.classical import DecodeResult, log_depth_variation_px
 from ..decode.features import FeatureTiles, extra_channels
 from ..decode.fusion import INVERSE_VARIANCE, FusionWeights, fuse_log_depth
+from ..sensor import NoiseProfile
 from ..model_io import INPUT_CHANNELS
 from ..parallel import map_threads
 from .classical import classical_decoder, decode_frame
@@ -51,7 +55,7 @@ class LearnedResult:
                 "tiling": self.network.plan.to_dict(), "blocks_run": self.classical_stats["blocks_run"],
                 "blocks_skipped": self.classical_stats["blocks_skipped"],
                 "candidate_evaluations_skipped": int(skipped), "decoder_stats": self.classical_stats,
-                "fusion": self.fusion,
+                "fusion": self.fusion, "aif_consistency_step": self.classical_stats["aif_consistency"],
                 "timings_s": {"classical": self.classical_stats["timings_s"], "network": self.network.timings_s}}
 
 
@@ -86,19 +90,21 @@ def decode_learned(model: Model, decoder: ClassicalDecoder, frame, camera: Built
     return refine_decoded(model, decoder, classical.decoded, frame.data, black_level_dn=frame.black_level_dn,
                           white_level_dn=frame.white_level_dn, cfa=frame.cfa, geometry=frame.geometry,
                           row0=frame.roi.y_px, col0=frame.roi.x_px, stats=classical.stats, overlap_px=overlap_px,
-                          progress=progress)
+                          progress=progress, reuse_classical_aif=True)
 
 
 def refine_decoded(model: Model, decoder: ClassicalDecoder, decoded: DecodeResult, raw: np.ndarray, *,
                    black_level_dn: float, white_level_dn: float, cfa: str = "RGGB", geometry, row0: int = 0,
                    col0: int = 0, stats: dict | None = None, overlap_px: int | None = None, progress: bool = False,
-                   keep_network_read: bool = False) -> LearnedResult:
+                   keep_network_read: bool = False, reuse_classical_aif: bool = False) -> LearnedResult:
     """The refinement's second stage over an H × W raw window that ``decoder`` decoded into ``decoded``: its
-    channels, the network tile by tile, and the fusion of the two reads.
+    channels, the network tile by tile, the fusion of the two reads and, on a built camera, the AiF's step.
 
     A pixel is valid where the network reads it (inside the image circle); where the classical stage has no
     read there, the network's is the output (``decode.fusion``). ``keep_network_read`` keeps the network's
     depth before the fusion (``network_depth_m``, a copy: 108 MB for a full frame) for benchmarks.
+    ``reuse_classical_aif`` writes the AiF step's output into ``decoded.aif`` (read by the network, then no longer
+    needed: 324 MB of a full frame), which then no longer holds the classical AiF.
     """
     stats = dict(decoded.stats if stats is None else stats)
     t0 = time.perf_counter()
@@ -116,8 +122,37 @@ def refine_decoded(model: Model, decoder: ClassicalDecoder, decoded: DecodeResul
     fusion = {"classical_weight_mean": classical_share, "fusion_s": time.perf_counter() - t0,
               "weights": "inverse-variance" if weights == INVERSE_VARIANCE else "fitted", "noise_sigma": noise_sigma,
               "coefficients": [float(c) for c in weights.coefficients(noise_sigma)], **weights.to_dict()}
+    t0 = time.perf_counter()
+    aif = consistent_aif(decoder, decoded, raw, net.aif, net.depth_m, black_level_dn=black_level_dn,
+                         white_level_dn=white_level_dn, cfa=cfa, geometry=geometry, row0=row0, col0=col0,
+                         out=decoded.aif if reuse_classical_aif else None)
+    stats["timings_s"] = dict(stats["timings_s"], aif_consistency_s=time.perf_counter() - t0)
+    stats["aif_consistency"] = aif is not net.aif
     valid = net.valid & np.isfinite(net.depth_m)
-    return LearnedResult(net.aif, net.depth_m, net.depth_sigma_m, valid, net, stats, fusion, network_depth_m)
+    return LearnedResult(aif, net.depth_m, net.depth_sigma_m, valid, net, stats, fusion, network_depth_m)
+
+
+CONSISTENCY_AIF_STEP = 8
+"""The AiF step blurs and deconvolves on every 8th candidate, where the classical AiF uses every 4th: on the
+``bmi eval`` built camera's calibrated edge 23.78 dB against 23.79 at every 4th, for 0.75 of the time (every 16th:
+23.70 dB, 0.57; docs/benchmarks.md, "The AiF's step on a built camera")."""
+
+
+def consistent_aif(decoder: ClassicalDecoder, decoded: DecodeResult, raw: np.ndarray, aif: np.ndarray,
+                   depth_m: np.ndarray, *, black_level_dn: float, white_level_dn: float, cfa: str = "RGGB", geometry,
+                   row0: int = 0, col0: int = 0, out: np.ndarray | None = None) -> np.ndarray:
+    """The network's ``aif`` of a raw window made consistent with it through ``decoder``'s kernels at ``depth_m`` (the
+    fused depth), with the noise the classical stage ``decoded`` read (``ClassicalDecoder.restore_aif``; into ``out``
+    when given); ``aif`` itself when those kernels are the design's, which the network was trained on.
+
+    Measured on the ``bmi eval`` tiles (docs/results.md, session 21): the built camera's calibrated edge 20.5 →
+    23.8 dB; on the design camera the step moved the AiF by ≤ 0.05 dB and costs a full frame 11 s, so it is left
+    out there."""
+    if decoder.zones.psf_map.perturbation is None:
+        return aif
+    noise = NoiseProfile(**decoded.stats["noise_profile"])
+    return decoder.restore_aif(raw, black_level_dn, white_level_dn, geometry, depth_m, aif, noise, row0, col0, cfa,
+                               out, CONSISTENCY_AIF_STEP)
 
 
 FUSION_ROWS = 256
