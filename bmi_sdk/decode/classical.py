@@ -421,7 +421,8 @@ class ClassicalDecoder:
         if out is not None and (out.shape != prior_aif.shape or out.dtype != np.float32 or out is prior_aif):
             raise ValueError("restore_aif writes into an H × W × 3 float32 array other than the prior AiF")
         valid = np.isfinite(depth_m) & (depth_m > 0)
-        inv_px = np.where(valid, 1.0 / np.where(valid, depth_m, 1.0), np.nan).astype(np.float32)
+        inv_px = np.full(depth_m.shape, np.nan, np.float32)  # in float32 throughout: a full frame's is 108 MB
+        np.divide(np.float32(1.0), depth_m, out=inv_px, where=valid)
         return self._aif(raw, black_level_dn, white_level_dn, cfa, inv_px, valid, geometry, row0, col0, noise,
                          prior_aif, out, aif_step)
 
