@@ -245,7 +245,7 @@ class NetworkTiles:
 
             fuse_into(decoded, self.stage.config.stride_px, depth, sigma, self.model.fusion_weights,
                       decoded.stats.get("noise_sigma"))  # as bmi infer fuses, in place
-            aif = consistent_aif(self.stage, decoded, raw, np.ascontiguousarray(aif), depth,
+            aif = consistent_aif(self.stage, decoded, raw, aif, depth,
                                  black_level_dn=BLACK_LEVEL_DN, white_level_dn=WHITE_LEVEL_DN,
                                  cfa=CFA_PATTERN, geometry=geometry, row0=row0, col0=col0)
         return aif, depth, sigma
