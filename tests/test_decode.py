@@ -13,7 +13,7 @@ import pytest
 
 from bmi_sdk.built_camera import BuiltCamera
 from bmi_sdk.decode import ClassicalConfig, ClassicalDecoder, inverse_depth_candidates
-from bmi_sdk.decode.aif import bracket
+from bmi_sdk.decode.aif import _blend, _needed, bracket
 from bmi_sdk.decode.bayer import estimate_noise_sigma, normalised_planes
 from bmi_sdk.decode.classical import local_spread, upsample_grid
 from bmi_sdk.decode.evidence import Evidence, fold_power, folded_model, plane_nll, rfft_multiplicity
@@ -274,6 +274,24 @@ def test_bracket_blends_neighbouring_candidates_linearly_in_inverse_depth():
     lo, frac = bracket(np.array([1.0, 0.75, 0.25, 2.0, 0.1]), cand_inv)
     assert lo.tolist() == [0, 0, 1, 0, 1] and frac == pytest.approx([0.0, 0.5, 1.0, 0.0, 1.0])
 
+
+
+def test_blend_gathers_each_pixels_two_candidates_as_the_hat_weights_say():
+    """``aif._blend`` (each pixel's two candidates gathered from only the needed ones) against the plain sum over
+    every candidate of its hat weight in 1/d: pixels on a candidate, between two, and beyond both ends; a
+    strided view as the AiF passes it."""
+    rng = np.random.default_rng(7)
+    cand_inv = 1 / np.array([0.8, 1.0, 1.5, 2.5, 4.0, 9.0])
+    inv = rng.choice([1 / 1.0, 1 / 2.5, 1 / 9.0, 2.0, 0.05], (9, 11)) + rng.choice([0.0, 0.0, -0.1], (9, 11))
+    lo, frac = bracket(inv, cand_inv)
+    needed = _needed(lo, frac, len(cand_inv))
+    values = rng.standard_normal((len(cand_inv), 3, 12, 14)).astype(np.float32)
+    view = values[needed][..., 1:10, 2:13]  # each needed candidate's planes, cut as a block's core is
+    hat = np.stack([np.interp(-np.clip(inv, cand_inv[-1], cand_inv[0]), -cand_inv, np.eye(len(cand_inv))[j])
+                    for j in range(len(cand_inv))])  # (candidates, h, w): each candidate's weight at each pixel
+    expected = np.einsum("jhw,jchw->hwc", hat, values[..., 1:10, 2:13])
+    assert set(needed.tolist()) == set(np.flatnonzero(hat.reshape(len(cand_inv), -1).max(axis=1) > 0).tolist())
+    assert np.allclose(_blend(view, lo, frac, needed), expected, atol=1e-6)
 
 def test_noise_estimate_on_a_blurred_frame():
     rng = np.random.default_rng(2)

@@ -38,19 +38,27 @@ def bracket(inv_depth: np.ndarray, candidate_inv: np.ndarray) -> tuple[np.ndarra
     return lo, pos - lo
 
 
-def _needed(lo: np.ndarray, frac: np.ndarray) -> np.ndarray:
-    """The candidate indices a bracketed map blends (those with a non-zero weight somewhere)."""
-    return np.unique(np.concatenate([lo[frac < 1], lo[frac > 0] + 1]))
+def _needed(lo: np.ndarray, frac: np.ndarray, n_candidates: int) -> np.ndarray:
+    """The candidate indices (of ``n_candidates``) a bracketed map blends: those with a non-zero weight somewhere."""
+    used = np.zeros(n_candidates, bool)
+    used[lo[frac < 1]] = True
+    used[lo[frac > 0] + 1] = True
+    return np.flatnonzero(used)
 
 
 def _blend(per_candidate, lo: np.ndarray, frac: np.ndarray, needed: np.ndarray) -> np.ndarray:
     """(h × w × 3) float32: each pixel's blend of ``per_candidate[n]`` (3 × h × w, candidate ``needed[n]``) by its
-    bracket (``lo``, ``frac``)."""
-    out = np.zeros(lo.shape + (3,), np.float32)
-    for n, j in enumerate(needed):
-        weight = np.where(lo == j, 1.0 - frac, 0.0) + np.where(lo + 1 == j, frac, 0.0)
-        if weight.any():
-            out += (weight[..., None] * per_candidate[n].transpose(1, 2, 0)).astype(np.float32)
+    bracket (``lo``, ``frac``): (1 − frac) of its lower candidate's value and frac of the next one's, each gathered
+    from its own candidate (a candidate of weight 0 is gathered from slot 0 and counts 0)."""
+    slot = np.zeros(int(needed[-1]) + 2, np.intp)
+    slot[needed] = np.arange(len(needed))
+    rows, cols = np.arange(lo.shape[0])[:, None], np.arange(lo.shape[1])[None, :]
+    weight = frac.astype(np.float32)[..., None]
+    out = per_candidate[slot[lo], :, rows, cols]      # (h, w, 3): the candidate index and the pixel index
+    upper = per_candidate[slot[lo + 1], :, rows, cols]  # arrays are advanced, so they lead
+    out *= 1 - weight
+    upper *= weight
+    out += upper
     return out
 
 
@@ -67,10 +75,10 @@ def wiener_blend(rgb: np.ndarray, inv_depth: np.ndarray, candidate_inv: np.ndarr
     """
     h, w, _ = rgb.shape
     lo, frac = bracket(inv_depth, candidate_inv)
-    needed = core_needed = _needed(lo, frac)
+    needed = core_needed = _needed(lo, frac, len(candidate_inv))
     if prior is not None:  # the prior is blurred over the whole block, whose halo may need further candidates
         prior_lo, prior_frac = bracket(prior_inv_depth, candidate_inv)
-        needed = np.union1d(core_needed, _needed(prior_lo, prior_frac))
+        needed = np.union1d(core_needed, _needed(prior_lo, prior_frac, len(candidate_inv)))
     kernels = kernels_of(needed)                                # (3, n, K, K)
     k = kernels.shape[-1]
     padded = np.zeros((len(needed), 3, h, w), np.float32)
@@ -92,8 +100,13 @@ def wiener_blend(rgb: np.ndarray, inv_depth: np.ndarray, candidate_inv: np.ndarr
     s = power_law_prior(sfft.fftfreq(h), sfft.rfftfreq(w), 1.0 / max(h, w)).astype(np.float32)
     power = otf.real ** 2 + otf.imag ** 2
     beta = _prior_level(excess, power, s)                       # (n, 3)
-    gain = np.conj(otf) / (power + (np.float32(noise_sigma ** 2) / beta.astype(np.float32))[..., None, None] / s)
-    restored = sfft.irfft2(gain * spectrum[None], s=(h, w), workers=threads)[..., core[0], core[1]]
+    inverse = power  # 1 / (|K|² + σ² / (β S)), in place of |K|²: real, so the gain needs no complex division
+    inverse += (np.float32(noise_sigma ** 2) / beta.astype(np.float32))[..., None, None] / s
+    np.reciprocal(inverse, out=inverse)
+    restored = np.conj(otf)
+    restored *= spectrum[None]
+    restored *= inverse
+    restored = sfft.irfft2(restored, s=(h, w), workers=threads)[..., core[0], core[1]]
     out = _blend(restored, lo, frac, core_needed)
     if prior is not None:
         out += prior[core]
