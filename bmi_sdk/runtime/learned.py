@@ -135,15 +135,17 @@ def refine_decoded(model: Model, decoder: ClassicalDecoder, decoded: DecodeResul
 CONSISTENCY_AIF_STEP = 8
 """The AiF step blurs and deconvolves on every 8th candidate, where the classical AiF uses every 4th: on the
 ``bmi eval`` built camera's calibrated edge 23.78 dB against 23.79 at every 4th, for 0.75 of the time (every 16th:
-23.70 dB, 0.57; docs/benchmarks.md, "The AiF's step on a built camera")."""
+23.70 dB, 0.57; docs/benchmarks.md, "The AiF's step on a built camera"; ``bmi bench aif-step``)."""
 
 
 def consistent_aif(decoder: ClassicalDecoder, decoded: DecodeResult, raw: np.ndarray, aif: np.ndarray,
                    depth_m: np.ndarray, *, black_level_dn: float, white_level_dn: float, cfa: str = "RGGB", geometry,
-                   row0: int = 0, col0: int = 0, out: np.ndarray | None = None) -> np.ndarray:
+                   row0: int = 0, col0: int = 0, out: np.ndarray | None = None,
+                   aif_step: int | None = None) -> np.ndarray:
     """The network's ``aif`` of a raw window made consistent with it through ``decoder``'s kernels at ``depth_m`` (the
     fused depth), with the noise the classical stage ``decoded`` read (``ClassicalDecoder.restore_aif``; into ``out``
-    when given); ``aif`` itself when those kernels are the design's, which the network was trained on.
+    when given; on every ``aif_step``-th candidate, default ``CONSISTENCY_AIF_STEP``); ``aif`` itself when those
+    kernels are the design's, which the network was trained on.
 
     Measured on the ``bmi eval`` tiles (docs/results.md, session 21): the built camera's calibrated edge 20.5 →
     23.8 dB; on the design camera the step moved the AiF by ≤ 0.05 dB and costs a full frame 11 s, so it is left
@@ -152,7 +154,7 @@ def consistent_aif(decoder: ClassicalDecoder, decoded: DecodeResult, raw: np.nda
         return aif
     noise = NoiseProfile(**decoded.stats["noise_profile"])
     return decoder.restore_aif(raw, black_level_dn, white_level_dn, geometry, depth_m, aif, noise, row0, col0, cfa,
-                               out, CONSISTENCY_AIF_STEP)
+                               out, aif_step or CONSISTENCY_AIF_STEP)
 
 
 FUSION_ROWS = 256
