@@ -104,6 +104,30 @@ def test_exact_kernels_turn_with_the_azimuth(tensor):
     assert np.abs(k90 - np.rot90(k0, k=-1, axes=(2, 3))).max() < 1e-5 * k0.max()
 
 
+def test_the_decoders_zone_kernels_hold_an_exact_maps_own_kernels_not_a_copy(tensor):
+    """An exact map's memoised kernels are handed out as they are, read-only, and the decoder's zone memo keeps
+    those same arrays: a full frame's exact kernels are held once (~0.2 GB), not twice."""
+    from bmi_sdk.decode import inverse_depth_candidates
+    from bmi_sdk.decode.kernels import ZoneKernels
+
+    exact = PsfMap(tensor, BMI_SENSOR, mode="exact")
+    candidates = inverse_depth_candidates(tensor.depth_m, 6)
+    zones = ZoneKernels(exact, candidates, (2.0,), 64)
+    zone = (20.0, 30.0)
+    stacked = zones.kernels(zone, [0, 2])
+    sets = exact.kernel_sets(*zone, candidates.index[[0, 2]])
+    assert sets[0] is exact.kernel_sets(*zone, candidates.index[[0]])[0]  # the memo's array, not a new one
+    assert np.array_equal(stacked, np.stack(sets, axis=1))
+    assert np.array_equal(stacked, exact.kernels(*zone, candidates.index[[0, 2]]))
+    with pytest.raises(ValueError, match="read-only"):
+        sets[1][0, 0, 0] = 1.0
+    held = [zones.kernels(zone, [j]) for j in (0, 2)]  # asked again: served from the zone memo
+    assert all(np.shares_memory(zones._kernels[zone + (j,)], s) for j, s in zip((0, 2), sets))
+    assert all(np.array_equal(h[:, 0], s) for h, s in zip(held, sets))
+    stacked[:] = 0.0  # what a caller gets is its own array: writing it leaves the memo intact
+    assert sets[0].sum() > 0
+
+
 def test_empty_and_near_zero_coverage_layers_stay_finite(tensor):
     rgb = np.ones((64, 64, 3), np.float32)
     range_m = np.full((64, 64), 0.7, np.float32)

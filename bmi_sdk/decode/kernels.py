@@ -99,10 +99,10 @@ class ZoneKernels:
         if any(zone + (int(j),) not in self._kernels for j in which):
             with self._lock:  # another thread may have made them meanwhile: look again under the lock
                 missing = [int(j) for j in which if zone + (int(j),) not in self._kernels]
-                if missing:
-                    k = self.psf_map.kernels(zone[0], zone[1], self.candidates.index[missing])
-                    for n, j in enumerate(missing):
-                        self._kernels[zone + (j,)] = k[:, n]
+                if missing:  # the map's own arrays where it memoises them (exact mode): no second copy
+                    sets = self.psf_map.kernel_sets(zone[0], zone[1], self.candidates.index[missing])
+                    for j, kernel in zip(missing, sets):
+                        self._kernels[zone + (j,)] = kernel
                     self.kernel_sets_computed += len(missing)
         return np.stack([self._kernels[zone + (int(j),)] for j in which], axis=1)
 

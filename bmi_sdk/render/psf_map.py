@@ -172,7 +172,8 @@ class PsfMap:
         psf, filled, _, depth_index = shard
         for n, j in enumerate(depth_index):
             if filled[:, n].all():
-                self._exact.setdefault(key + (int(j),), psf[:, n].copy())  # a copy: a view would keep the shard
+                self._exact.setdefault(key + (int(j),), _frozen(psf[:, n].copy()))  # a copy: a view would keep the
+                #                                                                          shard
 
     def _write_zone(self, key: tuple) -> None:
         """A sparse shard of the depths this field position holds (a full frame has ~430 zones, each needing ~20
@@ -189,9 +190,10 @@ class PsfMap:
     def kernel_px(self) -> int:
         return resampled_size(self.tensor.spec.kernel_px, self.scale)
 
-    def _exact_kernels(self, theta_deg: float, phi_deg: float, depth_indices: np.ndarray) -> np.ndarray:
-        """(C, n, K, K) traced at exactly (θ, φ) (through the perturbed lens if any), memoised per (θ, φ, depth)
-        and, with a ``cache_dir``, on disk: one shard per (θ, φ) holding the depths computed so far."""
+    def _exact_sets(self, theta_deg: float, phi_deg: float, depth_indices: np.ndarray) -> list[np.ndarray]:
+        """[(C, K, K) per depth] traced at exactly (θ, φ) (through the perturbed lens if any), memoised per (θ, φ,
+        depth) as read-only arrays and, with a ``cache_dir``, on disk: one shard per (θ, φ) holding the depths computed
+        so far."""
         key = (round(float(theta_deg), 6), round(float(phi_deg), 6))
         self._read_zone(key)
         missing = [int(j) for j in depth_indices if key + (int(j),) not in self._exact]
@@ -212,11 +214,11 @@ class PsfMap:
             mono = {lam: by_depth[:, m] for m, lam in enumerate(lam_nm)}
             kernels = spectral.channel_kernels(mono, spec.channels, clip_negative=self.perturbation is not None)
             for n, dj in enumerate(missing):
-                self._exact[key + (dj,)] = kernels[:, n].astype(np.float32)
+                self._exact[key + (dj,)] = _frozen(kernels[:, n].astype(np.float32))
             self.kernels_traced += len(missing)
             if self.exact_cache_dir is not None:
                 self._write_zone(key)
-        return np.stack([self._exact[key + (int(j),)] for j in depth_indices], axis=1)
+        return [self._exact[key + (int(j),)] for j in depth_indices]
 
     def _perturbed_mono(self, theta_deg: float, phi_deg: float, depth_m: np.ndarray,
                         wavelength_um: np.ndarray) -> np.ndarray:
@@ -262,11 +264,21 @@ class PsfMap:
         needed = sorted({i for t in np.atleast_1d(theta_deg) for i in self._bracket(float(t))[0]})
         self.tensor.ensure(needed, depth_indices)
 
-    def kernels(self, theta_deg: float, phi_deg: float, depth_indices) -> np.ndarray:
-        """(C, n_depths, K, K) float32 unit-sum kernels for one field position."""
+    def kernel_sets(self, theta_deg: float, phi_deg: float, depth_indices) -> list[np.ndarray]:
+        """[(C, K, K) float32 unit-sum kernels per depth index] for one field position. In exact mode they are this
+        map's own memoised arrays (read-only), so a caller that keeps them (``decode.ZoneKernels``) holds no second
+        copy: a full frame's exact kernels are ~0.2 GB."""
         depth_indices = np.atleast_1d(np.asarray(depth_indices, dtype=int))
         if self.mode == "exact":
-            return self._exact_kernels(theta_deg, phi_deg, depth_indices)
+            return self._exact_sets(theta_deg, phi_deg, depth_indices)
+        k = self.kernels(theta_deg, phi_deg, depth_indices)
+        return [k[:, n] for n in range(k.shape[1])]
+
+    def kernels(self, theta_deg: float, phi_deg: float, depth_indices) -> np.ndarray:
+        """(C, n_depths, K, K) float32 unit-sum kernels for one field position (a new array)."""
+        depth_indices = np.atleast_1d(np.asarray(depth_indices, dtype=int))
+        if self.mode == "exact":
+            return np.stack(self._exact_sets(theta_deg, phi_deg, depth_indices), axis=1)
         idx, w = self._bracket(theta_deg)
         self.tensor.ensure(idx, depth_indices)
         base = sum(wi * self.tensor.data[:, i][:, depth_indices] for i, wi in zip(idx, w))
@@ -276,3 +288,9 @@ class PsfMap:
                 k = resample_kernel(base[c, j], self.scale)
                 out[c, j] = rotate_kernel(k, phi_deg) if not math.isclose(phi_deg, 0.0, abs_tol=1e-12) else k / k.sum()
         return out
+
+
+def _frozen(kernel: np.ndarray) -> np.ndarray:
+    """``kernel`` made read-only: a memoised kernel is handed to callers as it is (``PsfMap.kernel_sets``)."""
+    kernel.flags.writeable = False
+    return kernel
