@@ -275,7 +275,6 @@ def test_bracket_blends_neighbouring_candidates_linearly_in_inverse_depth():
     assert lo.tolist() == [0, 0, 1, 0, 1] and frac == pytest.approx([0.0, 0.5, 1.0, 0.0, 1.0])
 
 
-
 def test_blend_gathers_each_pixels_two_candidates_as_the_hat_weights_say():
     """``aif._blend`` (each pixel's two candidates gathered from only the needed ones) against the plain sum over
     every candidate of its hat weight in 1/d: pixels on a candidate, between two, and beyond both ends; a
@@ -292,6 +291,7 @@ def test_blend_gathers_each_pixels_two_candidates_as_the_hat_weights_say():
     expected = np.einsum("jhw,jchw->hwc", hat, values[..., 1:10, 2:13])
     assert set(needed.tolist()) == set(np.flatnonzero(hat.reshape(len(cand_inv), -1).max(axis=1) > 0).tolist())
     assert np.allclose(_blend(view, lo, frac, needed), expected, atol=1e-6)
+
 
 def test_noise_estimate_on_a_blurred_frame():
     rng = np.random.default_rng(2)

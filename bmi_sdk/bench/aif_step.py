@@ -32,16 +32,15 @@ def run(full: bool = False) -> str:
     from bmi_sdk.metrics import image_metrics
     from bmi_sdk.nn.data import STANDARD_SIGMA
     from bmi_sdk.nn.evaluate import EXACT, Benchmark, NetworkTiles, tile_raw
-    from bmi_sdk.runtime.learned import CONSISTENCY_AIF_STEP, consistent_aif, fuse_into
+    from bmi_sdk.runtime.learned import CONSISTENCY_AIF_STEP
     from bmi_sdk.runtime.model import LEARNED_MODEL
-    from bmi_sdk.sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, NoiseProfile
+    from bmi_sdk.sensor import NoiseProfile
 
     bench = Benchmark(tiles=12 if full else 4)
     geometry = lens_geometry(bench.lens)
     camera = BuiltCamera(bench.lens, EXACT["built_camera"])
     renders = bench.renders(camera.psf_tensor(), psf_mode="exact", zone_px=camera.render_zone_px("exact"))
     learned = NetworkTiles(LEARNED_MODEL, bench.tile_px, 2, camera.psf_map(mode="exact", centre_calibrated=True))
-    stage = learned.stage
     noise = NoiseProfile.additive(STANDARD_SIGMA)
     psnr: dict[tuple, list] = {}
     step_s: dict[int, list] = {}
@@ -50,16 +49,13 @@ def run(full: bool = False) -> str:
         row0, col0 = item["row0"], item["col0"]
         decoded = learned.classical_read(raw, geometry, row0, col0, noise)
         network_aif, depth_m, sigma_m = learned.network_read(raw, geometry, row0, col0, decoded, fuse=False)
-        fuse_into(decoded, stage.config.stride_px, depth_m, sigma_m, learned.model.fusion_weights,
-                  decoded.stats.get("noise_sigma"))  # as NetworkTiles.network_read and bmi infer fuse
+        learned.fuse_read(decoded, depth_m, sigma_m)
         valid = (geometry.valid_mask(row0, col0, bench.tile_px, bench.tile_px) & np.isfinite(item["range_m"])
                  & np.isfinite(depth_m))
         reads = {"network": network_aif, "classical": decoded.aif}
         for step in STEPS:
             t0 = time.perf_counter()
-            reads[step] = consistent_aif(stage, decoded, raw, network_aif, depth_m, black_level_dn=BLACK_LEVEL_DN,
-                                         white_level_dn=WHITE_LEVEL_DN, geometry=geometry, row0=row0, col0=col0,
-                                         aif_step=step)
+            reads[step] = learned.consistent_read(raw, geometry, row0, col0, decoded, network_aif, depth_m, step)
             step_s.setdefault(step, []).append(time.perf_counter() - t0)
         for name, aif in reads.items():
             psnr.setdefault((name, item["region"]), []).append(image_metrics(aif, item["rgb"], valid)["psnr_db"])

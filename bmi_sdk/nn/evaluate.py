@@ -239,16 +239,29 @@ class NetworkTiles:
         depth, sigma = depth[0, 0], (sigma[0][0, 0] if sigma else None)
         aif = aif[0].transpose(1, 2, 0)
         if decoded is not None and (self.fuse if fuse is None else fuse) and sigma is not None:
-            if self.model.fusion_weights is None:
-                raise ValueError("this decoder was built with fuse=False: its model's fusion weights were not read")
-            from bmi_sdk.runtime.learned import consistent_aif, fuse_into
-
-            fuse_into(decoded, self.stage.config.stride_px, depth, sigma, self.model.fusion_weights,
-                      decoded.stats.get("noise_sigma"))  # as bmi infer fuses, in place
-            aif = consistent_aif(self.stage, decoded, raw, aif, depth,
-                                 black_level_dn=BLACK_LEVEL_DN, white_level_dn=WHITE_LEVEL_DN,
-                                 cfa=CFA_PATTERN, geometry=geometry, row0=row0, col0=col0)
+            self.fuse_read(decoded, depth, sigma)
+            aif = self.consistent_read(raw, geometry, row0, col0, decoded, aif, depth)
         return aif, depth, sigma
+
+    def fuse_read(self, decoded, depth: np.ndarray, sigma: np.ndarray) -> None:
+        """The network's ``depth`` and 1σ ``sigma`` of a tile fused with its classical read ``decoded``'s, in place
+        (``runtime.learned.fuse_into`` with the manifest's weights, as ``bmi infer`` fuses)."""
+        if self.model.fusion_weights is None:
+            raise ValueError("this decoder was built with fuse=False: its model's fusion weights were not read")
+        from bmi_sdk.runtime.learned import fuse_into
+
+        fuse_into(decoded, self.stage.config.stride_px, depth, sigma, self.model.fusion_weights,
+                  decoded.stats.get("noise_sigma"))
+
+    def consistent_read(self, raw: np.ndarray, geometry, row0: int, col0: int, decoded, aif: np.ndarray,
+                        depth: np.ndarray, aif_step: int | None = None) -> np.ndarray:
+        """The network's ``aif`` of a tile made consistent with it through the stage's kernels at the fused ``depth``
+        (``runtime.learned.consistent_aif``, as ``bmi infer`` does; on every ``aif_step``-th candidate)."""
+        from bmi_sdk.runtime.learned import consistent_aif
+
+        return consistent_aif(self.stage, decoded, raw, aif, depth, black_level_dn=BLACK_LEVEL_DN,
+                              white_level_dn=WHITE_LEVEL_DN, cfa=CFA_PATTERN, geometry=geometry, row0=row0, col0=col0,
+                              aif_step=aif_step)
 
 
 class ClassicalTiles:

@@ -172,8 +172,8 @@ class PsfMap:
         psf, filled, _, depth_index = shard
         for n, j in enumerate(depth_index):
             if filled[:, n].all():
-                self._exact.setdefault(key + (int(j),), _frozen(psf[:, n].copy()))  # a copy: a view would keep the
-                #                                                                          shard
+                # a copy: a view would keep the shard
+                self._exact.setdefault(key + (int(j),), _frozen(psf[:, n].copy()))
 
     def _write_zone(self, key: tuple) -> None:
         """A sparse shard of the depths this field position holds (a full frame has ~430 zones, each needing ~20

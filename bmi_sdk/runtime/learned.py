@@ -26,9 +26,9 @@ from ..decode import ClassicalConfig, ClassicalDecoder
 from ..decode.classical import DecodeResult, log_depth_variation_px
 from ..decode.features import FeatureTiles, extra_channels
 from ..decode.fusion import INVERSE_VARIANCE, FusionWeights, fuse_log_depth
-from ..sensor import NoiseProfile
 from ..model_io import INPUT_CHANNELS
 from ..parallel import map_threads
+from ..sensor import NoiseProfile
 from .classical import classical_decoder, decode_frame
 from .model import Model
 from .pipeline import InferenceResult, infer_raw
