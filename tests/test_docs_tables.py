@@ -49,7 +49,7 @@ def test_record_round_trips_into_its_section(tmp_path):
     assert body.splitlines()[0] == ("Command `bmi eval --decoder classical --conditions standard --json out/eval.json`"
                                     " · commit `1e227c8a0b1c` · 2026-11-27 · x86_64, 2 cores, Python 3.11.7,"
                                     " load 2.5 / 1.9 / 1.8.")
-    assert "#### Benchmark, σ 0.005" in body
+    assert "### Benchmark, σ 0.005" in body
     assert "| condition | region | AbsRel | δ1 | tiles |\n|---|---|---|---|---|\n" in body
     assert "| standard | centre | 0.4751 | 0.516 | 12 |" in body
     assert "| standard | edge | 0.3901 | – | 12 |" in body

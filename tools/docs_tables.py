@@ -9,7 +9,7 @@ A record is what ``bmi eval --json F`` and ``bmi bench NAME --json F`` write::
 Each record fills one section of a Markdown file, the text between ``<!-- generated: NAME -->`` and
 ``<!-- end generated: NAME -->``; everything outside those two lines is left byte for byte as it was.
 The section is headed by one line naming the command, the commit, the date and the machine's load, then
-holds one Markdown table per entry of ``tables`` (a ``####`` title above it, its notes below it).
+holds one Markdown table per entry of ``tables`` (a ``###`` title above it, its notes below it).
 
 Usage::
 
@@ -105,7 +105,7 @@ def render_section(record: dict) -> str:
     lines = [f"Command `{record['command']}` · commit {commit} · {record['date']} · "
              f"{_machine_load(record['machine'])}.", ""]
     for table in record["tables"]:
-        lines += [f"#### {table['title']}", ""]
+        lines += [f"### {table['title']}", ""]
         lines.append("| " + " | ".join(_cell(c) for c in table["columns"]) + " |")
         lines.append("|" + "---|" * len(table["columns"]))
         lines += ["| " + " | ".join(_cell(v) for v in row) + " |" for row in table["rows"]]
