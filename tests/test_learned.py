@@ -381,7 +381,7 @@ def test_the_shipped_refinement_is_the_default_decoder(tmp_path):
     ok = np.isfinite(depth)
     assert ok.mean() > 0.9 and np.all((depth[ok] > 0.1) & (depth[ok] < 100)) and np.all(sigma[ok] > 0)
     # its classical stage decodes with the knobs its manifest was trained with (the frame's noise profile and the
-    # tapered window model since session 13), not the classical decoder's defaults by chance
+    # tapered window model), not the classical decoder's defaults by chance
     knobs = manifest["classical_config"]
     assert report["decoder_stats"]["noise_source"] == {"profile": "profile", "estimate": "estimated"}[knobs["noise_model"]]
     assert report["decoder_stats"]["config"]["window_model"] == knobs["window_model"] == "tapered"

@@ -16,9 +16,9 @@ the 3 × 3 neighbouring windows of its final window grid (``classical.local_log_
 
 ``INVERSE_VARIANCE`` (c = 0, −2, 2, 0) is p = r_b² / (r_a² + r_b²), the inverse-variance weight, exact for
 Gaussian errors. The two reads' errors are not Gaussian: most pixels read far better than their σ and a
-few far worse (docs/results.md, session 16), so how far the reads disagree (g) tells which one is off.
+few far worse (docs/results.md, "Classical and learned decoders"), so how far the reads disagree (g) tells which one is off.
 Neither σ nor g tells a large surface from tile-scale clutter, where the two reads disagree by as much
-but the classical one is right on the surface and wrong in the clutter (docs/results.md, session 17): v_a
+but the classical one is right on the surface and wrong in the clutter (docs/decoder.md, "Fusion"): v_a
 does, and c_v (0 in weights fitted before it) lets the weight read it. How much each read's σ can be
 trusted also changes with the frame's noise, so the coefficients may be fitted at several noise levels
 and interpolated linearly in log σ_noise between them. A model's manifest may carry weights fitted to minimise the fused log error on scenes apart from every reported one

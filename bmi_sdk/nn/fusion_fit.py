@@ -11,7 +11,7 @@ procedural benchmark's tiles of a seed that no reported table reads, drawn at se
 (1: tile-scale clutter, 16: surfaces larger than a tile, as a full frame's are) and noise levels, each
 set weighing the same. The weights are fitted at each noise level apart (``FusionWeights.noise_levels``):
 at σ 0.02 and 0.05 the network's σ says less and the classical read more than at 0.005, and one set of
-weights for all reads the noisy frames worse than the inverse-variance one (docs/results.md, session 16).
+weights for all reads the noisy frames worse than the inverse-variance one (docs/results.md, "Fusion weights").
 Each level's fit starts from the inverse-variance weights; it is deterministic (a fixed pixel sample,
 BFGS).
 
@@ -132,7 +132,7 @@ def fit_fusion_weights(sets: list[ReadSet], gap_floor: float = GAP_FLOOR,
     The classical read's variation (c_v) is fitted at the least σ only. There the variation is the scene's: a
     surface reads flat, clutter varies. At σ 0.02 and 0.05 the classical read's own noise makes it vary as much,
     which its σ already says; fitted there too, the term bought the fit sets under 1 % and read the benchmark's
-    σ 0.05 tiles 10 % worse (docs/results.md, session 17), so the noisier levels keep c_v = 0 and the weights
+    σ 0.05 tiles 10 % worse, so the noisier levels keep c_v = 0 and the weights
     interpolate to it in log σ."""
     if not sets or any(len(s) == 0 for s in sets):
         raise ValueError("the fusion fit needs at least one set of tiles, each with valid pixels")

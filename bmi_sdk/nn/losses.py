@@ -119,9 +119,9 @@ def sigma_nll_loss(depth_pred_m: torch.Tensor, sigma_pred_m: torch.Tensor, targe
     is without pulling the depth towards easy pixels) and s = σ̂ / d̂: L = mean over valid pixels of
     ½ (g / s)² + log s, i.e. of ½ ((d̂ − d) / σ̂)² + log σ̂ up to a term the σ head does not change. Its
     minimum over s is s = |g| per pixel, so on average σ̂² matches the squared error in metres, the error
-    the runtime's ``depth_sigma`` is read against: (d̂ − d) / σ̂ has unit spread. It used the log-depth
-    error until session 13, which is smaller for a far object read near (d̂ = d/2: log 2 = 0.69 d̂ against
-    d − d̂ = d̂), so the benchmark's error/σ spread was 1.5 where the log-depth one was 1.16.
+    the runtime's ``depth_sigma`` is read against: (d̂ − d) / σ̂ has unit spread. The log-depth error would
+    understate it for a far object read near (d̂ = d/2: log 2 = 0.69 d̂ against d − d̂ = d̂) and leave σ too
+    small in metres.
     """
     m = mask.to(depth_pred_m.dtype)
     d_hat = depth_pred_m.detach().clamp_min(1e-6)

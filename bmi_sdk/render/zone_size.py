@@ -3,9 +3,8 @@
 The renderer draws each zone with the kernels of its centre (blended at its borders, ``compose``). Its default,
 ``DEFAULT_ZONE_PX`` = 512 px, is about 8° of field at the edge. That suits the design, whose kernels change slowly
 with θ (``bmi bench render``). A built camera's may not: a sensor sphere of the wrong radius, vertex held,
-defocuses the field by an amount that grows with θ. On 512-px zones a +0.5 % camera's planes at 55° were drawn
-with kernels of fields up to 4° away and read AbsRel 0.28–0.46 where 64-px zones read 0.03–0.05 (docs/results.md,
-session 18).
+defocuses the field by an amount that grows with θ. On 512-px zones a +0.5 % camera's planes at 55° are drawn
+with kernels of fields up to 4° away and read AbsRel 0.28–0.46 where 64-px zones read 0.03–0.05 (docs/rendering.md).
 
 The measure: the largest L1 difference, over the colour channels and ``PROBE_DEPTHS_M``, between a camera's
 kernels at the two radial ends of a zone centred at ``PROBE_FIELD_DEG`` (the benchmark's edge, where the change
