@@ -166,6 +166,10 @@ class DecodeResult:
     grid_evidence: np.ndarray      # window grid × coarse candidates: NLL − the window's minimum (NaN in skipped blocks)
     evidence_inv_depth_per_m: np.ndarray  # 1/d of the coarse candidates (the last axis of grid_evidence)
     stats: dict = field(default_factory=dict)
+    # with pooling (``pool_sigma_px`` > 0): the cost volume over every candidate (``Candidates``), NaN in skipped blocks
+    grid_curves: np.ndarray | None = None   # window grid × candidates: each window's own NLL − its minimum (nats)
+    grid_pooled: np.ndarray | None = None   # window grid × candidates: the pooled curves (``pooling``)
+    grid_colour: np.ndarray | None = None   # window grid × 3: log mean colour (``pooling.window_colour``)
 
 
 class ClassicalDecoder:
@@ -232,10 +236,12 @@ class ClassicalDecoder:
 
     def decode(self, raw: np.ndarray, black_level_dn: float, white_level_dn: float, geometry: SensorGeometry,
                row0: int = 0, col0: int = 0, cfa: str = "RGGB", progress: bool = False,
-               noise_profile: NoiseProfile | None = None) -> DecodeResult:
+               noise_profile: NoiseProfile | None = None, aif: bool = True) -> DecodeResult:
         """Decode an H × W RGGB window whose top-left pixel is (row0, col0) of the full sensor.
 
         ``noise_profile``: the frame's raw noise (``RawFrame.noise_profile``; ``frame_noise`` says when it is used).
+        ``aif=False`` skips step 6's deconvolution (the result's ``aif`` is then zeros): for a caller that restores
+        the AiF at another depth map (the evidence decoder) or needs the evidence alone (its training pairs).
         """
         cfg = self.config
         t_start = time.perf_counter()
@@ -356,7 +362,6 @@ class ClassicalDecoder:
         if pooling:
             pooled = pool_evidence(curves, colour, cfg.pool_sigma_px / cfg.stride_px, cfg.pool_colour_sigma,
                                    cfg.pool_truncate_nats)
-            del curves
             inv = np.where(np.isfinite(inv), 1.0 / Evidence(np.nan_to_num(pooled), cand_inv).refine()[0], np.nan)
         timings["pool_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -387,7 +392,8 @@ class ClassicalDecoder:
             pass
         timings["upsample_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        aif = self._aif(raw, black_level_dn, white_level_dn, cfa, inv_px, valid, geometry, row0, col0, noise)
+        aif = (self._aif(raw, black_level_dn, white_level_dn, cfa, inv_px, valid, geometry, row0, col0, noise) if aif
+               else np.zeros((height, width, 3), np.float32))
         timings["aif_s"] = time.perf_counter() - t0
         timings["total_s"] = time.perf_counter() - t_start
         stats = {"decoder": "classical", "config": cfg.to_dict(), "noise_sigma": typical_sigma,
@@ -401,8 +407,9 @@ class ClassicalDecoder:
                  "kernel_sets_computed": self.zones.kernel_sets_computed,
                  "kernel_sets_traced": self.zones.psf_map.kernels_traced - traced_before,  # 0: all from cache
                  "timings_s": timings}
+        volume = (curves, pooled, colour) if pooling else (None, None, None)
         return DecodeResult(depth, depth_sigma, aif, valid, inv, sig, sigma_laplace, spread, evidence,
-                            cand_inv[coarse], stats)
+                            cand_inv[coarse], stats, *volume)
 
     # -- all-in-focus -----------------------------------------------------------------------------
     def restore_aif(self, raw: np.ndarray, black_level_dn: float, white_level_dn: float, geometry: SensorGeometry,
