@@ -9,8 +9,18 @@ import numpy as np
 import pytest
 
 from bmi_sdk.optics.perturb import VECTOR_NAMES, Perturbation
-from calibration import (CalibrationError, CapturePlan, PointSource, Target, extract_spots, fit_calibration,
-                         load_calibration, load_captures, simulate_captures, write_calibration)
+from calibration import (
+    CalibrationError,
+    CapturePlan,
+    PointSource,
+    Target,
+    extract_spots,
+    fit_calibration,
+    load_calibration,
+    load_captures,
+    simulate_captures,
+    write_calibration,
+)
 from calibration.model import in_float64
 
 DIAG = math.degrees(math.atan2(2250, 3000))
@@ -83,10 +93,10 @@ def test_perfect_lens_fits_to_zero_and_scipy_agrees():
     import jax.numpy as jnp
     from scipy.optimize import least_squares
 
-    from calibration.fit import linearise
-    from calibration.model import UNITS, linearisation_arrays, make_solver
     from bmi_sdk.geometry import BMI_SENSOR
     from bmi_sdk.optics import get_lens
+    from calibration.fit import linearise
+    from calibration.model import UNITS, linearisation_arrays, make_solver
 
     spots = [s for s in extraction.spots if not s.source.held_out]
     g0 = result.vector.copy()

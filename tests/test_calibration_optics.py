@@ -6,8 +6,14 @@ import numpy as np
 import pytest
 
 from bmi_sdk.optics import fit_pupils, get_lens, psf_from_pupil
-from bmi_sdk.optics.perturb import (Perturbation, glare_kernel, image_from_meridional, meridional_from_image,
-                                    spot_kernels, trace_spots)
+from bmi_sdk.optics.perturb import (
+    Perturbation,
+    glare_kernel,
+    image_from_meridional,
+    meridional_from_image,
+    spot_kernels,
+    trace_spots,
+)
 
 CENTRE = (2249.5, 2999.5)
 LAM = 0.5876

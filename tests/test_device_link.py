@@ -16,8 +16,17 @@ import pytest
 
 from bmi_sdk.protocol.registers import BY_NAME
 from bmi_sdk.protocol.wire import ENVELOPE, REG_ACCESS, REG_REPLY, U32, Msg, envelope, parse_envelope
-from devices import (AccessDeniedError, ConfigurationError, DeviceBusyError, DeviceFaultError, GrabTimeoutError,
-                     ProtocolError, Roi, open_camera, parse_tcp_address)
+from devices import (
+    AccessDeniedError,
+    ConfigurationError,
+    DeviceBusyError,
+    DeviceFaultError,
+    GrabTimeoutError,
+    ProtocolError,
+    Roi,
+    open_camera,
+    parse_tcp_address,
+)
 from firmware_sim import FaultPlan, FirmwareDevice, FirmwareServer, FlatField
 from firmware_sim.faults import Fault
 

@@ -9,8 +9,20 @@ import pytest
 import rawpy
 
 from bmi_sdk.protocol.wire import HEADER, FrameHeader, Msg, envelope, json_body, packed_size
-from devices import (ConfigurationError, DeviceBusyError, DeviceNotFoundError, DeviceRemovedError, FrameStatus,
-                     GrabTimeoutError, IncompleteFrameError, ProtocolError, RawFileError, Roi, list_devices, load_raw, open_camera)
+from devices import (
+    ConfigurationError,
+    DeviceBusyError,
+    DeviceNotFoundError,
+    DeviceRemovedError,
+    FrameStatus,
+    GrabTimeoutError,
+    IncompleteFrameError,
+    RawFileError,
+    Roi,
+    list_devices,
+    load_raw,
+    open_camera,
+)
 from firmware_sim import FirmwareDevice, FirmwareServer, FlatField
 
 SMALL = Roi(2968, 2226, 64, 48)

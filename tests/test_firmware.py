@@ -6,8 +6,20 @@ import numpy as np
 import pytest
 
 from bmi_sdk.protocol.registers import BY_NAME, REGISTERS, RegError, Status, TestPattern
-from bmi_sdk.protocol.wire import (CRC, HEADER, MAX_BODY_BYTES, FrameHeader, Msg, WireError, encode_frame, envelope,
-                                   pack12, packed_size, parse_envelope, unpack12)
+from bmi_sdk.protocol.wire import (
+    CRC,
+    HEADER,
+    MAX_BODY_BYTES,
+    FrameHeader,
+    Msg,
+    WireError,
+    encode_frame,
+    envelope,
+    pack12,
+    packed_size,
+    parse_envelope,
+    unpack12,
+)
 from bmi_sdk.sensor import SensorModel
 from firmware_sim import FaultPlan, FirmwareDevice, FlatField, InFocusImageStandIn, make_source
 from firmware_sim.faults import Fault, FaultInjector

@@ -1,7 +1,6 @@
 """Optical sources: the simulated camera sees scenes through the lens, consistently in any window."""
 
 import numpy as np
-
 import pytest
 
 from bmi_sdk.optics import PsfTensor, TensorSpec, get_lens

@@ -117,8 +117,7 @@ def _listing_with(folder, **device):
 
 def test_calibration_takes_the_camera_from_the_frames(tmp_path):
     from bmi_sdk.optics.perturb import Perturbation
-    from calibration.targets import (CalibrationError, CapturePlan, PointSource, Target, load_captures,
-                                     simulate_captures)
+    from calibration.targets import CalibrationError, CapturePlan, PointSource, Target, load_captures, simulate_captures
 
     target = Target((PointSource(0.0, 0.0, 4.0), PointSource(30.0, 0.0, 4.0)))
     captures = simulate_captures(target, CapturePlan(kernel_px=21, roi_margin_px=10), Perturbation(), seed=2,

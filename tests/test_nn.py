@@ -14,7 +14,6 @@ from bmi_sdk.nn.data import CACHE_SCHEMA, SHARD_SAMPLES, CacheSpec, dihedral, di
 from bmi_sdk.nn.losses import content_loss, fft_loss, silog_loss
 from bmi_sdk.nn.model import DualHeadMimoUNet, parameter_count, preset_config
 
-
 # -- network ------------------------------------------------------------------------------------------
 
 def test_paper_preset_has_the_papers_parameter_count():
@@ -385,8 +384,8 @@ def test_shipped_manifests_record_their_architecture_s_measured_receptive_field(
     the one probe (runtime.export.measure_receptive_field) measures on its preset's architecture."""
     from dataclasses import replace
 
-    from bmi_sdk.model_manifest import verify_model
     from bmi_sdk.model_io import INPUT_CHANNELS
+    from bmi_sdk.model_manifest import verify_model
     from bmi_sdk.nn.model import DualHeadMimoUNet, InferenceWrapper, preset_config
     from bmi_sdk.runtime.export import measure_receptive_field
 

@@ -6,8 +6,18 @@ import math
 import numpy as np
 import pytest
 
-from bmi_sdk.optics import (PrescriptionError, RayTraceError, axial_wavefront, epd_for_w040, first_order,
-                            get_glass, get_lens, load_lens, register_glass, trace)
+from bmi_sdk.optics import (
+    PrescriptionError,
+    RayTraceError,
+    axial_wavefront,
+    epd_for_w040,
+    first_order,
+    get_glass,
+    get_lens,
+    load_lens,
+    register_glass,
+    trace,
+)
 from bmi_sdk.optics.pupil import fit_pupil
 
 MONO = load_lens()

@@ -9,8 +9,16 @@ import pytest
 import scipy.io
 
 from bmi_sdk.color import srgb_to_linear
-from bmi_sdk.scenes import (FlyingThings3D, Middlebury2014, NYU_RGB_INTRINSICS, NyuDepthV2, disparity_to_z_m,
-                            load_middlebury_scene, read_nyu_split, write_pfm)
+from bmi_sdk.scenes import (
+    NYU_RGB_INTRINSICS,
+    FlyingThings3D,
+    Middlebury2014,
+    NyuDepthV2,
+    disparity_to_z_m,
+    load_middlebury_scene,
+    read_nyu_split,
+    write_pfm,
+)
 
 
 def ray_factor(fx, fy, cx, cy, row, col):

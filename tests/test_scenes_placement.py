@@ -7,8 +7,7 @@ import pytest
 
 from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
 from bmi_sdk.scenes import NYU_RGB_INTRINSICS, PinholeIntrinsics, Scene, generate_scene
-from bmi_sdk.scenes.placement import (PatchMapping, corner_phi_deg, place_patch, place_wide,
-                                      tan_vs_angle_relative_error)
+from bmi_sdk.scenes.placement import PatchMapping, corner_phi_deg, place_patch, place_wide, tan_vs_angle_relative_error
 
 SMALL = SensorGeometry(width_px=1001, height_px=801)  # odd sizes: a pixel sits exactly on the optical centre
 

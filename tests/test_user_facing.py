@@ -46,6 +46,7 @@ def test_version_flag_prints_the_sdk_version():
 
 def test_cnn_report_records_versions_provider_and_input_path(model_path, dng, tmp_path):
     import onnxruntime as ort
+
     from devices import load_raw
 
     _, report = run_job(dng, tmp_path / "a", model_path=model_path, tile_px=64, threads=1)

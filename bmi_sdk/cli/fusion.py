@@ -37,12 +37,17 @@ def register(subparsers) -> None:
 def _run(args) -> int:
     import numpy as np
 
+    from bmi_sdk.decode.fusion import INVERSE_VARIANCE
     from bmi_sdk.io_atomic import write_json
     from bmi_sdk.model_manifest import manifest_path, model_decoder, verify_model
-    from bmi_sdk.decode.fusion import INVERSE_VARIANCE
     from bmi_sdk.nn.evaluate import Benchmark
-    from bmi_sdk.nn.fusion_fit import (abs_log_error, collect_reads, fit_fusion_weights, fit_objective,
-                                       mean_abs_log_error)
+    from bmi_sdk.nn.fusion_fit import (
+        abs_log_error,
+        collect_reads,
+        fit_fusion_weights,
+        fit_objective,
+        mean_abs_log_error,
+    )
     from bmi_sdk.runtime.model import LEARNED_MODEL
 
     model = args.model or str(LEARNED_MODEL)

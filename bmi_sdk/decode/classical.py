@@ -63,11 +63,9 @@ from ..sensor import NoiseProfile, relative_illumination
 from .aif import wiener_blend
 from .bayer import clipped_samples, estimate_noise_sigma, normalised_planes
 from .candidates import Candidates, inverse_depth_candidates
-from .evidence import (Evidence, hann_taper, plane_nll, taper_variance_inflation, window_spectra,
-                       windows_touching)
+from .evidence import Evidence, hann_taper, plane_nll, taper_variance_inflation, window_spectra, windows_touching
 from .kernels import ZONE_STEP_DEG, ZoneKernels
 from .pooling import pool_evidence, window_colour
-
 
 NOISE_MODELS = ("profile", "estimate")
 WINDOW_MODELS = ("tapered", "untapered")

@@ -41,7 +41,6 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.special import expit
 
-
 N_COEFFICIENTS = 5
 """c₀, c_a, c_b, c_g, c_v: the numbers of one noise level's row."""
 

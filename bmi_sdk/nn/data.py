@@ -54,8 +54,15 @@ from bmi_sdk.geometry import SensorGeometry
 from bmi_sdk.io_atomic import write_json
 from bmi_sdk.lenses import LENS_KERNEL_PX, lens_geometry, lens_tensor
 from bmi_sdk.model_io import field_channels, raw_to_rgb, window_cfa
-from bmi_sdk.sensor import (BLACK_LEVEL_DN, CFA_PATTERN, WHITE_LEVEL_DN, adc_dn, add_gaussian_noise, bayer_mosaic,
-                            relative_illumination)
+from bmi_sdk.sensor import (
+    BLACK_LEVEL_DN,
+    CFA_PATTERN,
+    WHITE_LEVEL_DN,
+    adc_dn,
+    add_gaussian_noise,
+    bayer_mosaic,
+    relative_illumination,
+)
 
 STANDARD_SIGMA = 0.005
 CAMERA_ERROR_STREAM = 53

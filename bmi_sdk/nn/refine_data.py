@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from bmi_sdk.io_atomic import write_json
-from bmi_sdk.model_io import field_channels, raw_to_rgb, window_cfa
 from bmi_sdk.lenses import lens_geometry, lens_tensor
+from bmi_sdk.model_io import field_channels, raw_to_rgb, window_cfa
 from bmi_sdk.nn.data import PairCache, dihedral, dihedral_field, simulate_raw
 from bmi_sdk.parallel import map_jobs
 from bmi_sdk.sensor import BLACK_LEVEL_DN, CFA_PATTERN, WHITE_LEVEL_DN, NoiseProfile

@@ -5,7 +5,7 @@ is the published fisheye design matched to the monocentric lens (``baseline``).
 """
 
 from .baseline import matched_fisheye
-from .glass import get_glass, register_glass, refractive_index
+from .glass import get_glass, refractive_index, register_glass
 from .paraxial import epd_for_w040, first_order
 from .prescription import Lens, PrescriptionError, load_lens
 from .psf import Psf, psf_from_pupil

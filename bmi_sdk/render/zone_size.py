@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .compose import DEFAULT_ZONE_PX
-
 PROBE_FIELD_DEG = 55.0
 PROBE_AZIMUTH_DEG = 30.0
 PROBE_DEPTHS_M = (1.0, 3.0, 6.0, 10.0)

@@ -10,8 +10,15 @@ from bmi_sdk.scenes.flyingthings import FlyingThings3D, disparity_to_z_m, flying
 from bmi_sdk.scenes.middlebury import Middlebury2014, load_middlebury_scene, read_middlebury_calib
 from bmi_sdk.scenes.nyu import NYU_RGB_INTRINSICS, NyuDepthV2, read_nyu_split
 from bmi_sdk.scenes.pfm import PfmError, read_pfm, write_pfm
-from bmi_sdk.scenes.placement import (PatchMapping, PlacedScene, corner_phi_deg, place_patch, place_wide,
-                                      resample_to_sensor, tan_vs_angle_relative_error)
+from bmi_sdk.scenes.placement import (
+                                      PatchMapping,
+                                      PlacedScene,
+                                      corner_phi_deg,
+                                      place_patch,
+                                      place_wide,
+                                      resample_to_sensor,
+                                      tan_vs_angle_relative_error,
+)
 from bmi_sdk.scenes.procedural import generate_scene
 from bmi_sdk.scenes.scene import PinholeIntrinsics, Scene
 
