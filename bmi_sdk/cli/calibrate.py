@@ -20,8 +20,7 @@ def _run(args) -> int:
     from calibration.extract import extract_spots
     from calibration.fit import fit_calibration
     from calibration.io import write_calibration
-    from calibration.targets import (CalibrationError, CapturePlan, load_captures, simulate_captures,
-                                     standard_target)
+    from calibration.targets import CalibrationError, CapturePlan, load_captures, simulate_captures, standard_target
 
     from ._outputs import refuse_existing
 
