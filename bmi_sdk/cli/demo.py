@@ -100,11 +100,10 @@ def _run(args) -> int:
     psf_gallery(lens, gallery)
     _stage(timings, f"PSF gallery → {gallery}", t0)
 
-    from devices import open_camera
-    from firmware_sim import FirmwareDevice
-
     from bmi_sdk.runtime import Model, run_job
     from bmi_sdk.scenes import generate_scene
+    from devices import open_camera
+    from firmware_sim import FirmwareDevice
 
     t0 = time.perf_counter()
     scene = generate_scene(4500, 6000, args.seed)
