@@ -29,8 +29,17 @@ from bmi_sdk.optics.perturb import PARAMETERS, UNITS, Perturbation
 
 from .extract import Extraction, Spot, extract_spots
 from .io import SCHEMA, Calibration, load_calibration, write_calibration
-from .targets import (CalibrationError, CapturePlan, Captures, PointSource, PointSourceScene, Target,
-                      load_captures, simulate_captures, standard_target)
+from .targets import (
+    CalibrationError,
+    CapturePlan,
+    Captures,
+    PointSource,
+    PointSourceScene,
+    Target,
+    load_captures,
+    simulate_captures,
+    standard_target,
+)
 
 __all__ = [
     "PARAMETERS", "UNITS", "Perturbation", "CalibrationError", "PointSource", "Target", "CapturePlan", "Captures",
