@@ -25,8 +25,15 @@ import numpy as np
 
 from bmi_sdk.geometry import BMI_SENSOR
 from bmi_sdk.optics import get_lens
-from bmi_sdk.optics.perturb import (PAPER_RANGES, PARAMETERS, SIZES, VECTOR_NAMES, Perturbation, spot_kernels,
-                                    trace_spots)
+from bmi_sdk.optics.perturb import (
+    PAPER_RANGES,
+    PARAMETERS,
+    SIZES,
+    VECTOR_NAMES,
+    Perturbation,
+    spot_kernels,
+    trace_spots,
+)
 
 from .extract import Extraction
 from .model import ENGINE, UNITS, in_float64, linearisation_arrays, make_solver, spot_patches
