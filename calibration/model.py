@@ -42,7 +42,6 @@ import numpy as np
 from jax.scipy.special import erf
 
 
-
 def float64():
     """Context manager: jax computes in float64 inside it (this thread only), as the fit needs.
 
