@@ -43,9 +43,20 @@ from bmi_sdk.protocol.wire import MAX_TOKEN_BYTES, MODEL_NAME, tcp_uri
 from .camera import STRATEGIES, StreamCamera
 from .camera_protocol import Camera
 from .dng import load_raw, save_dng
-from .errors import (AccessDeniedError, CameraError, ConfigurationError, DeviceBusyError, DeviceFaultError,
-                     DeviceNotFoundError, DeviceRemovedError, GrabTimeoutError, IncompleteFrameError,
-                     NoiseProfileWarning, ProtocolError, RawFileError)
+from .errors import (
+    AccessDeniedError,
+    CameraError,
+    ConfigurationError,
+    DeviceBusyError,
+    DeviceFaultError,
+    DeviceNotFoundError,
+    DeviceRemovedError,
+    GrabTimeoutError,
+    IncompleteFrameError,
+    NoiseProfileWarning,
+    ProtocolError,
+    RawFileError,
+)
 from .frame import FrameStatus, RawFrame, Roi
 from .replay import ReplayCamera
 from .sim import DEFAULT_NAME as _SIM_DEFAULT_NAME
