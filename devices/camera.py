@@ -39,8 +39,14 @@ from bmi_sdk.protocol.registers import BY_NAME, ROI_REGISTERS, RegError
 from bmi_sdk.protocol.wire import FLAG_TEST_PATTERN, FrameHeader
 from bmi_sdk.sensor import NoiseProfile, SensorModel
 
-from .errors import (CameraError, ConfigurationError, DeviceFaultError, DeviceRemovedError, GrabTimeoutError,
-                     NoiseProfileWarning)
+from .errors import (
+    CameraError,
+    ConfigurationError,
+    DeviceFaultError,
+    DeviceRemovedError,
+    GrabTimeoutError,
+    NoiseProfileWarning,
+)
 from .frame import BufferPool, FrameStatus, RawFrame, Roi
 from .link import StreamLink
 from .settings import Settings, refused, specs_from_register_map
