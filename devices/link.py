@@ -24,8 +24,23 @@ from typing import Protocol
 import numpy as np
 
 from bmi_sdk.protocol.registers import RegError
-from bmi_sdk.protocol.wire import (ACK, CRC, ENVELOPE, HEADER, PROGRESS, REG_ACCESS, REG_REPLY, REPLY_TIMEOUT_S,
-                                   U32, FrameHeader, Msg, WireError, envelope, parse_envelope, unpack12)
+from bmi_sdk.protocol.wire import (
+    ACK,
+    CRC,
+    ENVELOPE,
+    HEADER,
+    PROGRESS,
+    REG_ACCESS,
+    REG_REPLY,
+    REPLY_TIMEOUT_S,
+    U32,
+    FrameHeader,
+    Msg,
+    WireError,
+    envelope,
+    parse_envelope,
+    unpack12,
+)
 
 from .errors import AccessDeniedError, CameraError, DeviceBusyError, DeviceRemovedError, ProtocolError
 from .frame import FrameStatus
