@@ -22,8 +22,16 @@ from .device import FirmwareDevice, lens_identity
 from .endpoint import FirmwareServer, InProcessLink
 from .faults import Fault, FaultPlan
 from .optical import ProceduralOpticalSource, RenderedScene
-from .sources import (DarkFrame, FlatField, InFocusImageStandIn, IrradianceSource, PolarChart, make_source,
-                      register_source, source_names)
+from .sources import (
+                      DarkFrame,
+                      FlatField,
+                      InFocusImageStandIn,
+                      IrradianceSource,
+                      PolarChart,
+                      make_source,
+                      register_source,
+                      source_names,
+)
 
 __all__ = [
     "FirmwareDevice", "lens_identity", "FirmwareServer", "InProcessLink",
