@@ -43,9 +43,26 @@ import weakref
 import zlib
 
 from bmi_sdk.protocol.registers import RegError
-from bmi_sdk.protocol.wire import (ACK, CRC, DEFAULT_IDLE_TIMEOUT_S, ENVELOPE, HEADER, HOST_BODY_BYTES, PROGRESS,
-                                   REG_ACCESS, REG_REPLY, U32, Msg, WireError, check_host_body, envelope, error_body,
-                                   json_body, parse_envelope, tcp_uri)
+from bmi_sdk.protocol.wire import (
+    ACK,
+    CRC,
+    DEFAULT_IDLE_TIMEOUT_S,
+    ENVELOPE,
+    HEADER,
+    HOST_BODY_BYTES,
+    PROGRESS,
+    REG_ACCESS,
+    REG_REPLY,
+    U32,
+    Msg,
+    WireError,
+    check_host_body,
+    envelope,
+    error_body,
+    json_body,
+    parse_envelope,
+    tcp_uri,
+)
 
 from .device import FirmwareDevice, NotHeld
 from .faults import Fault
