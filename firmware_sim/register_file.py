@@ -8,8 +8,18 @@ host's disconnect resets.
 
 from __future__ import annotations
 
-from bmi_sdk.protocol.registers import (BY_ADDRESS, BY_NAME, REGISTERS, ROI_REGISTERS, SENSOR_HEIGHT_PX,
-                                        SENSOR_WIDTH_PX, U32_MAX, RegError, Status, TestPattern)
+from bmi_sdk.protocol.registers import (
+    BY_ADDRESS,
+    BY_NAME,
+    REGISTERS,
+    ROI_REGISTERS,
+    SENSOR_HEIGHT_PX,
+    SENSOR_WIDTH_PX,
+    U32_MAX,
+    RegError,
+    Status,
+    TestPattern,
+)
 
 
 class RegisterFile:
