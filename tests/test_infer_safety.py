@@ -13,8 +13,14 @@ import torch
 
 from bmi_sdk.cli import main
 from bmi_sdk.runtime import run_job
-from bmi_sdk.runtime.quality import (MAX_SATURATED_FRACTION, MIN_SIGNAL_FRACTION, MIN_STRUCTURE,
-                                     FrameQualityWarning, TestPatternFrameError, assess_frame)
+from bmi_sdk.runtime.quality import (
+    MAX_SATURATED_FRACTION,
+    MIN_SIGNAL_FRACTION,
+    MIN_STRUCTURE,
+    FrameQualityWarning,
+    TestPatternFrameError,
+    assess_frame,
+)
 from devices import Roi, open_camera
 from firmware_sim import FirmwareDevice, make_source
 
