@@ -21,8 +21,17 @@ from torch import nn
 from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
 from bmi_sdk.model_io import field_channels, raw_to_rgb
 from bmi_sdk.model_manifest import ModelError, manifest_path, read_manifest, write_manifest
-from bmi_sdk.runtime import (Model, TilePlan, count_macs, export_model, infer_raw, reflect_indices, run_job,
-                             select_model, write_ply)
+from bmi_sdk.runtime import (
+    Model,
+    TilePlan,
+    count_macs,
+    export_model,
+    infer_raw,
+    reflect_indices,
+    run_job,
+    select_model,
+    write_ply,
+)
 
 SUBPROCESS_PATIENCE_S = 1800.0
 """A safety net against a hung command only (see tests/test_user_facing.py)."""
