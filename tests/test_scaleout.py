@@ -23,7 +23,7 @@ import pytest
 import torch
 from torch import nn
 
-from bmi_sdk.scaleout import SchedulerSpec, fan_out, open_client, parse_scheduler, publish_once
+from bmi_sdk.scaleout import SchedulerSpec, fan_out, parse_scheduler, publish_once
 
 OUTPUT_FILES = ("aif.npy", "depth.npy", "aif.png", "aif_preview.png", "depth_mm.png", "depth_preview.png",
                 "points.ply")
