@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test install clean
+.PHONY: demo test lint install clean
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -20,8 +20,14 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/bmi demo
 
-test: $(STAMP)
-	$(VENV)/bin/lint-imports --no-cache  # the import contracts in pyproject.toml (docs/architecture.md)
+# The static checks, fastest first: lint ([tool.ruff]), the types of the public API packages ([tool.mypy]) and the
+# import contracts ([tool.importlinter], docs/architecture.md); each configured in pyproject.toml.
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy
+	$(VENV)/bin/lint-imports --no-cache
+
+test: lint
 	$(PY) -m pytest
 
 clean:
