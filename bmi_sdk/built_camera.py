@@ -19,6 +19,12 @@ drop an error on the way:
 * its PSF tensor (``psf_tensor``): the design's, or one built with the camera's errors.
 
 ``sha256`` keys caches of anything derived from the camera (e.g. decoder kernels).
+
+The runtime builds one per camera and passes it down: ``for_frame(frame, calibration)`` is the camera that
+took a frame (the frame's lens and sensor geometry, a loaded ``calibration.io.Calibration``'s fitted errors
+and id), and every decoder (``runtime.decoders.open_decoder``) reads its kernels, its rays and its lens from it.
+A calibration file is read once (``calibration.io.load_calibration``) and each frame's camera is built from the
+loaded file; nothing below re-reads it.
 """
 
 from __future__ import annotations
@@ -31,14 +37,17 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from .geometry import SensorGeometry
+from .lenses import DEFAULT_LENS
 from .optics.perturb import Perturbation
 
 
 @dataclass(frozen=True)
 class BuiltCamera:
-    """A camera as built: ``lens_name`` + ``perturbation`` (hardware errors) + ``geometry``."""
+    """A camera as built: ``lens_name`` + ``perturbation`` (hardware errors) + ``geometry``; ``lens`` is the lens
+    object itself. Its identity (``to_dict``, ``sha256``) is the lens's name, the errors, the geometry and the
+    calibration id."""
 
-    lens_name: str = "bmi_monocentric"
+    lens_name: str = DEFAULT_LENS
     perturbation: Perturbation = field(default_factory=Perturbation)
     geometry: SensorGeometry | None = None
     calibration_id: str | None = None
@@ -46,6 +55,13 @@ class BuiltCamera:
     @property
     def is_nominal(self) -> bool:
         return self.perturbation.is_design
+
+    @property
+    def lens(self):
+        """The design lens (``optics.Lens``) this camera was built to; its errors are ``perturbation``."""
+        from .optics import get_lens
+
+        return get_lens(self.lens_name)
 
     def sensor(self) -> SensorGeometry:
         """The sensor geometry (the lens's default sensor unless one was given)."""
@@ -99,10 +115,19 @@ class BuiltCamera:
 
     @classmethod
     def from_calibration(cls, calibration, geometry: SensorGeometry | None = None) -> "BuiltCamera":
-        """The camera a ``calibration.io.Calibration`` describes (its fitted errors, lens and id)."""
-        lens = calibration.doc.get("lens", {}).get("name") or "bmi_monocentric"
+        """The camera a loaded ``calibration.io.Calibration`` describes (its fitted errors, lens and id)."""
+        lens = calibration.doc.get("lens", {}).get("name") or DEFAULT_LENS
         return cls(lens_name=lens, perturbation=calibration.perturbation, geometry=geometry,
                    calibration_id=calibration.id)
+
+    @classmethod
+    def for_frame(cls, frame, calibration=None) -> "BuiltCamera":
+        """The camera that took ``frame`` (a ``devices.RawFrame``): its lens (the frame's ``lens.name``, else
+        ``DEFAULT_LENS``) and sensor geometry, with a loaded ``calibration``'s fitted errors and id when given."""
+        if calibration is not None:
+            return cls.from_calibration(calibration, geometry=frame.geometry)
+        lens = (getattr(frame, "lens", None) or {}).get("name") or DEFAULT_LENS
+        return cls(lens_name=lens, geometry=frame.geometry)
 
 
 @functools.lru_cache(maxsize=16)

@@ -10,14 +10,17 @@ import numpy as np
 
 from .geometry import BMI_SENSOR, SensorGeometry
 
-LENS_KERNEL_PX = {"bmi_monocentric": 41, "fisheye": 161}
+DEFAULT_LENS = "bmi_monocentric"
+"""The lens of a camera that names none: the BMI monocentric design."""
+
+LENS_KERNEL_PX = {DEFAULT_LENS: 41, "fisheye": 161}
 """PSF kernel size per lens: the fisheye's near-range blur spreads ~15 % of its energy beyond 41 px."""
 
 
 def lens_geometry(lens_name: str) -> SensorGeometry:
     """The sensor a lens images on: the BMI curved sensor, or for the fisheye a plane 6000×4500 sensor
     at 2 µm whose pixel → field mapping is the fisheye's traced chief-ray table (0–60°)."""
-    if lens_name == "bmi_monocentric":
+    if lens_name == DEFAULT_LENS:
         return BMI_SENSOR
     if lens_name == "fisheye":
         from .optics import chief_ray_table, get_lens

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import markdown_table, update_section
+from . import add_json_argument, emit, markdown_table
 
 RECOVERY_SEEDS_QUICK = 8
 RECOVERY_SEEDS_FULL = 50
@@ -115,10 +115,7 @@ def run(full: bool = False, seeds: int | None = None, out_json: str | None = Non
 
 def register(subparsers) -> None:
     def handler(args) -> int:
-        text = run(full=args.full, seeds=args.seeds, out_json=args.json)
-        print(text)
-        if args.write_docs:
-            update_section("Calibration", text)
+        emit(run(full=args.full, seeds=args.seeds, out_json=args.records), args.json)
         return 0
 
     p = subparsers.add_parser("calibrate", help="hardware-error calibration: recovery, σ coverage, points and "
@@ -126,6 +123,7 @@ def register(subparsers) -> None:
     p.add_argument("--full", action="store_true", help=f"{RECOVERY_SEEDS_FULL} recovery seeds instead of "
                    f"{RECOVERY_SEEDS_QUICK} (about a minute each here)")
     p.add_argument("--seeds", type=int, default=None, help="number of recovery seeds (overrides --full)")
-    p.add_argument("--json", default=None, help="also write every seed's record to this JSON file as it goes")
-    p.add_argument("--write-docs", action="store_true", help="replace the 'Calibration' section of docs/benchmarks.md")
+    p.add_argument("--records", default=None, metavar="PATH",
+                   help="also write every seed's fit to this JSON file as it goes")
+    add_json_argument(p)
     p.set_defaults(handler=handler)

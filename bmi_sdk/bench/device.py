@@ -14,11 +14,14 @@ import subprocess
 import sys
 import time
 
+from . import add_json_argument, emit
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("device", help="camera link frame rate, host CPU/memory per frame, simulated frame time")
     p.add_argument("--frames", type=int, default=20, help="full-resolution frames to stream over TCP")
     p.add_argument("--sim-frames", type=int, default=3, help="full-resolution frames to simulate (per scene)")
+    add_json_argument(p)
     p.set_defaults(handler=_run)
 
 
@@ -58,15 +61,13 @@ def _run(args) -> int:
         proc.terminate()
         proc.wait(timeout=10)
     mb = 6000 * 4500 * 1.5 / 1e6
-    print("## Device link: 6000×4500 RAW12 over TCP loopback (firmware in its own process)")
-    print("| frames | fps | MB/s (payload) | host CPU s/frame | host peak RSS MB | incomplete/corrupt | lost |")
-    print("|---|---|---|---|---|---|---|")
-    print(f"| {args.frames} | {args.frames / wall:.2f} | {args.frames * mb / wall:.0f} | {cpu / args.frames:.3f} "
+    lines = ["## Device link: 6000×4500 RAW12 over TCP loopback (firmware in its own process)",
+             "| frames | fps | MB/s (payload) | host CPU s/frame | host peak RSS MB | incomplete/corrupt | lost |",
+             "|---|---|---|---|---|---|---|"]
+    lines.append(f"| {args.frames} | {args.frames / wall:.2f} | {args.frames * mb / wall:.0f} | {cpu / args.frames:.3f} "
           f"| {rss1 / 1024:.0f} (grew {max(0, rss1 - rss0) / 1024:.0f} while streaming) | {bad} | {stats['lost']} |")
-
-    print("\n## Simulated full-resolution frame (in process, one core of numpy)")
-    print("| scene | readout s/frame (irradiance → noise → ADC) | RAW12 pack s | unpack s |")
-    print("|---|---|---|---|")
+    lines += ["", "## Simulated full-resolution frame (in process, one core of numpy)",
+              "| scene | readout s/frame (irradiance → noise → ADC) | RAW12 pack s | unpack s |", "|---|---|---|---|"]
     import numpy as np
 
     for scene in ("flat", "chart"):
@@ -83,5 +84,6 @@ def _run(args) -> int:
         t0 = time.perf_counter()
         unpack12(packed, out)
         t_unpack = time.perf_counter() - t0
-        print(f"| {scene} | {t_read:.2f} | {t_pack:.3f} | {t_unpack:.3f} |")
+        lines.append(f"| {scene} | {t_read:.2f} | {t_pack:.3f} | {t_unpack:.3f} |")
+    emit("\n".join(lines), args.json)
     return 0

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from . import add_json_argument
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("infer", help="full-frame time/memory per model, seams vs tile/overlap, fp32 vs int8")
@@ -35,7 +37,7 @@ def register(subparsers) -> None:
     p.add_argument("--peak-gflops", type=float, default=175.0,
                    help="the machine's practical onnxruntime peak, GFLOP/s (PACKAGES.md: 150–200 on 2 cores)")
     p.add_argument("--work-dir", default="out/bench_infer")
-    p.add_argument("--write-docs", action="store_true", help="replace the Inference section of docs/benchmarks.md")
+    add_json_argument(p)
     p.set_defaults(handler=_run)
 
 
@@ -142,7 +144,7 @@ def _seam_rows(model_path: Path, frame, window, tiles: list[int], threads) -> tu
 def _run(args) -> int:
     from devices import load_raw
 
-    from bmi_sdk.bench import markdown_table, update_section
+    from bmi_sdk.bench import emit, markdown_table
     from bmi_sdk.model_io import network_input, raw_to_rgb, window_cfa
     from bmi_sdk.model_manifest import read_manifest
     from bmi_sdk.runtime import Model, infer_raw, quantize_int8
@@ -220,7 +222,5 @@ def _run(args) -> int:
                              "AiF MAD vs fp32 untiled", "depth MAD m vs fp32 untiled"], rows3)
     sections.append(f"### fp32 vs int8 (static QDQ, per-channel, 8 calibration tiles)\n\n{table3}")
     body = "\n\n".join(sections)
-    print(body)
-    if args.write_docs:
-        update_section("Inference", body)
+    emit(body, args.json)
     return 0

@@ -65,22 +65,23 @@ def _full_frame(model_path, nominal, geometry) -> str:
     def absrel_of(depth_m: np.ndarray) -> float:
         return float(np.mean(np.abs(depth_m[ok] - range_m[ok]) / range_m[ok]))
 
-    fusion_s = result.fusion["fusion_s"]
-    network_s = sum(result.network.timings_s.values())
+    fusion = result.report["fusion"]
+    fusion_s = fusion["fusion_s"]
+    network_s = sum(result.parts["network"].timings_s.values())
     rows = [["classical stage", f"{w1 - w0:.1f}", f"{c1 - c0:.1f}"],
             ["channels + network + fusion + AiF step", f"{w2 - w1:.1f}", f"{c2 - c1:.1f}"],
             ["of which the network's tiles (input, ONNX, blend)", f"{network_s:.1f}", ""],
             ["of which the fusion", f"{fusion_s:.1f}", ""],
-            ["of which the AiF's consistency step", f"{result.classical_stats['timings_s']['aif_consistency_s']:.1f}",
+            ["of which the AiF's consistency step", f"{result.parts['stats']['timings_s']['aif_consistency_s']:.1f}",
              ""],
             ["total", f"{w2 - w0:.1f}", f"{c2 - c0:.1f}"]]
-    classical_absrel, network_absrel, absrel = (absrel_of(d) for d in (decoded.depth_m, result.network_depth_m,
+    classical_absrel, network_absrel, absrel = (absrel_of(d) for d in (decoded.depth_m, result.parts["network_depth_m"],
                                                                        result.depth_m))
-    share = result.fusion["classical_weight_mean"]
+    share = fusion["classical_weight_mean"]
     return "\n".join([f"Full 6000×4500 procedural frame (seed 7, tensor-mode render, decoded with the same kernels), "
                       f"learned decoder {model_path.name}; peak RSS {peak_rss_mb():.0f} MB (render included); depth "
                       f"AbsRel over {int(ok.sum())} valid pixels: classical stage alone {classical_absrel:.3f}, "
-                      f"network alone {network_absrel:.3f}, fused (the decoder's output, {result.fusion['weights']} "
+                      f"network alone {network_absrel:.3f}, fused (the decoder's output, {fusion['weights']} "
                       f"weights) {absrel:.3f}, the classical read's mean weight {share:.2f}.", "",
                       markdown_table(["stage", "wall s", "CPU s"], rows)])
 

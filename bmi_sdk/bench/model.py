@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import markdown_table, update_section
+from . import add_json_argument, emit, markdown_table
 
 TILE_PX = 512
 PRESET_NAMES = ("tiny", "small", "paper")
@@ -149,7 +149,7 @@ def register(subparsers) -> None:
     p.add_argument("--presets", default=",".join(PRESET_NAMES))
     p.add_argument("--models", default="", help="comma list NAME=PATH of trained ONNX models to score")
     p.add_argument("--tiles", type=int, default=12, help="benchmark tiles per field region")
-    p.add_argument("--write-docs", action="store_true", help="replace the '## Model' section of docs/benchmarks.md")
+    add_json_argument(p)
     p.set_defaults(handler=_handler)
 
 
@@ -157,7 +157,5 @@ def _handler(args) -> int:
     models = dict(item.split("=", 1) for item in args.models.split(",") if item)
     text = run([p.strip() for p in args.presets.split(",") if p.strip()], {k: Path(v) for k, v in models.items()},
                args.tiles)
-    print(text)
-    if args.write_docs:
-        update_section("Model", text)
+    emit(text, args.json)
     return 0

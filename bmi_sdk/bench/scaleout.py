@@ -21,6 +21,8 @@ import sys
 import time
 from pathlib import Path
 
+from . import add_json_argument
+
 
 def _process_cpu_s() -> float:
     """CPU seconds of the calling process (run here and, through ``client.run``, on each worker)."""
@@ -44,7 +46,7 @@ def register(subparsers) -> None:
     p.add_argument("--frames", type=int, default=4, help="frames decoded per run (default 4)")
     p.add_argument("--frame-px", default="1024x1536", help="H×W of each ROI capture (default 1024x1536)")
     p.add_argument("--work-dir", default="out/bench_scaleout")
-    p.add_argument("--write-docs", action="store_true", help="replace the Scale-out section of docs/benchmarks.md")
+    add_json_argument(p)
     p.set_defaults(handler=_run)
 
 
@@ -115,8 +117,9 @@ def _infer_row(args, work: Path, frames: list[Path], scheduler: str | None) -> l
 
 
 def _run(args) -> int:
-    from bmi_sdk.bench import markdown_table, update_section
-    from bmi_sdk.lenses import lens_tensor
+    from bmi_sdk.bench import emit, markdown_table
+    from bmi_sdk.runtime.decoders import DEFAULT_DECODER
+    from bmi_sdk.lenses import DEFAULT_LENS, lens_tensor
     from bmi_sdk.scaleout import parse_scheduler
 
     schedulers = args.scheduler or ["local:1", "local:2"]
@@ -125,7 +128,7 @@ def _run(args) -> int:
     height_px, width_px = (int(v) for v in args.frame_px.lower().split("x"))
     work = Path(args.work_dir)
     work.mkdir(parents=True, exist_ok=True)
-    lens_tensor("bmi_monocentric").ensure_all(progress=True)
+    lens_tensor(DEFAULT_LENS).ensure_all(progress=True)
     frames = _frames(work, args.frames, height_px, width_px)
     rows = []
     for scheduler in [None, *schedulers]:
@@ -137,8 +140,6 @@ def _run(args) -> int:
     text += (f"\n\nIn-process: cache shards in this one process, frames decoded with onnxruntime on all "
              f"{os.cpu_count()} cores (the `bmi infer` default); local:N: N worker processes of one thread each. "
              f"Cache: crop {args.crop} px, {args.shard_samples} pairs a shard; frames: ROI captures of the "
-             "simulated camera, packaged default model, 512-px tiles.")
-    print(text)
-    if args.write_docs:
-        update_section("Scale-out (Dask)", text)
+             f"simulated camera, the default ({DEFAULT_DECODER}) decoder, 512-px tiles.")
+    emit(text, args.json)
     return 0

@@ -18,16 +18,13 @@ def infer_many(args) -> int:
     """Decode every frame; print one line per frame and a total; exit status 1 when any frame failed."""
     import time
 
-    from bmi_sdk.cli.infer import classical_config
     from bmi_sdk.runtime.batch import DecodeOptions, plan_outputs, run_batch
     from bmi_sdk.scaleout import open_client
 
     jobs = plan_outputs(args.raw, args.out)
-    options = DecodeOptions(model_path=args.model, calibration_id=args.calibration_id,
-                            calibration_path=args.calibration, tile_px=args.tile_px, threads=args.threads,
-                            overlap_px=args.overlap_px, ply_step_px=args.ply_step, decoder=args.decoder,
-                            classical_config=classical_config(args) if args.decoder == "classical" else None,
-                            overwrite=args.overwrite,
+    options = DecodeOptions(model_path=args.model, calibration_path=args.calibration, tile_px=args.tile_px,
+                            threads=args.threads, overlap_px=args.overlap_px, ply_step_px=args.ply_step,
+                            decoder=args.decoder, classical_config=args.classical_config, overwrite=args.overwrite,
                             allow_test_pattern=args.allow_test_pattern, providers=args.provider,
                             depth_range_m=args.depth_range)
     t0 = time.perf_counter()
@@ -36,13 +33,14 @@ def infer_many(args) -> int:
     wall_s = time.perf_counter() - t0
     failed = [s for s in summaries if not s["ok"]]
     for s in summaries:
-        if s["ok"] and s["decoder"] == "classical":
-            print(f"{s['frame']} → {s['out']}: classical decoder, {s['blocks_run']} blocks, {s['seconds']:.1f} s, "
-                  f"camera {s['camera_sha256'][:12]}…")
-        elif s["ok"]:
-            note = f" (note: {s['calibration_note']})" if s["calibration_note"] else ""
-            print(f"{s['frame']} → {s['out']}: {s['tiles_run']} tiles, {s['seconds']:.1f} s, "
-                  f"model {s['model_sha256'][:12]}…{note}")
+        if s["ok"]:
+            ran = [f"{s['decoder']} decoder"]
+            ran += [f"{s['blocks_run']} blocks"] if s["blocks_run"] is not None else []
+            ran += [f"{s['tiles_run']} tiles"] if s["tiles_run"] is not None else []
+            ran += [f"{s['seconds']:.1f} s"]
+            ran += [f"model {s['model_sha256'][:12]}…"] if s["model_sha256"] else []
+            ran += [f"camera {s['camera_sha256'][:12]}…"] if s["camera_sha256"] else []
+            print(f"{s['frame']} → {s['out']}: {', '.join(ran)}")
         else:
             print(f"{s['frame']}: FAILED: {s['error']}")
     print(f"{len(summaries) - len(failed)} of {len(summaries)} frames decoded in {wall_s:.1f} s "

@@ -10,7 +10,9 @@ KEYS = ("absrel", "rmse_m", "delta1", "delta2", "delta3", "psnr_db", "ssim")
 
 
 def register(subparsers) -> None:
-    from bmi_sdk.cli.infer import add_window_arguments
+    from bmi_sdk.bench.record import add_json_argument
+    from bmi_sdk.cli.infer import WINDOW_KNOBS, add_classical_arguments
+    from bmi_sdk.runtime.decoders import DECODERS, DEFAULT_DECODER
     from bmi_sdk.scaleout import add_scheduler_argument
 
     p = subparsers.add_parser(
@@ -32,15 +34,18 @@ def register(subparsers) -> None:
                         "tile, as a frame's are (default 1: the benchmark's own scale, where only ~3 %% of 64-px "
                         "windows hold one depth); rows then carry a scene_scale key")
     p.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
-    p.add_argument("--decoder", default="cnn",
-                   help="comma list of decoders: cnn (the ONNX model), classical (bmi_sdk.decode, no network), "
-                        "learned (the classical evidence refined by --learned-model); e.g. cnn,classical,learned")
+    p.add_argument("--decoder", default=DEFAULT_DECODER,
+                   help=f"comma list of decoders ({', '.join(DECODERS)}): learned (the classical evidence refined by "
+                        f"--learned-model), classical (bmi_sdk.decode, no network), cnn (the ONNX model of --model); "
+                        f"e.g. cnn,classical,learned (default {DEFAULT_DECODER})")
     p.add_argument("--no-fusion", action="store_true",
                    help="learned: score the network's depth and AiF alone, not fused with its classical stage's (with the "
                         "weights of its manifest, as bmi infer returns it) nor, on a built camera, pulled to the "
                         "frame through its kernels; its rows carry fusion false")
-    add_window_arguments(p)
-    p.add_argument("--json", action="store_true", help="one JSON object per line per condition and region")
+    add_classical_arguments(p, WINDOW_KNOBS)
+    p.add_argument("--jsonl", action="store_true", help="print one JSON object per line per condition and region "
+                                                       "instead of the table")
+    add_json_argument(p)
     add_scheduler_argument(p)
     p.set_defaults(handler=_run)
 
@@ -48,18 +53,19 @@ def register(subparsers) -> None:
 def _run(args) -> int:
     from dataclasses import replace
 
-    from bmi_sdk.cli.infer import CLASSICAL_KNOBS, WINDOW_KNOBS
-
+    from bmi_sdk.cli.infer import WINDOW_KNOBS, changed_classical_flags, classical_config, classical_defaults
     from bmi_sdk.model_manifest import verify_model
     from bmi_sdk.nn.evaluate import Benchmark, run_benchmark
     from bmi_sdk.scaleout import scheduler_address
 
-    decoders = tuple(d.strip() for d in args.decoder.split(",") if d.strip())
+    from bmi_sdk.runtime.decoders import decoder_kind
+
+    decoders = tuple(decoder_kind(d.strip()) for d in args.decoder.split(",") if d.strip())
     if args.model is not None and "cnn" not in decoders:
         raise ValueError(f"--model {args.model} is the cnn decoder's model, and --decoder {args.decoder} does not run "
                          "it (a learned refinement is --learned-model)")
     args.model = args.model or str(DEFAULT_MODEL)
-    changed = [f"--{knob.replace('_', '-')}" for knob in WINDOW_KNOBS if getattr(args, knob) != CLASSICAL_KNOBS[knob]]
+    changed = changed_classical_flags(args, WINDOW_KNOBS)
     if changed and "classical" not in decoders:
         raise ValueError(f"{', '.join(changed)} set(s) the classical decoder, and --decoder {args.decoder} does not "
                          "run it (a learned refinement decodes with the knobs its manifest was trained with)")
@@ -76,7 +82,7 @@ def _run(args) -> int:
         manifest = verify_model(args.learned_model)
         if model_decoder(manifest) != "learned":
             raise ValueError(f"--learned-model {args.learned_model} is not a learned refinement model")
-        windows["learned"] = int(manifest["classical_config"].get("window_px", CLASSICAL_KNOBS["window_px"]))
+        windows["learned"] = int(manifest["classical_config"].get("window_px", classical_defaults()["window_px"]))
     for decoder, window_px in windows.items():
         if args.tile_px < window_px:
             raise ValueError(f"--tile-px {args.tile_px} holds no {window_px}-px evidence window of the {decoder} "
@@ -86,14 +92,16 @@ def _run(args) -> int:
     bench = Benchmark(tiles=args.tiles, tile_px=args.tile_px, seed=args.seed, threads=args.threads,
                       scene_scale=args.scene_scale)
     conditions = [c.strip() for c in args.conditions.split(",")] if args.conditions else None
-    from bmi_sdk.decode import ClassicalConfig
-
-    config = ClassicalConfig(window_px=args.window_px, stride_px=args.stride_px, candidates=args.candidates)
-    with scheduler_address(args.scheduler, announce=not args.json) as scheduler:  # benchmark tiles render there
+    config = classical_config(args, WINDOW_KNOBS)
+    with scheduler_address(args.scheduler, announce=not args.jsonl) as scheduler:  # benchmark tiles render there
         rows = run_benchmark(args.model, replace(bench, scheduler=scheduler), conditions, args.fisheye_model,
-                             progress=not args.json, decoders=decoders, classical_config=config,
+                             progress=not args.jsonl, decoders=decoders, classical_config=config,
                              learned_model=args.learned_model, learned_fusion=not args.no_fusion)
     if args.json:
+        from bmi_sdk.bench.record import write_record
+
+        write_record(args.json, [eval_table(rows, bench)])
+    if args.jsonl:
         scale = {"scene_scale": bench.scene_scale} if bench.scene_scale != 1 else {}
         for row in rows:
             print(json.dumps({**{k: row[k] for k in ("condition", "decoder", "region", *KEYS, "sigma_z_rms",
@@ -103,7 +111,20 @@ def _run(args) -> int:
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         z = f"{r['sigma_z_std']:.2f}" if "sigma_z_std" in r else "–"
-        decoder = r["decoder"] + (" (network alone)" if r.get("fusion") is False else "")
-        print(f"| {r['condition']} | {decoder} | {r['region']} | {r['absrel']:.3f} | {r['rmse_m']:.3f} | "
+        print(f"| {r['condition']} | {_decoder_name(r)} | {r['region']} | {r['absrel']:.3f} | {r['rmse_m']:.3f} | "
               f"{r['delta1']:.3f} | {r['delta2']:.3f} | {r['delta3']:.3f} | {r['psnr_db']:.2f} | {r['ssim']:.3f} | {z} |")
     return 0
+
+
+def _decoder_name(row: dict) -> str:
+    return row["decoder"] + (" (network alone)" if row.get("fusion") is False else "")
+
+
+def eval_table(rows: list[dict], bench) -> dict:
+    """The ``--json`` record's table of ``run_benchmark``'s rows: one row per condition, decoder and region."""
+    columns = ["condition", "decoder", "region", *KEYS, "sigma_z_rms", "sigma_z_std"]
+    return {"title": "Synthetic benchmark",
+            "columns": columns,
+            "rows": [[_decoder_name(r) if k == "decoder" else r.get(k) for k in columns] for r in rows],
+            "notes": f"{bench.tiles} tiles of {bench.tile_px}² px per field region (centre 0–20°, edge 50–60°), "
+                     f"seed {bench.seed}, scene scale {bench.scene_scale:g}."}

@@ -16,114 +16,137 @@ def depth_range(text: str) -> tuple[float, float]:
         raise ValueError(f"--depth-range {text}: {exc}") from None
 
 
-CLASSICAL_KNOBS = {"window_px": 64, "stride_px": 16, "candidates": 48, "noise_sigma": None, "pool_sigma_px": 48.0}
-"""``--decoder classical``'s options and their defaults (``ClassicalConfig``'s: a test holds them equal); any other
-value with another decoder is refused."""
-
+CLASSICAL_FLAGS = {
+    "window_px": (int, "evidence window (px)"),
+    "stride_px": (int, "window stride (px)"),
+    "candidates": (int, "depth candidates spaced in 1/d, snapped to the kernel grid"),
+    "noise_sigma": (float, "a constant raw noise σ in units of full scale (default: the frame's NoiseProfile tag, "
+                           "the camera's photon transfer; estimated from the picture when the file has none)"),
+    "pool_sigma_px": (float, "radius over which each window's evidence pools its like-coloured neighbours' (0: each "
+                             "window alone; docs/decoder.md, method step 4b)"),
+}
+"""The ``decode.ClassicalConfig`` fields ``bmi infer --decoder classical`` takes as flags (``--window-px`` …): their
+type and help; each default is the dataclass's own. Any other decoder refuses a changed value."""
 
 WINDOW_KNOBS = ("window_px", "stride_px", "candidates")
-"""The classical decoder's window grid options, which ``bmi eval`` takes too (``add_window_arguments``)."""
+"""The classical decoder's window grid options, which ``bmi eval`` takes too (``add_classical_arguments``)."""
 
 
-def add_window_arguments(p) -> None:
-    """``--window-px``, ``--stride-px`` and ``--candidates`` (defaults ``CLASSICAL_KNOBS``) on parser ``p``."""
-    p.add_argument("--window-px", type=int, default=CLASSICAL_KNOBS["window_px"],
-                   help="classical: evidence window (default 64)")
-    p.add_argument("--stride-px", type=int, default=CLASSICAL_KNOBS["stride_px"],
-                   help="classical: window stride (default 16)")
-    p.add_argument("--candidates", type=int, default=CLASSICAL_KNOBS["candidates"],
-                   help="classical: depth candidates spaced in 1/d, snapped to the kernel grid (default 48)")
+def classical_defaults() -> dict:
+    """{field: default} of ``CLASSICAL_FLAGS`` from ``decode.ClassicalConfig`` itself."""
+    from dataclasses import fields
 
-
-def classical_config(args):
-    """The ``ClassicalConfig`` of ``--decoder classical``'s options."""
     from bmi_sdk.decode import ClassicalConfig
 
-    return ClassicalConfig(**{knob: getattr(args, knob) for knob in CLASSICAL_KNOBS})
+    return {f.name: f.default for f in fields(ClassicalConfig) if f.name in CLASSICAL_FLAGS}
+
+
+def add_classical_arguments(p, knobs=tuple(CLASSICAL_FLAGS)) -> None:
+    """One ``--knob-name`` flag per field of ``knobs`` on parser ``p``, defaulting to ``ClassicalConfig``'s."""
+    defaults = classical_defaults()
+    for knob in knobs:
+        kind, text = CLASSICAL_FLAGS[knob]
+        shown = "" if defaults[knob] is None else f" (default {defaults[knob]:g})"
+        p.add_argument(f"--{knob.replace('_', '-')}", type=kind, default=defaults[knob],
+                       help=f"classical: {text}{shown}")
+
+
+def changed_classical_flags(args, knobs=tuple(CLASSICAL_FLAGS)) -> list[str]:
+    """The classical flags of ``knobs`` given another value than ``ClassicalConfig``'s default."""
+    defaults = classical_defaults()
+    return [f"--{k.replace('_', '-')}" for k in knobs if getattr(args, k) != defaults[k]]
+
+
+def classical_config(args, knobs=tuple(CLASSICAL_FLAGS)):
+    """The ``ClassicalConfig`` of the classical flags ``knobs`` (the dataclass's defaults for every other field)."""
+    from bmi_sdk.decode import ClassicalConfig
+
+    return ClassicalConfig(**{knob: getattr(args, knob) for knob in knobs})
 
 
 def _run(args) -> int:
     from bmi_sdk.cli._infer_many import infer_many, wants_batch
     from bmi_sdk.cli._logging import command_logger
-    from bmi_sdk.runtime import run_job
-    from bmi_sdk.runtime.job import decoder_for
+    from bmi_sdk.runtime import DECODERS, run_job
+    from bmi_sdk.runtime.decoders import decoder_kind
 
     if args.depth_range is not None:
         args.depth_range = depth_range(args.depth_range)
-    args.decoder = decoder_for(args.decoder, model_path=args.model)
-    knobs = [f"--{k.replace('_', '-')}" for k, default in CLASSICAL_KNOBS.items() if getattr(args, k) != default]
-    if knobs and args.decoder != "classical":
+    args.decoder = decoder_kind(args.decoder, args.model)
+    takes_config = DECODERS[args.decoder].takes_config
+    knobs = changed_classical_flags(args)
+    if knobs and not takes_config:
         raise ValueError(f"{', '.join(knobs)}: classical decoder options, not taken by the {args.decoder} decoder "
                          "(the learned one decodes with its model's own; use --decoder classical)")
     if args.provider is not None:  # an unavailable provider fails here, naming the available ones, before any work
         from bmi_sdk.runtime.model import choose_providers
 
-        if args.decoder == "classical":
-            raise ValueError("--provider picks the network's onnxruntime provider; the classical decoder runs none "
-                             "(drop --provider or use --decoder cnn)")
+        if DECODERS[args.decoder].model_kind is None:
+            raise ValueError(f"--provider picks the network's onnxruntime provider; the {args.decoder} decoder runs "
+                             "none (drop --provider or choose another --decoder)")
         choose_providers(args.provider)
+    args.classical_config = classical_config(args) if takes_config else None
     if wants_batch(args):
         return infer_many(args)
     args.raw = args.raw[0]
 
-    options = {"classical_config": classical_config(args)} if args.decoder == "classical" else {}
-
     # frame-quality findings (FrameQualityWarning) reach stderr through logging: "bmi infer: warning: …"
-    result, report = run_job(args.raw, args.out, model_path=args.model, calibration_id=args.calibration_id,
-                             calibration_path=args.calibration,
-                             tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
-                             ply_step_px=args.ply_step, progress=not args.quiet, overwrite=args.overwrite,
-                             allow_test_pattern=args.allow_test_pattern, decoder=args.decoder,
-                             depth_range_m=args.depth_range,
-                             **({"providers": args.provider} if args.provider else {}), **options)
+    _, report = run_job(args.raw, args.out, decoder=args.decoder, model_path=args.model,
+                        calibration_path=args.calibration, classical_config=args.classical_config,
+                        tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
+                        providers=args.provider, ply_step_px=args.ply_step, progress=not args.quiet,
+                        overwrite=args.overwrite, allow_test_pattern=args.allow_test_pattern,
+                        depth_range_m=args.depth_range)
     command_logger("infer").info("input %s; bmi-sdk %s, onnxruntime %s; execution provider %s",
                                  report["input_path"], report["software"]["bmi_sdk"],
                                  report["software"]["onnxruntime"], report["execution_provider"])
-    if report["decoder"] == "learned":
-        stats = report["decoder_stats"]
-        print(f"learned refinement {report['model']['sha256'][:12]}… on {report['execution_provider']}, camera "
-              f"{report['camera']['sha256'][:12]}…, calibration {report['calibration_id'] or 'nominal PSFs'}, "
-              f"noise σ {stats['noise_sigma']:.4f} ({stats['noise_source']})")
-        print(f"classical blocks run {stats['blocks_run']}, skipped {stats['blocks_skipped']}; network tiles run "
-              f"{report['tiles_run']}, skipped {report['tiles_skipped']}; peak memory {report['peak_rss_mb']:.0f} MB")
-        how = {"fitted": "by their 1σ, their disagreement and the classical depth's local variation, with the "
-                         "model's fitted weights",
-               "inverse-variance": "by their 1σ"}[report["fusion"]["weights"]]
-        print(f"depth: the network's fused with the classical stage's {how} (the classical read's mean weight "
-              f"{report['fusion']['classical_weight_mean']:.2f})")
-        _print_clipped(stats)
-        print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_z.npy, depth_sigma.npy, confidence.png, depth_mm.png, "
-              f"points.ply ({report['ply_points']} points, with σ), report.json")
-        return 0
-    if report["decoder"] == "classical":
-        stats = report["decoder_stats"]
-        print(f"classical decoder, camera {report['camera']['sha256'][:12]}…, "
-              f"calibration {report['calibration_id'] or 'nominal PSFs'}, noise σ {stats['noise_sigma']:.4f} "
-              f"({stats['noise_source']})")
-        print(f"blocks run {stats['blocks_run']}, skipped {stats['blocks_skipped']} (outside the image circle); "
-              f"candidate evaluations {stats['candidate_evaluations']} (coarse + fine) against "
-              f"{stats['candidate_evaluations_exhaustive']} exhaustive; peak memory {report['peak_rss_mb']:.0f} MB")
-        _print_clipped(stats)
-        print("stages: " + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in stats["timings_s"].items()))
-        print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_z.npy, depth_sigma.npy, confidence.png, depth_mm.png, "
-              f"points.ply ({report['ply_points']} points, with σ), report.json")
-        return 0
-    if report["calibration_note"]:
-        command_logger("infer").warning("%s", report["calibration_note"])
-    t = report["stage_timings_s"]
-    print(f"model {report['model']['preset']} sha256 {report['model']['sha256'][:12]}… on "
-          f"{report['execution_provider']}, "
-          f"calibration {report['calibration_id'] or 'nominal PSFs'}")
-    print(f"tiles run {result.tiles_run}, skipped {result.tiles_skipped} (outside the image circle); "
-          f"peak memory {report['peak_rss_mb']:.0f} MB")
-    print("stages: " + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in t.items()))
-    print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_z.npy, depth_mm.png, points.ply ({report['ply_points']} points), "
-          "report.json")
+    for line in summary_lines(report):
+        print(line)
+    sigma = ", depth_sigma.npy, confidence.png" if "depth_sigma.npy" in report["files"] else ""
+    with_sigma = ", with σ" if sigma else ""
+    print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_z.npy{sigma}, depth_mm.png, points.ply "
+          f"({report['ply_points']} points{with_sigma}), report.json")
     return 0
 
 
+def summary_lines(report: dict) -> list[str]:
+    """What ``bmi infer`` prints of a frame's report: the decoder and its model or camera, then what ran."""
+    lines = []
+    stats = report.get("decoder_stats")
+    who = [f"{report['decoder']} decoder"]
+    if "model" in report:
+        who.append(f"model {report['model']['preset']} {report['model']['sha256'][:12]}… on "
+                   f"{report['execution_provider']}")
+    if "camera" in report:
+        who.append(f"camera {report['camera']['sha256'][:12]}…")
+    who.append(f"calibration {report['calibration_id'] or 'nominal PSFs'}")
+    if stats is not None:
+        who.append(f"noise σ {stats['noise_sigma']:.4f} ({stats['noise_source']})")
+    lines.append(", ".join(who))
+    ran = []
+    if "blocks_run" in report:
+        ran.append(f"classical blocks run {report['blocks_run']}, skipped {report['blocks_skipped']} (outside the "
+                   f"image circle); candidate evaluations {stats['candidate_evaluations']} (coarse + fine) against "
+                   f"{stats['candidate_evaluations_exhaustive']} exhaustive")
+    if "tiles_run" in report:
+        ran.append(f"network tiles run {report['tiles_run']}, skipped {report['tiles_skipped']}")
+    lines.append("; ".join(ran + [f"peak memory {report['peak_rss_mb']:.0f} MB"]))
+    if "fusion" in report:
+        how = {"fitted": "by their 1σ, their disagreement and the classical depth's local variation, with the "
+                         "model's fitted weights",
+               "inverse-variance": "by their 1σ"}[report["fusion"]["weights"]]
+        lines.append(f"depth: the network's fused with the classical stage's {how} (the classical read's mean "
+                     f"weight {report['fusion']['classical_weight_mean']:.2f})")
+    if stats is not None and stats.get("windows_with_clipped_samples"):
+        lines.append(f"evidence windows holding clipped samples {stats['windows_with_clipped_samples']} (read without "
+                     f"those planes; {stats['windows_without_evidence']} clipped in every plane take their "
+                     "neighbours' depth)")
+    lines.append("stages: " + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in report["stage_timings_s"].items()))
+    return lines
+
+
 def register(subparsers) -> None:
-    from bmi_sdk.runtime.job import DEFAULT_DECODER
+    from bmi_sdk.runtime.decoders import DECODERS, DEFAULT_DECODER
     from bmi_sdk.scaleout import add_scheduler_argument
 
     p = subparsers.add_parser("infer", help="raw frame (DNG + sidecar) → AiF image, depth map, point cloud, report",
@@ -132,11 +155,11 @@ def register(subparsers) -> None:
                                           "sidecar; several frames, a folder or replay://FOLDER write OUT/<stem>/ each")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--model", default=None,
-                   help="ONNX model with its .manifest.json (default: the packaged model for the calibration)")
-    p.add_argument("--calibration-id", default=None,
-                   help="calibration in use (default: the frame's); picks the model trained on its PSF tensor")
+                   help="ONNX model with its .manifest.json (default: the packaged model of the decoder's kind for "
+                        "the frame's lens)")
     p.add_argument("--calibration", default=None, metavar="FILE",
-                   help="calibration file from bmi calibrate (validated; its id picks the model)")
+                   help="calibration file from bmi calibrate (validated once; the camera's fitted errors: its "
+                        "kernels and rays)")
     p.add_argument("--tile-px", type=int, default=512, help="tile size, a multiple of 4 (default 512)")
     p.add_argument("--overlap-px", type=int, default=None,
                    help="tile overlap (default: the model's receptive field, from its manifest: tiled equals untiled)")
@@ -148,18 +171,12 @@ def register(subparsers) -> None:
                    help="fixed range (metres) of depth_preview.png's colours, e.g. 0.7,10, so that frames compare "
                         "(default: each frame's 1st-99th percentile)")
     p.add_argument("--ply-step", type=int, default=1, help="one point per N×N pixels in points.ply (default 1)")
-    p.add_argument("--decoder", choices=("cnn", "classical", "learned"), default=None,
-                   help=f"cnn: the shipped end-to-end network; classical: depth evidence from the camera's own "
-                        f"(calibrated) kernels, no network, writes the depth 1σ; learned: the classical evidence "
-                        f"refined by a network (learned.onnx), with a depth 1σ (default: the kind of --model, "
-                        f"else {DEFAULT_DECODER}; docs/decoder.md)")
-    add_window_arguments(p)
-    p.add_argument("--noise-sigma", type=float, default=None,
-                   help="classical: a constant raw noise σ in units of full scale (default: the frame's NoiseProfile "
-                        "tag, the camera's photon transfer; estimated from the picture when the file has none)")
-    p.add_argument("--pool-sigma-px", type=float, default=CLASSICAL_KNOBS["pool_sigma_px"],
-                   help="classical: radius over which each window's evidence pools its like-coloured neighbours' "
-                        "(default 48; 0: each window alone; docs/decoder.md, method step 4b)")
+    p.add_argument("--decoder", choices=tuple(DECODERS), default=None,
+                   help=f"learned: the classical evidence refined by a network (learned.onnx), with a depth 1σ; "
+                        f"classical: depth evidence from the camera's own (calibrated) kernels, no network, with a "
+                        f"depth 1σ; cnn: the shipped end-to-end network (default: the kind of --model, else "
+                        f"{DEFAULT_DECODER}; docs/decoder.md)")
+    add_classical_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an earlier run's results in --out (they are replaced only once all new files "
@@ -168,10 +185,3 @@ def register(subparsers) -> None:
                    help="decode a frame flagged as the camera's test pattern (refused by default)")
     add_scheduler_argument(p)
     p.set_defaults(handler=_run)
-
-
-def _print_clipped(stats: dict) -> None:
-    """Say how many evidence windows held samples at the white level (they are read without those planes)."""
-    if stats.get("windows_with_clipped_samples"):
-        print(f"evidence windows holding clipped samples {stats['windows_with_clipped_samples']} (read without "
-              f"those planes; {stats['windows_without_evidence']} clipped in every plane take their neighbours' depth)")

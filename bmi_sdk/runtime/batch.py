@@ -2,8 +2,9 @@
 
 Each frame goes through the runtime's own per-frame job (``job.run_job``), so a frame decoded here is
 decoded exactly as ``bmi infer FRAME`` decodes it. What a batch adds is that every process (this one, or
-each Dask worker) loads a model once and keeps it for all its frames (``FrameDecoder``), one progress bar
-for the whole batch, and a per-frame failure that is reported instead of ending the batch.
+each Dask worker) reads the calibration once and opens one decoder per camera (its model and kernels) for all
+its frames (``FrameDecoder``), one progress bar for the whole batch, and a per-frame failure that is reported
+instead of ending the batch.
 
 Frames are passed to workers by path, never as pixels: on a cluster the frames and ``OUT`` must be on a
 filesystem every worker sees (docs/scale-out.md).
@@ -77,14 +78,13 @@ class DecodeOptions:
     """The ``run_job`` options every frame of a batch shares (``bmi infer``'s flags)."""
 
     model_path: str | None = None
-    calibration_id: str | None = None
     calibration_path: str | None = None
     tile_px: int = 512
     threads: int | None = None
     overlap_px: int | None = None
     ply_step_px: int = 1
-    decoder: str = "cnn"
-    classical_config: object = None        # decode.ClassicalConfig for decoder "classical"
+    decoder: str | None = None             # a kind of ``decoders.DECODERS``; None: the model's kind, else the default
+    classical_config: object = None        # decode.ClassicalConfig, for a decoder that takes one
     overwrite: bool = False
     allow_test_pattern: bool = False
     providers: str | tuple[str, ...] | None = None   # onnxruntime execution provider(s); None: the best available
@@ -93,41 +93,37 @@ class DecodeOptions:
 
 @dataclass
 class FrameDecoder:
-    """What one process keeps between frames: the models it has loaded (usually one).
+    """What one process keeps between frames: the calibration, read once, and one opened decoder per camera.
 
-    A model is chosen per frame by ``job.load_model_for`` from the model path, the calibration in use
-    (the calibration file's id, else ``calibration_id``, else the frame's own) and the frame's lens; the
-    decoder loads each distinct choice once and hands it to ``run_job``.
+    Each frame's camera is built from the frame (its lens and sensor) and the loaded calibration
+    (``job.camera_for``); the decoder of that camera (its model loaded, its kernels made) is opened on first use
+    (``decoders.open_decoder``) and handed to ``run_job`` for every later frame of the same camera.
     """
 
     options: DecodeOptions
-    models: dict = field(default_factory=dict)
-    classical: dict = field(default_factory=dict)   # camera SHA-256 → decode.ClassicalDecoder (its kernels)
-    learned: dict = field(default_factory=dict)     # (model path, camera SHA-256) → (Model, its classical stage)
-    _calibration_file_id: str | None = field(default=None, init=False)
+    decoders: dict = field(default_factory=dict)   # camera SHA-256 → opened Decoder
+    _calibration: object = field(default=None, init=False)
 
-    def _calibration_in_use(self, frame) -> str | None:
-        o = self.options
-        if o.calibration_path is not None:
-            if self._calibration_file_id is None:
-                from calibration.io import load_calibration
+    def calibration(self):
+        """The batch's ``calibration.io.Calibration`` (None without one), read and validated on first use."""
+        if self._calibration is None and self.options.calibration_path is not None:
+            from .job import load_calibration
 
-                self._calibration_file_id = load_calibration(o.calibration_path).id
-            return self._calibration_file_id
-        return o.calibration_id or getattr(frame, "calibration_id", None)
+            self._calibration = load_calibration(self.options.calibration_path)
+        return self._calibration
 
-    def model_for(self, frame):
-        """(Model, note) for ``frame``: loaded on first use, then reused."""
-        from .job import load_model_for
-        from .pipeline import frame_lens_name
+    def decoder_for(self, frame):
+        """The opened decoder of the camera that took ``frame``: opened on first use, then reused."""
+        from .decoders import DecoderOptions, open_decoder
+        from .job import camera_for
 
         o = self.options
-        calibration_id = self._calibration_in_use(frame)
-        key = (o.model_path, calibration_id, frame_lens_name(frame))
-        if key not in self.models:
-            self.models[key] = load_model_for(frame, o.model_path, calibration_id, o.tile_px, o.threads,
-                                              o.providers)
-        return self.models[key]
+        camera, _ = camera_for(frame, self.calibration())
+        key = camera.sha256()
+        if key not in self.decoders:
+            self.decoders[key] = open_decoder(camera, o.decoder, o.model_path, o.classical_config,
+                                              DecoderOptions(o.tile_px, o.threads, o.providers, o.overlap_px))
+        return self.decoders[key]
 
     def decode(self, frame_path: str | os.PathLike, out_dir: str | os.PathLike) -> dict:
         """Decode one frame into ``out_dir``; returns a summary (a failure with its reason instead of raising,
@@ -141,71 +137,18 @@ class FrameDecoder:
         summary = {"frame": str(frame_path), "out": str(out_dir), "pid": os.getpid()}
         try:
             frame = load_raw(frame_path)
-            if o.decoder == "classical":
-                result, report = run_job(frame, out_dir, decoder="classical", calibration_id=o.calibration_id,
-                                         calibration_path=o.calibration_path, ply_step_px=o.ply_step_px,
-                                         overwrite=o.overwrite, allow_test_pattern=o.allow_test_pattern,
-                                         classical_decoder=self.classical_decoder_for(frame),
-                                         input_path=frame_path, providers=o.providers,
-                                         depth_range_m=o.depth_range_m)
-                return {**summary, "ok": True, "calibration_note": None, "decoder": "classical",
-                        "camera_sha256": report["camera"]["sha256"], "blocks_run": report["blocks_run"],
-                        "seconds": time.perf_counter() - t0}
-            if o.decoder == "learned":
-                model, stage = self.learned_for(frame)
-                result, report = run_job(frame, out_dir, decoder="learned", model=model, learned_decoder=stage,
-                                         calibration_id=o.calibration_id, calibration_path=o.calibration_path,
-                                         overlap_px=o.overlap_px, ply_step_px=o.ply_step_px, overwrite=o.overwrite,
-                                         allow_test_pattern=o.allow_test_pattern, input_path=frame_path,
-                                         depth_range_m=o.depth_range_m)
-                return {**summary, "ok": True, "calibration_note": None, "decoder": "learned",
-                        "model_sha256": report["model"]["sha256"], "camera_sha256": report["camera"]["sha256"],
-                        "tiles_run": result.network.tiles_run, "seconds": time.perf_counter() - t0}
-            model, note = self.model_for(frame)
-            result, report = run_job(frame, out_dir, model=model, calibration_id=o.calibration_id,
-                                     calibration_path=o.calibration_path, overlap_px=o.overlap_px,
-                                     ply_step_px=o.ply_step_px, overwrite=o.overwrite,
-                                     allow_test_pattern=o.allow_test_pattern, input_path=frame_path,
-                                     depth_range_m=o.depth_range_m)
+            _, report = run_job(frame, out_dir, decoder=self.decoder_for(frame), calibration=self.calibration(),
+                                ply_step_px=o.ply_step_px, overwrite=o.overwrite,
+                                allow_test_pattern=o.allow_test_pattern, input_path=frame_path,
+                                depth_range_m=o.depth_range_m)
         except (ValueError, FileNotFoundError, OSError) as exc:
             return {**summary, "ok": False, "error": f"{type(exc).__name__}: {exc}",
                     "seconds": time.perf_counter() - t0}
-        return {**summary, "ok": True, "calibration_note": note, "decoder": "cnn",
-                "model_sha256": report["model"]["sha256"], "tiles_run": result.tiles_run,
+        return {**summary, "ok": True, "decoder": report["decoder"],
+                "model_sha256": report["model"]["sha256"] if "model" in report else None,
+                "camera_sha256": report["camera"]["sha256"] if "camera" in report else None,
+                "tiles_run": report.get("tiles_run"), "blocks_run": report.get("blocks_run"),
                 "seconds": time.perf_counter() - t0}
-
-    def classical_decoder_for(self, frame):
-        """The classical decoder of the camera that took ``frame``: built once per camera, then reused."""
-        from ..decode import ClassicalConfig
-        from .classical import classical_decoder
-        from .job import camera_for
-
-        o = self.options
-        camera, _ = camera_for(frame, o.calibration_path, o.calibration_id)
-        key = camera.sha256()
-        if key not in self.classical:
-            config = o.classical_config or ClassicalConfig()
-            if o.threads is not None and config.threads is None:  # a Dask worker's own thread count
-                config = replace(config, threads=o.threads)
-            self.classical[key] = classical_decoder(camera, config)
-        return self.classical[key]
-
-
-    def learned_for(self, frame):
-        """(Model, classical stage) of the learned refinement for the camera that took ``frame``: built once per
-        (model, camera), then reused."""
-        from .job import camera_for
-        from .learned import learned_decoder
-        from .model import Model, select_model
-
-        o = self.options
-        camera, _ = camera_for(frame, o.calibration_path, o.calibration_id)
-        path = o.model_path or select_model(None, lens=camera.lens_name, decoder="learned")[0]
-        key = (str(path), camera.sha256())
-        if key not in self.learned:
-            model = Model(path, tile_px=o.tile_px, threads=o.threads, providers=o.providers)
-            self.learned[key] = (model, learned_decoder(model, camera, o.threads))
-        return self.learned[key]
 
 
 def _decode(decoder: FrameDecoder, job: tuple[Path, Path]) -> dict:

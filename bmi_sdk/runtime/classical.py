@@ -8,32 +8,12 @@ is trained, so a calibration reaches the decoder as soon as its file is read.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
-import numpy as np
+from dataclasses import dataclass
 
 from ..built_camera import BuiltCamera
-from ..decode import ClassicalConfig, ClassicalDecoder, DecodeResult
+from ..decode import ClassicalConfig, ClassicalDecoder
+from .decoders import DecodedFrame
 from .pipeline import check_decodable
-
-
-@dataclass
-class ClassicalResult:
-    """A decoded frame (the fields ``write_outputs`` reads, plus the depth 1σ)."""
-
-    aif: np.ndarray
-    depth_m: np.ndarray
-    depth_sigma_m: np.ndarray
-    valid: np.ndarray
-    stats: dict = field(default_factory=dict)
-    decoded: DecodeResult | None = None  # the decoder's whole result (window grids, evidence)
-
-    def summary(self) -> dict:
-        skipped = self.stats["candidate_evaluations_exhaustive"] - self.stats["candidate_evaluations"]
-        return {"decoder": "classical", "valid_fraction": float(self.valid.mean()),
-                "blocks_run": self.stats["blocks_run"], "blocks_skipped": self.stats["blocks_skipped"],
-                "candidate_evaluations_skipped": int(skipped),
-                "decoder_stats": self.stats, "timings_s": self.stats["timings_s"]}
 
 
 def classical_decoder(camera: BuiltCamera, config: ClassicalConfig = ClassicalConfig()) -> ClassicalDecoder:
@@ -95,11 +75,16 @@ def warm_kernels(camera: BuiltCamera, config: ClassicalConfig = ClassicalConfig(
             "cache_dir": str(decoder.zones.psf_map.exact_cache_dir), "wall_s": time.perf_counter() - start}
 
 
-def decode_frame(decoder: ClassicalDecoder, frame, camera: BuiltCamera, progress: bool = False) -> ClassicalResult:
-    """Decode a ``devices.RawFrame`` taken by ``camera`` (refused, naming why, when it cannot be)."""
+def decode_frame(decoder: ClassicalDecoder, frame, camera: BuiltCamera, progress: bool = False) -> DecodedFrame:
+    """Decode a ``devices.RawFrame`` taken by ``camera`` (refused, naming why, when it cannot be). The result's
+    ``parts["classical"]`` is the decoder's whole ``decode.DecodeResult`` (window grids, evidence)."""
     check_decodable(frame, camera.lens_name, "the decoder's camera has", "the classical decoder")
     out = decoder.decode(frame.data, frame.black_level_dn, frame.white_level_dn, frame.geometry,
                          row0=frame.roi.y_px, col0=frame.roi.x_px, cfa=frame.cfa, progress=progress,
                          noise_profile=frame.noise_profile)
     stats = dict(out.stats, camera_sha256=camera.sha256(), calibration_id=camera.calibration_id)
-    return ClassicalResult(out.aif, out.depth_m, out.depth_sigma_m, out.valid, stats, out)
+    skipped = stats["candidate_evaluations_exhaustive"] - stats["candidate_evaluations"]
+    report = {"valid_fraction": float(out.valid.mean()), "blocks_run": stats["blocks_run"],
+              "blocks_skipped": stats["blocks_skipped"], "candidate_evaluations_skipped": int(skipped),
+              "decoder_stats": stats, "timings_s": stats["timings_s"]}
+    return DecodedFrame(out.aif, out.depth_m, out.valid, out.depth_sigma_m, report, {"classical": out, "stats": stats})

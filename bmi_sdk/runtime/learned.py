@@ -17,7 +17,7 @@ calibration reaches the network through the evidence, the fusion and that step: 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 
@@ -30,33 +30,9 @@ from ..model_io import INPUT_CHANNELS
 from ..parallel import map_threads
 from ..sensor import NoiseProfile
 from .classical import classical_decoder, decode_frame
+from .decoders import DecodedFrame
 from .model import Model
-from .pipeline import InferenceResult, infer_raw
-
-
-@dataclass
-class LearnedResult:
-    """A decoded frame (the fields ``write_outputs`` reads, with the depth 1σ) and both stages' statistics."""
-
-    aif: np.ndarray
-    depth_m: np.ndarray
-    depth_sigma_m: np.ndarray
-    valid: np.ndarray
-    network: InferenceResult
-    classical_stats: dict = field(default_factory=dict)
-    fusion: dict = field(default_factory=dict)
-    network_depth_m: np.ndarray | None = None  # the network's read before the fusion (``keep_network_read``)
-
-    def summary(self) -> dict:
-        skipped = (self.classical_stats["candidate_evaluations_exhaustive"]
-                   - self.classical_stats["candidate_evaluations"])
-        return {"decoder": "learned", "valid_fraction": float(self.valid.mean()),
-                "tiles_run": self.network.tiles_run, "tiles_skipped": self.network.tiles_skipped,
-                "tiling": self.network.plan.to_dict(), "blocks_run": self.classical_stats["blocks_run"],
-                "blocks_skipped": self.classical_stats["blocks_skipped"],
-                "candidate_evaluations_skipped": int(skipped), "decoder_stats": self.classical_stats,
-                "fusion": self.fusion, "aif_consistency_step": self.classical_stats["aif_consistency"],
-                "timings_s": {"classical": self.classical_stats["timings_s"], "network": self.network.timings_s}}
+from .pipeline import infer_raw
 
 
 def model_classical_config(model: Model, threads: int | None = None) -> ClassicalConfig:
@@ -64,7 +40,7 @@ def model_classical_config(model: Model, threads: int | None = None) -> Classica
     if model.decoder != "learned":
         raise ValueError(f"model {model.path.name} is a {model.decoder} model, not a learned refinement")
     knobs = dict(model.manifest["classical_config"])
-    # manifests from before these knobs: trained on channels of estimated noise and the untapered window model
+    # a manifest that names none of these knobs: its model reads channels of estimated noise and untapered windows
     knobs.setdefault("noise_model", "estimate")
     knobs.setdefault("window_model", "untapered")
     knobs.setdefault("aif_model_error", 0.0)
@@ -84,25 +60,27 @@ def learned_decoder(model: Model, camera: BuiltCamera, threads: int | None = Non
 
 
 def decode_learned(model: Model, decoder: ClassicalDecoder, frame, camera: BuiltCamera,
-                   overlap_px: int | None = None, progress: bool = False) -> LearnedResult:
+                   overlap_px: int | None = None, progress: bool = False) -> DecodedFrame:
     """Decode a ``devices.RawFrame`` taken by ``camera``: classical stage, then the refinement network."""
     classical = decode_frame(decoder, frame, camera, progress=progress)
-    return refine_decoded(model, decoder, classical.decoded, frame.data, black_level_dn=frame.black_level_dn,
+    return refine_decoded(model, decoder, classical.parts["classical"], frame.data, black_level_dn=frame.black_level_dn,
                           white_level_dn=frame.white_level_dn, cfa=frame.cfa, geometry=frame.geometry,
-                          row0=frame.roi.y_px, col0=frame.roi.x_px, stats=classical.stats, overlap_px=overlap_px,
+                          row0=frame.roi.y_px, col0=frame.roi.x_px, stats=classical.parts["stats"], overlap_px=overlap_px,
                           progress=progress, reuse_classical_aif=True)
 
 
 def refine_decoded(model: Model, decoder: ClassicalDecoder, decoded: DecodeResult, raw: np.ndarray, *,
                    black_level_dn: float, white_level_dn: float, cfa: str = "RGGB", geometry, row0: int = 0,
                    col0: int = 0, stats: dict | None = None, overlap_px: int | None = None, progress: bool = False,
-                   keep_network_read: bool = False, reuse_classical_aif: bool = False) -> LearnedResult:
+                   keep_network_read: bool = False, reuse_classical_aif: bool = False) -> DecodedFrame:
     """The refinement's second stage over an H × W raw window that ``decoder`` decoded into ``decoded``: its
     channels, the network tile by tile, the fusion of the two reads and, on a built camera, the AiF's step.
 
     A pixel is valid where the network reads it (inside the image circle); where the classical stage has no
     read there, the network's is the output (``decode.fusion``). ``keep_network_read`` keeps the network's
-    depth before the fusion (``network_depth_m``, a copy: 108 MB for a full frame) for benchmarks.
+    depth before the fusion (``parts["network_depth_m"]``, a copy: 108 MB for a full frame) for benchmarks. The
+    result's ``parts`` also hold the network's read (``"network"``, an ``InferenceResult``) and the classical
+    stage's statistics with this stage's timings (``"stats"``).
     ``reuse_classical_aif`` writes the AiF step's output into ``decoded.aif`` (read by the network, then no longer
     needed: 324 MB of a full frame), which then no longer holds the classical AiF.
     """
@@ -129,7 +107,14 @@ def refine_decoded(model: Model, decoder: ClassicalDecoder, decoded: DecodeResul
     stats["timings_s"] = dict(stats["timings_s"], aif_consistency_s=time.perf_counter() - t0)
     stats["aif_consistency"] = aif is not net.aif
     valid = net.valid & np.isfinite(net.depth_m)
-    return LearnedResult(aif, net.depth_m, net.depth_sigma_m, valid, net, stats, fusion, network_depth_m)
+    skipped = stats["candidate_evaluations_exhaustive"] - stats["candidate_evaluations"]
+    report = {"valid_fraction": float(valid.mean()), "tiles_run": net.tiles_run, "tiles_skipped": net.tiles_skipped,
+              "tiling": net.plan.to_dict(), "blocks_run": stats["blocks_run"], "blocks_skipped": stats["blocks_skipped"],
+              "candidate_evaluations_skipped": int(skipped), "decoder_stats": stats, "fusion": fusion,
+              "aif_consistency_step": stats["aif_consistency"],
+              "timings_s": {"classical": stats["timings_s"], "network": net.timings_s}}
+    return DecodedFrame(aif, net.depth_m, valid, net.depth_sigma_m, report,
+                        {"network": net, "classical": decoded, "stats": stats, "network_depth_m": network_depth_m})
 
 
 CONSISTENCY_AIF_STEP = 8
@@ -147,9 +132,8 @@ def consistent_aif(decoder: ClassicalDecoder, decoded: DecodeResult, raw: np.nda
     when given; on every ``aif_step``-th candidate, default ``CONSISTENCY_AIF_STEP``); ``aif`` itself when those
     kernels are the design's, which the network was trained on.
 
-    Measured on the ``bmi eval`` tiles (docs/results.md, session 21): the built camera's calibrated edge 20.5 →
-    23.8 dB; on the design camera the step moved the AiF by ≤ 0.05 dB and costs a full frame 11 s, so it is left
-    out there."""
+    Measured on the ``bmi eval`` tiles (docs/results.md): the built camera's calibrated edge 20.5 → 23.8 dB; on the
+    design camera the step moves the AiF by ≤ 0.05 dB and costs a full frame 11 s, so it is left out there."""
     if decoder.zones.psf_map.perturbation is None:
         return aif
     noise = NoiseProfile(**decoded.stats["noise_profile"])

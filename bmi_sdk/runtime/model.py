@@ -206,20 +206,13 @@ def model_fusion_weights(manifest: dict, name: str):
         raise ModelError(f"model {name}: its manifest's fusion weights are unreadable ({exc})") from exc
 
 
-def select_model(calibration_id: str | None = None, models_dir: str | os.PathLike = MODELS_DIR,
-                 preset: str | None = None, lens: str = "bmi_monocentric",
-                 decoder: str = "cnn") -> tuple[Path, str | None]:
-    """Pick the model file for a camera's calibration: (path, note).
-
-    Among the manifests in ``models_dir`` of ``decoder``'s kind (``cnn``: end-to-end; ``learned``: the
-    refinement of the classical decoder, ``learned.onnx``) trained for ``lens`` (a fisheye-baseline
-    model, nominal too, must never decode a BMI frame): a model trained on the calibration's
-    corrected PSF tensor (manifest ``calibration_id`` equal to the one asked
-    for) wins; otherwise the nominal model (``calibration_id`` null), and the
-    note says that the calibration had no model of its own. ``preset`` narrows
-    the choice. Manifests are read, not hash-checked: ``Model`` checks the one
-    chosen.
-    """
+def select_model(lens: str, decoder: str, models_dir: str | os.PathLike = MODELS_DIR,
+                 preset: str | None = None) -> Path:
+    """The packaged model file of ``decoder``'s kind (a manifest's ``decoder``: ``cnn``, the end-to-end network;
+    ``learned``, the refinement of the classical decoder) trained for ``lens`` (a fisheye-baseline model must never
+    decode a BMI frame) in ``models_dir``: ``default.onnx`` or ``learned.onnx`` when it is one of them, else the
+    first by name. ``preset`` narrows the choice. Manifests are read, not hash-checked: ``Model`` checks the one
+    chosen."""
     from ..model_manifest import read_manifest
 
     models_dir = Path(models_dir)
@@ -230,22 +223,12 @@ def select_model(calibration_id: str | None = None, models_dir: str | os.PathLik
         except ModelError:
             continue
         if m["lens"] == lens and model_decoder(m) == decoder and (preset is None or m["preset"] == preset):
-            candidates.append((onnx, m))
+            candidates.append(onnx)
     if not candidates:
         raise ModelError(f"no {decoder} model with a manifest in {models_dir} for lens {lens!r}"
                          + (f" and preset {preset!r}" if preset else ""))
-    if calibration_id is not None:
-        for onnx, m in candidates:
-            if m["calibration_id"] == calibration_id:
-                return onnx, None
-    nominal = [(o, m) for o, m in candidates if m["calibration_id"] is None]
-    if not nominal:
-        raise ModelError(f"no nominal (uncalibrated) model in {models_dir} and none for calibration {calibration_id!r}")
-    default = [o for o, _ in nominal if o.name in (DEFAULT_MODEL.name, LEARNED_MODEL.name)]
-    chosen = default[0] if default else nominal[0][0]
-    note = None if calibration_id is None else \
-        f"no model trained for calibration {calibration_id!r}; using the nominal-PSF model {chosen.name}"
-    return chosen, note
+    packaged = [onnx for onnx in candidates if onnx.name in (DEFAULT_MODEL.name, LEARNED_MODEL.name)]
+    return (packaged or candidates)[0]
 
 
 def count_macs(onnx_path: str | os.PathLike, tile_px: int) -> int:
