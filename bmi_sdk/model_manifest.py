@@ -4,11 +4,13 @@ A model is one ``.onnx`` file with a ``<model>.manifest.json`` beside it
 (``default.onnx`` → ``default.manifest.json``). The manifest says which bytes
 are the model (``sha256``), how to call it (input/output names, channels,
 size multiple, receptive field for tiling), and what optics it was trained
-for: the lens, the PSF tensor's cache key and, once calibrated PSFs exist,
-the ``calibration_id`` of the calibration whose corrected PSF tensor it was
-trained on (``None`` = the nominal, uncalibrated PSF tensor). The runtime
-picks a model by that id (``bmi_sdk.runtime.select_model``) and refuses any
-model whose bytes do not match its manifest.
+for: the lens, the PSF tensor's cache key and ``calibration_id`` (the
+calibration whose PSF tensor it was trained on; ``None``, the nominal tensor,
+for every model this SDK trains). ``decoder`` names the model's kind: ``cnn``
+(the end-to-end network, the default when absent) or ``learned`` (the
+refinement of the classical decoder). The runtime picks a model by its lens
+and kind (``bmi_sdk.runtime.select_model``) and refuses any model whose bytes
+do not match its manifest.
 
 Schema ``bmi-model/1``; keys listed in ``REQUIRED_KEYS``.
 """
@@ -108,20 +110,33 @@ def model_decoder(manifest: dict) -> str:
     return manifest.get("decoder", "cnn")
 
 
+def _end_to_end_channels(manifest: dict) -> bool:
+    return manifest["input_channels"] == INPUT_CHANNELS
+
+
+def _refinement_channels(manifest: dict) -> bool:
+    return isinstance(manifest["input_channels"], int) and manifest["input_channels"] > INPUT_CHANNELS \
+        and isinstance(manifest.get("classical_config"), dict)
+
+
+MODEL_CONTRACTS = {
+    "cnn": ([*OUTPUT_NAMES], _end_to_end_channels, f"{INPUT_NAME!r} × {INPUT_CHANNELS}, outputs {list(OUTPUT_NAMES)}"),
+    "learned": ([*OUTPUT_NAMES, SIGMA_OUTPUT_NAME], _refinement_channels,
+                f"{INPUT_NAME!r} × ({INPUT_CHANNELS} + classical channels), a classical_config, outputs "
+                f"{[*OUTPUT_NAMES, SIGMA_OUTPUT_NAME]}"),
+}
+"""A manifest's ``decoder`` (the model's kind) → (its outputs, the check of its input channels, the contract in
+words)."""
+
+
 def check_contract(manifest: dict, name: str) -> None:
-    """Refuse a manifest whose I/O is neither the end-to-end network's nor the learned refinement's."""
+    """Refuse a manifest whose I/O is not the contract of its kind (``MODEL_CONTRACTS``)."""
     decoder = model_decoder(manifest)
-    if decoder == "cnn":
-        outputs, channels_ok, expected = list(OUTPUT_NAMES), manifest["input_channels"] == INPUT_CHANNELS, \
-            f"{INPUT_NAME!r} × {INPUT_CHANNELS}, outputs {list(OUTPUT_NAMES)}"
-    elif decoder == "learned":
-        outputs = [*OUTPUT_NAMES, SIGMA_OUTPUT_NAME]
-        channels_ok = isinstance(manifest["input_channels"], int) and manifest["input_channels"] > INPUT_CHANNELS \
-            and isinstance(manifest.get("classical_config"), dict)
-        expected = f"{INPUT_NAME!r} × ({INPUT_CHANNELS} + classical channels), a classical_config, outputs {outputs}"
-    else:
-        raise ModelError(f"model {name}: unknown decoder {decoder!r} in its manifest (cnn or learned)")
-    if manifest["input_name"] != INPUT_NAME or list(manifest["output_names"]) != outputs or not channels_ok:
+    if decoder not in MODEL_CONTRACTS:
+        raise ModelError(f"model {name}: unknown decoder {decoder!r} in its manifest ({' or '.join(MODEL_CONTRACTS)})")
+    outputs, channels_ok, expected = MODEL_CONTRACTS[decoder]
+    if manifest["input_name"] != INPUT_NAME or list(manifest["output_names"]) != outputs \
+            or not channels_ok(manifest):
         raise ModelError(f"model {name} follows another I/O contract (input {manifest['input_name']!r}"
                          f" × {manifest['input_channels']}, outputs {manifest['output_names']}); this SDK expects "
                          f"{expected}")

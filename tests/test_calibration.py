@@ -225,21 +225,20 @@ def test_calibration_file_round_trip_and_validation(single, tmp_path):
 
 
 def _runtime_accepts_only_a_matching_frame(path, calibration_id, doc):
-    """``bmi infer --calibration FILE``: the file's id picks the model; another camera, lens or id is refused."""
+    """``bmi infer --calibration FILE``: the file, read once, is checked against each frame; another camera or
+    lens is refused."""
     from types import SimpleNamespace
 
-    from bmi_sdk.runtime.job import calibration_for
+    from bmi_sdk.runtime.job import check_calibration, load_calibration
 
+    calibration = load_calibration(path)
     frame = SimpleNamespace(lens={"name": doc["lens"]["name"]}, device=dict(doc["device"]))
-    info = calibration_for(frame, path)
+    info = check_calibration(frame, calibration)
     assert info["id"] == calibration_id and info["device"]["serial"] == doc["device"]["serial"]
-    assert calibration_for(frame, path, calibration_id)["id"] == calibration_id
-    with pytest.raises(ValueError, match="contradicts"):
-        calibration_for(frame, path, "0123456789abcdef")
     with pytest.raises(ValueError, match="made on camera"):
-        calibration_for(SimpleNamespace(lens=frame.lens, device={"serial": "BMI-OTHER"}), path)
+        check_calibration(SimpleNamespace(lens=frame.lens, device={"serial": "BMI-OTHER"}), calibration)
     with pytest.raises(ValueError, match="taken through 'fisheye'"):
-        calibration_for(SimpleNamespace(lens={"name": "fisheye"}, device=frame.device), path)
+        check_calibration(SimpleNamespace(lens={"name": "fisheye"}, device=frame.device), calibration)
 
 
 def _validation_changes_no_process_state(path, doc):
@@ -252,9 +251,9 @@ import jax
 before = (jax.config.jax_enable_x64, list(warnings.filters))
 import calibration
 after_import = (jax.config.jax_enable_x64, list(warnings.filters))
-from bmi_sdk.runtime.job import calibration_for
+from bmi_sdk.runtime.job import check_calibration, load_calibration
 frame = SimpleNamespace(lens={{"name": {doc["lens"]["name"]!r}}}, device={{"serial": {doc["device"]["serial"]!r}}})
-calibration_for(frame, {str(path)!r})
+check_calibration(frame, load_calibration({str(path)!r}))
 after_validation = (jax.config.jax_enable_x64, list(warnings.filters))
 print(json.dumps([before == after_import, before == after_validation, jax.config.jax_enable_x64]))
 """

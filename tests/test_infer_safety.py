@@ -85,7 +85,7 @@ def test_an_unwritable_out_is_refused_before_inference(model, dng, tmp_path, mon
 
     def must_not_run(*args, **kw):
         raise AssertionError("inference ran before the output folder was checked")
-    monkeypatch.setattr(job, "infer_frame", must_not_run)
+    monkeypatch.setattr(job, "open_decoder", must_not_run)
     (tmp_path / "a_file").write_text("x")
     with pytest.raises(OSError):
         run_job(dng, tmp_path / "a_file" / "out", model_path=model, tile_px=64)
@@ -104,7 +104,7 @@ def test_a_point_cloud_step_or_thread_count_below_one_is_refused_before_inferenc
 
     def must_not_run(*args, **kw):
         raise AssertionError("inference ran before its options were checked")
-    monkeypatch.setattr(job, "infer_frame", must_not_run)
+    monkeypatch.setattr(job, "open_decoder", must_not_run)
     for decoder in ("cnn", "classical", "learned"):
         for flags, named in ((["--ply-step", "0"], "ply_step_px"), (["--threads", "-2"], "threads")):
             model_flags = ["--model", str(model)] if decoder == "cnn" else []

@@ -191,22 +191,3 @@ def test_calibration_names_the_real_cause_when_no_spot_is_seen(case, cause):
     assert cause in str(info.value)
     others = {"landed outside the ROIs", "light and dark frames are swapped", "raise the exposure"} - {cause}
     assert not any(o in str(info.value) for o in others)
-
-
-def test_writing_a_benchmark_into_the_docs_replaces_only_its_generated_text(tmp_path):
-    """``bmi bench … --write-docs`` writes between markers: hand-written records in the same section and the
-    other sections survive a rewrite, a section from before the markers keeps what it held, and a second
-    write replaces the first one's text instead of adding to it."""
-    from bmi_sdk.bench import update_section
-
-    docs = tmp_path / "benchmarks.md"
-    docs.write_text("# Benchmarks\n\n## Decoder\n\nMade by an old run.\n\n| old | table |\n\n"
-                    "### A dated record\n\nkept by hand\n\n## Other\n\nother text\n")
-    update_section("Decoder", "| new | table 1 |", docs)
-    update_section("Decoder", "| new | table 2 |", docs)
-    update_section("Fresh", "fresh body", docs)
-    text = docs.read_text()
-    assert "table 1" not in text and text.count("| new | table 2 |") == 1
-    assert "| old | table |" in text and "kept by hand" in text and "other text" in text
-    assert text.index("table 2") < text.index("### A dated record") < text.index("## Other")
-    assert text.rstrip().endswith("<!-- end generated: Fresh -->") and text.count("## Fresh") == 1

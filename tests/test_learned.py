@@ -187,7 +187,7 @@ def test_bmi_infer_returns_the_fusion_of_the_two_reads(tmp_path, rel, fusion):
         from devices.dng import load_raw
 
         decoded = decode_frame(classical_decoder(BuiltCamera(), CONFIG), load_raw(tmp_path / "f.dng"),
-                               BuiltCamera()).decoded
+                               BuiltCamera()).parts["classical"]
         np.testing.assert_array_equal(decoded.depth_m, depth_c)
         variation = log_depth_variation_px(decoded, CONFIG.stride_px)
         assert np.nanmax(variation) > 0.05 > np.nanmin(variation)  # the scene has both flat and cluttered parts
@@ -323,8 +323,9 @@ def test_manifests_keep_the_two_kinds_of_model_apart(tmp_path, identity_model, p
     for src in (identity_model, passthrough_model):
         shutil.copy(src, tmp_path / src.name)
         shutil.copy(src.with_name(src.stem + ".manifest.json"), tmp_path / (src.stem + ".manifest.json"))
-    cnn, _ = select_model(models_dir=tmp_path)
-    learned, _ = select_model(models_dir=tmp_path, decoder="learned")
+    lens = json.loads(passthrough_model.with_name(passthrough_model.stem + ".manifest.json").read_text())["lens"]
+    cnn = select_model(lens, "cnn", models_dir=tmp_path)
+    learned = select_model(lens, "learned", models_dir=tmp_path)
     assert cnn.name == passthrough_model.name and learned.name == identity_model.name
     manifest_file = tmp_path / "identity.manifest.json"
     doc = json.loads(manifest_file.read_text())
@@ -356,13 +357,13 @@ def test_a_learned_model_with_another_candidate_grid_is_refused(tmp_path, identi
 
 
 def test_a_job_without_a_decoder_runs_the_kind_of_model_it_is_given(identity_model, passthrough_model):
-    from bmi_sdk.runtime.job import DEFAULT_DECODER, decoder_for
+    from bmi_sdk.runtime.decoders import DEFAULT_DECODER, decoder_kind
 
-    assert decoder_for(None, model_path=identity_model) == "learned"
-    assert decoder_for(None, model_path=passthrough_model) == "cnn"
-    assert decoder_for(None) == DEFAULT_DECODER and decoder_for("classical", model_path=identity_model) == "classical"
+    assert decoder_kind(None, identity_model) == "learned"
+    assert decoder_kind(None, passthrough_model) == "cnn"
+    assert decoder_kind(None) == DEFAULT_DECODER and decoder_kind("classical", identity_model) == "classical"
     with pytest.raises(ValueError, match="unknown decoder 'nope'"):
-        decoder_for("nope")
+        decoder_kind("nope")
 
 
 def test_the_shipped_refinement_is_the_default_decoder(tmp_path):

@@ -196,24 +196,22 @@ def test_bad_models_refused_clearly(unet, tmp_path):
         Model(unet, tile_px=30)
 
 
-def test_model_selection_by_calibration_id(unet, tmp_path):
+def test_model_selection_by_lens(unet, tmp_path):
     meta = read_manifest(unet)
-    for name, cal, lens in (("default", None, meta["lens"]), ("cal_a", "cal-A", meta["lens"]),
-                            ("a_fisheye", None, "fisheye")):  # sorts first: must still never be chosen for BMI
+    for name, lens in (("default", meta["lens"]), ("b_other", meta["lens"]),
+                       ("a_fisheye", "fisheye")):  # sorts first: must still never be chosen for BMI
         path = tmp_path / f"{name}.onnx"
         path.write_bytes(unet.read_bytes())
-        write_manifest(path, **{k: meta[k] for k in ("preset", "receptive_field_px", "psf_tensor_key")},
-                       lens=lens, calibration_id=cal)
-    assert select_model("cal-A", tmp_path) == (tmp_path / "cal_a.onnx", None)
-    chosen, note = select_model("cal-B", tmp_path)
-    assert chosen == tmp_path / "default.onnx" and "cal-B" in note
-    assert select_model(None, tmp_path) == (tmp_path / "default.onnx", None)
+        write_manifest(path, **{k: meta[k] for k in ("preset", "receptive_field_px", "psf_tensor_key")}, lens=lens)
+    assert select_model(meta["lens"], "cnn", tmp_path) == tmp_path / "default.onnx"  # the packaged name first
     (tmp_path / "default.onnx").unlink()
-    with pytest.raises(ModelError, match="no nominal"):  # the fisheye's nominal model is not a fallback
-        select_model(None, tmp_path)
-    assert select_model(None, tmp_path, lens="fisheye") == (tmp_path / "a_fisheye.onnx", None)
+    assert select_model(meta["lens"], "cnn", tmp_path) == tmp_path / "b_other.onnx"
+    (tmp_path / "b_other.onnx").unlink()
+    with pytest.raises(ModelError, match="no cnn model"):  # the fisheye's model is not a fallback
+        select_model(meta["lens"], "cnn", tmp_path)
+    assert select_model("fisheye", "cnn", tmp_path) == tmp_path / "a_fisheye.onnx"
     with pytest.raises(ModelError, match="no cnn model"):
-        select_model(None, tmp_path / "empty")
+        select_model(meta["lens"], "cnn", tmp_path / "empty")
 
 
 def test_ply_points_lie_on_chief_rays(tmp_path):
@@ -262,7 +260,7 @@ def test_run_job_writes_all_outputs_and_refuses_foreign_dng(unet, dng, tmp_path)
     assert mm.dtype == np.uint16 and np.abs(mm / 1000 - np.load(tmp_path / "out" / "depth.npy")).max() <= 5e-4
     on_disk = json.loads((tmp_path / "out" / "report.json").read_text())
     assert on_disk["model"]["sha256"] == read_manifest(unet)["sha256"] and on_disk["frame"]["roi"]["x_px"] == 2980
-    assert on_disk["tiles_run"] == result.tiles_run and "network_s" in on_disk["timings_s"]
+    assert on_disk["tiles_run"] == result.report["tiles_run"] and "network_s" in on_disk["timings_s"]
 
     frame = load_raw(dng)
     frame.is_bmi = False
@@ -304,8 +302,8 @@ def test_packaged_models_match_their_manifests_and_serve_their_own_lens():
     shipped = {p.name: verify_model(p) for p in sorted(MODELS_DIR.glob("*.onnx"))}
     assert {"default.onnx", "fisheye.onnx"} <= set(shipped)
     assert shipped["default.onnx"]["lens"] == "bmi_monocentric" and shipped["fisheye.onnx"]["lens"] == "fisheye"
-    assert select_model(None) == (MODELS_DIR / "default.onnx", None)
-    assert select_model(None, lens="fisheye") == (MODELS_DIR / "fisheye.onnx", None)
+    assert select_model("bmi_monocentric", "cnn") == MODELS_DIR / "default.onnx"
+    assert select_model("fisheye", "cnn") == MODELS_DIR / "fisheye.onnx"
 
 
 def test_export_records_the_lens_profiles_tensor_key_and_kernel(tmp_path):

@@ -196,23 +196,23 @@ def test_cli_decodes_three_frames_on_local_2_as_the_serial_decode_does(model, fr
     _assert_same_outputs(tmp_path / "dask", tmp_path / "serial")
 
 
-def test_serial_batch_of_a_replay_loads_the_model_once_and_reports_a_bad_frame(model, frames, tmp_path,
-                                                                               monkeypatch):
+def test_serial_batch_of_a_replay_opens_the_decoder_once_and_reports_a_bad_frame(model, frames, tmp_path,
+                                                                                 monkeypatch):
     from bmi_sdk.runtime.batch import DecodeOptions, FrameDecoder, plan_outputs, run_batch
 
     _serial_decodes(model, frames, tmp_path / "serial")
     jobs = plan_outputs([f"replay://{frames}"], tmp_path / "batch")
     assert [(f.name, o.name) for f, o in jobs] == [("A.dng", "A"), ("B.dng", "B"), ("C.dng", "C")]
-    loads = []
-    original = FrameDecoder.model_for
+    opened = []
+    original = FrameDecoder.decoder_for
 
     def counting(self, frame):
-        loads.append(len(self.models))
+        opened.append(len(self.decoders))
         return original(self, frame)
 
-    monkeypatch.setattr(FrameDecoder, "model_for", counting)
+    monkeypatch.setattr(FrameDecoder, "decoder_for", counting)
     summaries = run_batch(jobs, DecodeOptions(model_path=str(model), tile_px=64, threads=1), progress=False)
-    assert loads == [0, 1, 1]  # the model was loaded for the first frame and reused for the others
+    assert opened == [0, 1, 1]  # the decoder (its model) was opened for the first frame and reused for the others
     assert all(s["ok"] for s in summaries)
     _assert_same_outputs(tmp_path / "batch", tmp_path / "serial")
 

@@ -12,8 +12,8 @@
   and CPU time per stage,
   and the AbsRel of the classical stage alone, the network alone and the fused depth. The frame is rendered
   with the tensor kernels and decoded with them (as ``bmi bench decoder --full`` and ``bmi bench pooling
-  --full`` do): the runtime's exact kernels would read it through a render-model mismatch (session 15:
-  classical stage 0.086 against 0.058).
+  --full`` do): the runtime's exact kernels would read it through a render-model mismatch (the classical stage
+  0.086 against 0.058).
 """
 
 from __future__ import annotations

@@ -124,7 +124,8 @@ def _accuracy_rows(models: dict[str, Path], tiles: int) -> list[list]:
             int8 = quantize_int8(path, Path(tmp) / f"{name}-int8.onnx", calib)
             _manifest_like(int8, path)  # the benchmark runs verified models only
             for kind, p in (("fp32", Path(path)), ("int8", int8)):
-                res = {r["region"]: r for r in run_benchmark(p, bench, ["standard"], progress=False)}
+                res = {r["region"]: r for r in run_benchmark(p, bench, ["standard"], progress=False,
+                                                                   decoders=("cnn",))}
                 c, e = res["centre"], res["edge"]
                 rows.append([name, kind, f"{c['absrel']:.3f}", f"{c['rmse_m']:.3f}", f"{c['delta1']:.3f}",
                              f"{c['psnr_db']:.2f}", f"{e['rmse_m']:.3f}", f"{e['psnr_db']:.2f}",

@@ -38,8 +38,8 @@ TOLERANCE_DEPTHS_M = (0.8, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0, 7.
 SENSOR_RADIUS_ERRORS_PCT = (-0.5, -0.25, 0.05, 0.1, 0.2, 0.3, 0.5)
 RENDER_ZONE_PX = 64
 """The planes' render zones (±0.25° of field around each zone's kernels): a sensor-radius error changes the edge's
-kernels fast with θ, and on the renderer's default 512-px zones (±4°) a +0.5 % camera's 3–7 m planes were drawn
-with kernels of other field angles and read 0.28–0.46 instead of 0.03–0.05 (docs/results.md, session 18)."""
+kernels fast with θ, and on the renderer's default 512-px zones (±4°) a +0.5 % camera's 3–7 m planes are drawn
+with kernels of other field angles and read 0.28–0.46 instead of 0.03–0.05 (docs/results.md)."""
 
 
 def benchmark_edge_ranges_m(bench) -> np.ndarray:

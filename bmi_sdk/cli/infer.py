@@ -113,7 +113,9 @@ def summary_lines(report: dict) -> list[str]:
     """What ``bmi infer`` prints of a frame's report: the decoder and its model or camera, then what ran."""
     lines = []
     stats = report.get("decoder_stats")
-    who = [f"{report['decoder']} decoder"]
+    from bmi_sdk.runtime import DECODERS
+
+    who = [f"{DECODERS[report['decoder']].title} ({report['decoder']})"]
     if "model" in report:
         who.append(f"model {report['model']['preset']} {report['model']['sha256'][:12]}… on "
                    f"{report['execution_provider']}")

@@ -95,8 +95,8 @@ def _warm(args) -> int:
     import json
 
     from bmi_sdk.built_camera import BuiltCamera
-    from bmi_sdk.decode import ClassicalConfig
     from bmi_sdk.runtime.classical import warm_kernels
+    from bmi_sdk.runtime.decoders import open_decoder
 
     roi = None
     if args.frame is not None:  # the camera that took the frame, as `bmi infer` builds it
@@ -112,14 +112,10 @@ def _warm(args) -> int:
         camera = BuiltCamera.from_calibration(load_calibration(args.calibration))
     else:
         camera = BuiltCamera(lens_name=args.lens)
-    if args.decoder == "learned":
-        from bmi_sdk.runtime.learned import model_classical_config
-        from bmi_sdk.runtime.model import LEARNED_MODEL, Model
-
-        config = model_classical_config(Model(args.model or LEARNED_MODEL, warmup=False))  # its manifest, not a run
-    else:
-        config = ClassicalConfig()
-    report = warm_kernels(camera, config, roi=roi, workers=args.workers, progress=not args.quiet)
+    stage = getattr(open_decoder(camera, args.decoder, args.model), "stage", None)  # the decoder, as bmi infer opens it
+    if stage is None:
+        raise ValueError(f"--decoder {args.decoder} reads no kernels of the camera: nothing to warm")
+    report = warm_kernels(camera, stage.config, roi=roi, workers=args.workers, progress=not args.quiet)
     print(json.dumps(report) if args.json else
           f"camera {report['camera_sha256'][:12]}…: {report['zones']} zones, {report['kernel_sets_traced']} of "
           f"{report['kernel_sets']} kernel sets traced ({report['kernel_sets'] - report['kernel_sets_traced']} "
@@ -128,6 +124,9 @@ def _warm(args) -> int:
 
 
 def register(subparsers) -> None:
+    from bmi_sdk.lenses import DEFAULT_LENS
+    from bmi_sdk.runtime.decoders import DECODERS, DEFAULT_DECODER
+
     p = subparsers.add_parser("psf", help="export one PSF or build the PSF tensor",
                               description="Pixel-integrated PSFs computed from the exact traced wavefront.")
     sub = p.add_subparsers(dest="psf_command", metavar="ACTION")
@@ -140,7 +139,7 @@ def register(subparsers) -> None:
     e.add_argument("--out", required=True,
                    help="output: NAME.npy, the float32 kernel (sum 1); or NAME.png, a viewable 16-bit image of "
                         "the kernel normalised to its peak (peak = 65535; not the kernel's values)")
-    e.add_argument("--lens", default="bmi_monocentric")
+    e.add_argument("--lens", default=DEFAULT_LENS)
     e.add_argument("--kernel-px", type=int, default=41, help="odd kernel size (default 41: ≥ 99 %% energy at 0.7 m)")
     e.add_argument("--pitch-um", type=float, default=2.0)
     e.add_argument("--oversample", type=int, default=3, help="odd sub-samples per pixel for pixel integration")
@@ -149,7 +148,7 @@ def register(subparsers) -> None:
     b = sub.add_parser("build", help="build the whole default tensor from scratch and write it",
                        description="PSF(c, θ, d): 3 channels × θ 0–60° every 0.6° × d 0.7–10 m every 0.1 m, "
                                    "ignoring any cache; writes PATH (.npz) and PATH's .json metadata.")
-    b.add_argument("--lens", default="bmi_monocentric")
+    b.add_argument("--lens", default=DEFAULT_LENS)
     b.add_argument("--out", help="output .npz (default psf_tensor_<lens>.npz)")
     b.add_argument("--kernel-px", type=int, default=41)
     b.add_argument("--spectral", action="store_true",
@@ -166,11 +165,11 @@ def register(subparsers) -> None:
     w.add_argument("--calibration", metavar="FILE", help="calibration from bmi calibrate (default: nominal PSFs)")
     w.add_argument("--frame", metavar="RAW.dng",
                    help="warm for this frame's camera and window, exactly as bmi infer builds them")
-    w.add_argument("--decoder", choices=("classical", "learned"), default="learned",
-                   help="whose knobs (candidates) to trace for: the learned model's classical stage (default) or "
-                        "the classical decoder's")
+    w.add_argument("--decoder", choices=tuple(DECODERS), default=DEFAULT_DECODER,
+                   help=f"whose knobs (candidates) to trace for, e.g. the learned model's classical stage or the "
+                        f"classical decoder's (default {DEFAULT_DECODER})")
     w.add_argument("--model", help="learned model whose manifest names its classical knobs (default: the packaged one)")
-    w.add_argument("--lens", default="bmi_monocentric", help="lens of a nominal camera (without --calibration)")
+    w.add_argument("--lens", default=DEFAULT_LENS, help="lens of a nominal camera (without --calibration)")
     w.add_argument("--workers", type=int, default=1, help="processes tracing zones side by side (default 1)")
     w.add_argument("--json", action="store_true", help="print the report as JSON")
     w.add_argument("--quiet", action="store_true", help="no progress bar")

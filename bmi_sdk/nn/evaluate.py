@@ -43,12 +43,13 @@ from pathlib import Path
 
 import numpy as np
 
-from bmi_sdk.model_io import network_input, raw_to_rgb, window_cfa
+from bmi_sdk.model_io import INPUT_CHANNELS, network_input, raw_to_rgb, window_cfa
 from bmi_sdk.lenses import lens_geometry, lens_tensor
 from bmi_sdk.metrics import depth_metrics, image_metrics, mean_metrics
 from bmi_sdk.nn.data import (SCENE_MARGIN_PX, STANDARD_SIGMA, mirror_extend, render_margin_px, sample_window,
                              scene_crop, simulate_raw)
 from bmi_sdk.optics.perturb import Perturbation
+from bmi_sdk.runtime.decoders import DEFAULT_DECODER
 from bmi_sdk.sensor import (BLACK_LEVEL_DN, CFA_PATTERN, PAPER_NOISE_SIGMAS, WHITE_LEVEL_DN, NoiseProfile,
                             relative_illumination)
 
@@ -211,7 +212,7 @@ class NetworkTiles:
         self.name = name or self.model.decoder
         self.fuse = fuse
         self.stage = None
-        if self.model.decoder == "learned":
+        if self.model.input_channels > INPUT_CHANNELS:  # a refinement: it reads its classical stage's channels
             from bmi_sdk.decode import ClassicalDecoder
             from bmi_sdk.runtime.learned import model_classical_config
 
@@ -331,9 +332,6 @@ def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition:
     return rows
 
 
-DECODERS = ("cnn", "classical", "learned")
-
-
 def classical_window_px(lens_name: str, base_px: int) -> int:
     """The evidence window for a lens: ``base_px``, or the smallest multiple of 4 that holds its kernel."""
     from bmi_sdk.lenses import LENS_KERNEL_PX
@@ -360,7 +358,7 @@ def _decoders(decoders, model_path, psf_map, config, threads: int, tile_px: int,
 
 def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(), conditions: list[str] | None = None,
                   fisheye_model: str | Path | None = None, progress: bool = True,
-                  decoders: tuple[str, ...] = ("cnn",), classical_config=None,
+                  decoders: tuple[str, ...] = (DEFAULT_DECODER,), classical_config=None,
                   learned_model: str | Path | None = None, learned_fusion: bool = True) -> list[dict]:
     """Every requested condition (default: noise sweep, hardware errors (``HARDWARE``, ``EXACT``), + fisheye
     when its model is given, or always for the classical decoder) for every requested decoder.
@@ -376,10 +374,11 @@ def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(),
     from bmi_sdk.built_camera import BuiltCamera
     from bmi_sdk.decode import ClassicalConfig
     from bmi_sdk.render import PsfMap
+    from bmi_sdk.runtime.decoders import DECODERS
 
     unknown_dec = [d for d in decoders if d not in DECODERS]
     if unknown_dec or not decoders:
-        raise ValueError(f"unknown decoders {unknown_dec}; known: {DECODERS}")
+        raise ValueError(f"unknown decoders {unknown_dec}; known: {tuple(DECODERS)}")
     noise = noise_conditions()
     known = known_conditions()
     with_fisheye = fisheye_model is not None or "classical" in decoders

@@ -20,7 +20,7 @@ Adding a decoder
 Write one class and register it; nothing else changes (the CLI's ``--decoder`` choices, batches, Dask
 workers and the report read the registry):
 
-1. ``kind = "name"`` (what ``--decoder`` takes), ``model_kind`` (the manifest ``decoder`` of the ONNX model it
+1. ``kind = "name"`` (what ``--decoder`` takes), ``title`` (how ``bmi infer`` names it), ``model_kind`` (the manifest ``decoder`` of the ONNX model it
    runs, or None for a decoder without a network) and ``takes_config`` (whether it reads a
    ``decode.ClassicalConfig``; a decoder that does not refuses one);
 2. ``__init__(self, camera, model, config, options)``: build, once, what every frame reuses (a ``Model`` from
@@ -168,6 +168,7 @@ class LearnedDecoder:
     """The classical stage over the camera's kernels with its model's knobs, then the refinement network, fused."""
 
     kind = "learned"
+    title = "learned refinement"
     model_kind = "learned"
     takes_config = False
 
@@ -194,6 +195,7 @@ class NetworkDecoder:
     """The end-to-end network, tile by tile (``pipeline.infer_frame``); no depth 1σ."""
 
     kind = "cnn"
+    title = "end-to-end network"
     model_kind = "cnn"
     takes_config = False
 
@@ -217,6 +219,7 @@ class ClassicalDecoderKind:
     """The evidence of the camera's own kernels, no network (``runtime.classical``); with a depth 1σ."""
 
     kind = "classical"
+    title = "classical decoder"
     model_kind = None
     takes_config = True
 
