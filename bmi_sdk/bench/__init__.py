@@ -16,6 +16,7 @@ import time
 from ..resources import cpu_seconds, peak_rss_mb  # noqa: F401  (the targets import them from here)
 from .record import add_json_argument, markdown_tables, write_record
 
+
 def markdown_table(header: list[str], rows: list[list]) -> str:
     def fmt(x):
         if isinstance(x, float):

@@ -27,6 +27,7 @@ RECOVERY_SEEDS_FULL = 50
 def one_seed(seed: int, n_points: int = 13, n_held_out: int = 4, max_outer: int = 4) -> dict:
     """Capture + fit one random perturbation; truth, estimate, σ, history, held-out χ², times."""
     from bmi_sdk.optics.perturb import Perturbation
+
     # Submodules, not the package: an editable install made before calibration/ had an __init__.py
     # resolves ``calibration`` as a namespace package outside the repository root.
     from calibration.extract import extract_spots

@@ -207,8 +207,13 @@ def window_depth_bound(decoder, raw: np.ndarray, row0: int, col0: int, field_deg
     estimator can reach, whatever decodes it.
     """
     from bmi_sdk.decode.bayer import normalised_planes
-    from bmi_sdk.decode.evidence import (hann_taper, inverse_depth_information, rfft_multiplicity,
-                                         taper_variance_inflation, window_spectra)
+    from bmi_sdk.decode.evidence import (
+        hann_taper,
+        inverse_depth_information,
+        rfft_multiplicity,
+        taper_variance_inflation,
+        window_spectra,
+    )
     from bmi_sdk.decode.kernels import ZoneKernels
     from bmi_sdk.nn.data import STANDARD_SIGMA
 
@@ -502,9 +507,9 @@ def _full_frame(nominal, geometry) -> str:
 def run(full: bool = False) -> str:
     from bmi_sdk.built_camera import BuiltCamera
     from bmi_sdk.decode import ClassicalConfig, ClassicalDecoder
-    from bmi_sdk.optics.perturb import Perturbation
     from bmi_sdk.lenses import lens_geometry, lens_tensor
     from bmi_sdk.nn.evaluate import Benchmark
+    from bmi_sdk.optics.perturb import Perturbation
     from bmi_sdk.render import PsfMap
 
     bench = Benchmark(tiles=TILES)

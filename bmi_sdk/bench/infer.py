@@ -46,11 +46,10 @@ def _capture(work: Path) -> Path:
     dng = work / "frame.dng"
     if dng.is_file():
         return dng
+    from bmi_sdk.scenes import generate_scene
     from devices import open_camera
     from firmware_sim import FirmwareDevice
     from firmware_sim.sources import InFocusImageStandIn
-
-    from bmi_sdk.scenes import generate_scene
 
     dev = FirmwareDevice(seed=1)
     dev.load_source(InFocusImageStandIn(generate_scene(4500, 6000, 7).rgb, label="procedural seed 7"))
@@ -81,10 +80,9 @@ def _models(args, work: Path) -> list[Path]:
 
 def full_frame_child(model_path: str, dng: str, tile_px: int, threads: int | None) -> None:
     """Run in a fresh process: load, warm up, infer one DNG; print timings and peak RSS as one JSON line."""
-    from devices import load_raw
-
     from bmi_sdk.bench import peak_rss_mb
     from bmi_sdk.runtime import Model, count_macs, infer_frame
+    from devices import load_raw
 
     model = Model(model_path, tile_px=tile_px, threads=threads)
     frame = load_raw(dng)
@@ -142,12 +140,11 @@ def _seam_rows(model_path: Path, frame, window, tiles: list[int], threads) -> tu
 
 
 def _run(args) -> int:
-    from devices import load_raw
-
     from bmi_sdk.bench import emit, markdown_table
     from bmi_sdk.model_io import network_input, raw_to_rgb, window_cfa
     from bmi_sdk.model_manifest import read_manifest
     from bmi_sdk.runtime import Model, infer_raw, quantize_int8
+    from devices import load_raw
 
     work = Path(args.work_dir)
     work.mkdir(parents=True, exist_ok=True)

@@ -118,8 +118,8 @@ def _infer_row(args, work: Path, frames: list[Path], scheduler: str | None) -> l
 
 def _run(args) -> int:
     from bmi_sdk.bench import emit, markdown_table
-    from bmi_sdk.runtime.decoders import DEFAULT_DECODER
     from bmi_sdk.lenses import DEFAULT_LENS, lens_tensor
+    from bmi_sdk.runtime.decoders import DEFAULT_DECODER
     from bmi_sdk.scaleout import parse_scheduler
 
     schedulers = args.scheduler or ["local:1", "local:2"]

@@ -56,9 +56,8 @@ def _run(args) -> int:
     from bmi_sdk.cli.infer import WINDOW_KNOBS, changed_classical_flags, classical_config, classical_defaults
     from bmi_sdk.model_manifest import verify_model
     from bmi_sdk.nn.evaluate import Benchmark, run_benchmark
-    from bmi_sdk.scaleout import scheduler_address
-
     from bmi_sdk.runtime.decoders import decoder_kind
+    from bmi_sdk.scaleout import scheduler_address
 
     decoders = tuple(decoder_kind(d.strip()) for d in args.decoder.split(",") if d.strip())
     if args.model is not None and "cnn" not in decoders:

@@ -52,7 +52,6 @@ def _write_kernel(path: str, kernel) -> str:
 
 def _export(args) -> int:
     from bmi_sdk.optics import fit_pupil, get_lens, psf_from_pupil
-
     from bmi_sdk.optics.export_limits import check_export_request, check_kernel
 
     from ._outputs import refuse_existing
@@ -100,8 +99,8 @@ def _warm(args) -> int:
 
     roi = None
     if args.frame is not None:  # the camera that took the frame, as `bmi infer` builds it
-        from devices.dng import load_raw
         from bmi_sdk.runtime.job import camera_for
+        from devices.dng import load_raw
 
         frame = load_raw(args.frame)
         camera, _ = camera_for(frame, args.calibration)

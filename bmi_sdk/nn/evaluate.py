@@ -43,15 +43,28 @@ from pathlib import Path
 
 import numpy as np
 
-from bmi_sdk.model_io import INPUT_CHANNELS, network_input, raw_to_rgb, window_cfa
 from bmi_sdk.lenses import lens_geometry, lens_tensor
 from bmi_sdk.metrics import depth_metrics, image_metrics, mean_metrics
-from bmi_sdk.nn.data import (SCENE_MARGIN_PX, STANDARD_SIGMA, mirror_extend, render_margin_px, sample_window,
-                             scene_crop, simulate_raw)
+from bmi_sdk.model_io import INPUT_CHANNELS, network_input, raw_to_rgb, window_cfa
+from bmi_sdk.nn.data import (
+    SCENE_MARGIN_PX,
+    STANDARD_SIGMA,
+    mirror_extend,
+    render_margin_px,
+    sample_window,
+    scene_crop,
+    simulate_raw,
+)
 from bmi_sdk.optics.perturb import Perturbation
 from bmi_sdk.runtime.decoders import DEFAULT_DECODER
-from bmi_sdk.sensor import (BLACK_LEVEL_DN, CFA_PATTERN, PAPER_NOISE_SIGMAS, WHITE_LEVEL_DN, NoiseProfile,
-                            relative_illumination)
+from bmi_sdk.sensor import (
+    BLACK_LEVEL_DN,
+    CFA_PATTERN,
+    PAPER_NOISE_SIGMAS,
+    WHITE_LEVEL_DN,
+    NoiseProfile,
+    relative_illumination,
+)
 
 REGIONS = {"centre": (0.0, 20.0), "edge": (52.0, 58.0)}
 

@@ -22,8 +22,13 @@ from ..model_manifest import verify_model, write_manifest
 def quantize_int8(src: str | os.PathLike, dst: str | os.PathLike, calibration_inputs: list[np.ndarray]) -> Path:
     """Write an int8 QDQ copy of ``src`` to ``dst`` (+ manifest), calibrated on ``calibration_inputs``
     (1 × C × H × W, C the model's ``input_channels``: the inputs inference builds for it)."""
-    from onnxruntime.quantization import (CalibrationDataReader, QuantFormat, QuantType, quant_pre_process,
-                                          quantize_static)
+    from onnxruntime.quantization import (
+        CalibrationDataReader,
+        QuantFormat,
+        QuantType,
+        quant_pre_process,
+        quantize_static,
+    )
 
     if not calibration_inputs:
         raise ValueError("int8 calibration needs at least one input tile")

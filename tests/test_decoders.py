@@ -1,0 +1,91 @@
+"""The decoder interface (``runtime.decoders``): a decoder is one registered class, opened once per camera; and the
+``--json`` record of ``bmi bench`` / ``bmi eval`` (``bench.record``)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from bmi_sdk.bench.record import markdown_tables, write_record
+from bmi_sdk.runtime import DECODERS, BuiltCamera, DecodedFrame, open_decoder, run_job
+from bmi_sdk.runtime.decoders import decoder_kind
+
+
+@pytest.fixture(scope="module")
+def dng(tmp_path_factory):
+    from devices import Roi, open_camera
+
+    path = tmp_path_factory.mktemp("raw") / "frame.dng"
+    with open_camera("sim://decoders-test?scene=chart&seed=1") as cam:
+        cam.settings.roi = Roi(2980, 2240, 96, 64)
+        cam.capture().save_dng(path)
+    return path
+
+
+class PlaneDecoder:
+    """A decoder that reads every pixel at 2 m: enough to show what adding a decoder takes."""
+
+    kind = "plane"
+    title = "plane at 2 m"
+    model_kind = None
+    takes_config = False
+
+    def __init__(self, camera, model, config, options):
+        self.camera = camera
+
+    def decode(self, frame, progress=False):
+        shape = frame.data.shape
+        valid = np.ones(shape, bool)
+        return DecodedFrame(np.zeros((*shape, 3), np.float32), np.full(shape, 2.0, np.float32), valid,
+                            np.full(shape, 0.1, np.float32), {"valid_fraction": 1.0})
+
+    def head(self):
+        return {"decoder": self.kind, "calibration_id": self.camera.calibration_id}
+
+
+def test_a_registered_class_is_a_decoder_every_entry_point_runs(dng, tmp_path, monkeypatch):
+    with pytest.raises(ValueError, match="unknown decoder 'plane'"):
+        decoder_kind("plane")
+    monkeypatch.setitem(DECODERS, "plane", PlaneDecoder)
+    _, report = run_job(dng, tmp_path / "job", decoder="plane")
+    assert report["decoder"] == "plane" and report["execution_provider"] is None
+    assert np.all(np.load(tmp_path / "job" / "depth.npy") == 2.0)
+    assert (tmp_path / "job" / "depth_sigma.npy").is_file()  # a decoder with a 1σ gets the σ outputs
+
+    from bmi_sdk.runtime.batch import DecodeOptions, plan_outputs, run_batch
+
+    summaries = run_batch(plan_outputs([dng], tmp_path / "batch"), DecodeOptions(decoder="plane"), progress=False)
+    assert summaries[0]["ok"] and summaries[0]["decoder"] == "plane"
+    for name in ("depth.npy", "points.ply", "aif.png"):
+        assert (tmp_path / "job" / name).read_bytes() == (tmp_path / "batch" / name).read_bytes()
+
+
+def test_an_opened_decoder_refuses_another_cameras_frame(dng, tmp_path, monkeypatch):
+    monkeypatch.setitem(DECODERS, "plane", PlaneDecoder)
+    decoder = open_decoder(BuiltCamera(lens_name="fisheye"), "plane")
+    with pytest.raises(ValueError, match="opened for camera"):
+        run_job(dng, tmp_path / "o", decoder=decoder)
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_decoder_without_a_network_or_options_refuses_them():
+    with pytest.raises(ValueError, match="--model names a network"):
+        open_decoder(BuiltCamera(), "classical", model="default.onnx")
+    with pytest.raises(ValueError, match="takes no classical decoder options"):
+        from bmi_sdk.decode import ClassicalConfig
+
+        open_decoder(BuiltCamera(), "cnn", config=ClassicalConfig())
+
+
+def test_a_benchmark_text_becomes_a_record(tmp_path):
+    text = ("### Seams, 512² tiles\n\nThe window run whole and tiled.\n\n| tile px | AiF MAD | note |\n|---|---|---|\n"
+            "| 256 | 0.0012 | – |\n| 512 | 3e-05 | whole |\n\nMeasured on one core.\n")
+    (table,) = markdown_tables(text)
+    assert table == {"title": "Seams, 512² tiles", "columns": ["tile px", "AiF MAD", "note"],
+                     "rows": [[256, 0.0012, None], [512, 3e-05, "whole"]],
+                     "notes": "The window run whole and tiled. Measured on one core."}
+    path = write_record(tmp_path / "r" / "bench.json", [table], ["bench", "infer", "--json", "r/bench.json"])
+    record = json.loads(path.read_text())
+    assert record["command"] == "bmi bench infer --json r/bench.json" and record["tables"] == [table]
+    assert set(record["machine"]) == {"platform", "cores", "python", "load_average"}
+    assert len(record["date"]) == 10 and (record["commit"] is None or len(record["commit"]) == 40)
