@@ -77,6 +77,8 @@ def wiener_blend(rgb: np.ndarray, inv_depth: np.ndarray, candidate_inv: np.ndarr
     lo, frac = bracket(inv_depth, candidate_inv)
     needed = core_needed = _needed(lo, frac, len(candidate_inv))
     if prior is not None:  # the prior is blurred over the whole block, whose halo may need further candidates
+        if prior_inv_depth is None:
+            raise ValueError("wiener_blend: a prior needs prior_inv_depth, the 1/d its kernels blur it with")
         prior_lo, prior_frac = bracket(prior_inv_depth, candidate_inv)
         needed = np.union1d(core_needed, _needed(prior_lo, prior_frac, len(candidate_inv)))
     kernels = kernels_of(needed)                                # (3, n, K, K)

@@ -207,13 +207,15 @@ class ClassicalDecoder:
         (a clipped plateau's sharp rim reads as a sharp kernel, confidently and wrongly). ``grid_models``: the
         models that place the β grid (``evidence.plane_nll``), default ``models``."""
         grid = models if grid_models is None else grid_models
-        total = None
+        total: np.ndarray | None = None
         for p, power in enumerate(spectra):
             best = np.min([plane_nll(power, models[p, a], noise_vars[p], taper_energy, self.zones.tapered,
                                      grid_model=grid[p, a])
                            for a in range(models.shape[1])], axis=0)
             best[clipped[p]] = 0.0
             total = best if total is None else total + best
+        if total is None:
+            raise ValueError("_block_nll needs the spectra of at least one colour plane, got none")
         return total                                               # (windows, D)
 
     def _field_nll(self, spectra: list, reads: list, models: list, noise_vars: list, taper_energy: float,
@@ -390,8 +392,8 @@ class ClassicalDecoder:
             pass
         timings["upsample_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        aif = (self._aif(raw, black_level_dn, white_level_dn, cfa, inv_px, valid, geometry, row0, col0, noise) if aif
-               else np.zeros((height, width, 3), np.float32))
+        aif_rgb = (self._aif(raw, black_level_dn, white_level_dn, cfa, inv_px, valid, geometry, row0, col0, noise)
+                   if aif else np.zeros((height, width, 3), np.float32))
         timings["aif_s"] = time.perf_counter() - t0
         timings["total_s"] = time.perf_counter() - t_start
         stats = {"decoder": "classical", "config": cfg.to_dict(), "noise_sigma": typical_sigma,
@@ -406,7 +408,7 @@ class ClassicalDecoder:
                  "kernel_sets_traced": self.zones.psf_map.kernels_traced - traced_before,  # 0: all from cache
                  "timings_s": timings}
         volume = (curves, pooled, colour) if pooling else (None, None, None)
-        return DecodeResult(depth, depth_sigma, aif, valid, inv, sig, sigma_laplace, spread, evidence,
+        return DecodeResult(depth, depth_sigma, aif_rgb, valid, inv, sig, sigma_laplace, spread, evidence,
                             cand_inv[coarse], stats, *volume)
 
     # -- all-in-focus -----------------------------------------------------------------------------
