@@ -116,7 +116,7 @@ def save_dng(frame: RawFrame, path, overwrite: bool = True) -> None:
         raise ValueError(f"CFA must be a 2×2 pattern like 'RGGB', got {frame.cfa!r}")
     model = f"{MODEL_NAME} {frame.device.get('serial', '')}".strip() if frame.is_bmi else "unknown"
     exposure = max(1, int(frame.exposure_us))
-    extratags = [
+    extratags: list[tuple[int, str, int, object, bool]] = [  # tifffile's (code, dtype, count, value, writeonce)
         (271, "s", 0, MAKE, True),                                  # Make
         (272, "s", 0, MODEL_NAME, True),                            # Model
         (50706, "B", 4, (1, 4, 0, 0), True),                        # DNGVersion
@@ -230,7 +230,7 @@ def load_raw(path, require_bmi: bool = True) -> RawFrame:
         raise RawFileError(f"{path}: rawpy cannot read it as a raw file ({exc})") from exc
     try:
         with tifffile.TiffFile(path) as tif:
-            tags = tif.pages[0].tags
+            tags = tif.pages.first.tags
             tag = tags.get(_TAG_UNIQUE_MODEL)
             camera_model = str(tag.value) if tag is not None else ""
             tag = tags.get(_TAG_NOISE_PROFILE)
