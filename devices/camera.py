@@ -154,7 +154,7 @@ class StreamCamera:
             self.settings.set_roi(Roi(*(c if v is None else v for v, c in zip(roi_values, (
                 current.x_px, current.y_px, current.width_px, current.height_px)))))
         if self._streaming:
-            self._link.start(0)
+            self._check_link().start(0)
 
     def _drop_link(self) -> None:
         if self._link is not None:
@@ -168,7 +168,7 @@ class StreamCamera:
         if self._closed:
             return
         self._closed = True
-        if self._streaming and self._removed is None:
+        if self._streaming and self._removed is None and self._link is not None:
             try:
                 self._link.stop()
             except CameraError:
@@ -191,6 +191,8 @@ class StreamCamera:
         self._check_open()
         if self._removed is not None:
             raise DeviceRemovedError(f"{self.uri}: {self._removed} (call reconnect())")
+        if self._link is None:  # a reconnect() that failed left no link
+            raise DeviceRemovedError(f"{self.uri}: not connected (call reconnect())")
         return self._link
 
     # -- registers ----------------------------------------------------------------------
@@ -246,7 +248,7 @@ class StreamCamera:
         if not self._streaming:
             return
         self._streaming = False
-        if self._removed is None and not self._closed:
+        if self._removed is None and not self._closed and self._link is not None:
             self._link.stop()
         self._flush()
 
@@ -359,6 +361,7 @@ class StreamCamera:
                 self._oneshot.append(self._hand_out(frame))
                 self._cond.notify_all()
                 return
+            assert self._pool is not None  # buffer_for took buf from the pool
             self._pool.attach(frame, buf)
             if self.on_frame is None:
                 if self._strategy == "latest_only":
