@@ -13,12 +13,16 @@ scene, frame counter and fault ledger persist between opens. Giving ``seed``,
 from __future__ import annotations
 
 import threading
+from typing import TYPE_CHECKING
 
 from .camera import StreamCamera
 from .errors import ConfigurationError, DeviceBusyError
 
+if TYPE_CHECKING:  # for the type checker only: at run time ``open_sim`` alone imports the simulator
+    from firmware_sim import FirmwareDevice
+
 DEFAULT_NAME = "sim0"  # the device ``sim://`` names
-_DEVICES: dict = {}
+_DEVICES: dict[str, FirmwareDevice] = {}
 _LOCK = threading.Lock()
 
 
@@ -53,7 +57,7 @@ def open_sim(uri: str, name: str, query: dict, device=None, **camera_kwargs) -> 
     return StreamCamera(uri, connect, **camera_kwargs)
 
 
-def sim_devices() -> dict[str, object]:
+def sim_devices() -> dict[str, FirmwareDevice]:
     """The simulated cameras this process has built so far, by name (a snapshot)."""
     with _LOCK:
         return dict(_DEVICES)
