@@ -1,0 +1,171 @@
+"""The evidence volume as a network's input and the posterior it returns, in numpy (no torch).
+
+The classical decoder scores every window of a frame against every depth candidate (``classical``): its
+negative log-likelihood less the window's minimum, ΔNLL, over the candidates is a cost volume in the sense
+of stereo matching. The evidence decoder (``runtime`` kind ``evidence``) hands that volume to a small
+network that returns logits over the same candidates; its depth is the posterior mean of 1/d and its 1σ the
+posterior's spread (``posterior``). Because the network adds a residual to −ΔNLL of the pooled curves, an
+untrained network returns the pooled evidence's own posterior: what the camera's kernels say, for a
+calibrated camera as for the design.
+
+This module holds what both training and inference need around the network:
+
+* ``volume_inputs``: a decode's volume (pooled and own curves, clipped), and the guide (window colour);
+* ``grid_targets``: a scene's 1/d at each window's cell, the training target;
+* ``posterior``: the mean and spread of 1/d under softmax(logits);
+* ``guided_upsample``: window-grid 1/d and its variance to every pixel, each pixel taking the windows
+  whose cell colour matches its own (joint bilateral upsampling, Kopf et al., SIGGRAPH 2007), with the
+  mixture's variance, so a pixel between two surfaces reports the gap between them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+CLIP_NATS = 60.0
+"""ΔNLL above this carries no more information about a window's depth (its posterior weight is e⁻⁶⁰):
+the volume is clipped there, so a very textured window does not dominate the network's input scale."""
+
+VOLUME_SCALE_NATS = 10.0
+"""The network reads ΔNLL / this (order-one inputs); its anchor, −ΔNLL of the pooled curves, stays in nats."""
+
+MIN_CELL_VALID = 0.25
+"""Least fraction of a window cell's pixels with a finite scene depth for the cell to carry a training target."""
+
+
+def volume_inputs(grid_pooled: np.ndarray, grid_curves: np.ndarray, grid_colour: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(volume, guide, valid) of one decode's window grid (R × C windows, D candidates).
+
+    ``volume``: (2, D, R, C) float32: the pooled and the own ΔNLL curves in nats, each less its minimum (a
+    pooled curve's minimum is its neighbours' cost there) and clipped at ``CLIP_NATS`` (0 in windows without a
+    decode); ``guide``: (4, R, C) float32: the windows' log mean colour less its mean
+    over the grid's valid windows (the picture's colour edges, independent of exposure), and 1 where a window
+    has a decode, 0 elsewhere; ``valid``: (R, C) windows with a decode.
+    """
+    if grid_pooled.shape != grid_curves.shape or grid_pooled.ndim != 3 or grid_colour.shape[:2] != grid_pooled.shape[:2]:
+        raise ValueError(f"a volume needs pooled and own curves of one R × C × D shape and R × C × 3 colours, got "
+                         f"{grid_pooled.shape}, {grid_curves.shape} and {grid_colour.shape}")
+    valid = np.isfinite(grid_pooled).all(axis=-1) & np.isfinite(grid_curves).all(axis=-1)
+    vol = np.stack([grid_pooled, grid_curves]).astype(np.float32)             # (2, R, C, D)
+    vol = np.nan_to_num(vol - np.nanmin(np.where(valid[None, ..., None], vol, np.inf), axis=-1, keepdims=True))
+    vol = np.where(valid[None, ..., None], np.clip(vol, 0.0, CLIP_NATS), 0.0)
+    colour = np.asarray(grid_colour, np.float32)
+    mean = colour[valid].mean(axis=0) if valid.any() else np.zeros(3, np.float32)
+    guide = np.concatenate([np.where(valid[..., None], colour - mean, 0.0), valid[..., None]], axis=-1)
+    return (np.ascontiguousarray(vol.transpose(0, 3, 1, 2)),
+            np.ascontiguousarray(guide.transpose(2, 0, 1).astype(np.float32)), valid)
+
+
+def cell_bounds(k: int, stride_px: int, size_px: int) -> tuple[int, int]:
+    """Pixel range [lo, hi) of window k's cell along one axis: the stride around its centre k·stride − ½."""
+    half = stride_px // 2
+    return max(0, k * stride_px - half), min(size_px, k * stride_px + half)
+
+
+def grid_targets(range_m: np.ndarray, stride_px: int, grid_shape: tuple[int, int]) -> np.ndarray:
+    """(R, C) float32 median 1/d (m⁻¹) of the scene over each window's cell (``cell_bounds``); NaN where fewer
+    than ``MIN_CELL_VALID`` of the cell's pixels have a finite positive depth."""
+    height, width = range_m.shape
+    inv = np.where(np.isfinite(range_m) & (range_m > 0), 1.0 / np.where(range_m > 0, range_m, 1.0), np.nan)
+    out = np.full(grid_shape, np.nan, np.float32)
+    for r in range(grid_shape[0]):
+        r0, r1 = cell_bounds(r, stride_px, height)
+        for c in range(grid_shape[1]):
+            c0, c1 = cell_bounds(c, stride_px, width)
+            cell = inv[r0:r1, c0:c1]
+            ok = np.isfinite(cell)
+            if cell.size and ok.mean() >= MIN_CELL_VALID:
+                out[r, c] = np.median(cell[ok])
+    return out
+
+
+def posterior(logits: np.ndarray, inv_depth_per_m: np.ndarray, axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, std) of 1/d under softmax(``logits``) along ``axis`` (the candidates, 1/d ``inv_depth_per_m``)."""
+    z = logits - logits.max(axis=axis, keepdims=True)
+    p = np.exp(z)
+    p /= p.sum(axis=axis, keepdims=True)
+    shape = [1] * logits.ndim
+    shape[axis] = -1
+    x = np.asarray(inv_depth_per_m, np.float64).reshape(shape)
+    mean = (p * x).sum(axis=axis)
+    var = (p * (x - np.expand_dims(mean, axis)) ** 2).sum(axis=axis)
+    return mean, np.sqrt(var)
+
+
+def pixel_log_colour(rgb: np.ndarray, floor: float = 1e-3) -> np.ndarray:
+    """H × W × 3 float32 log colour of a linear RGB image, floored (the guide of ``guided_upsample``)."""
+    return np.log(np.maximum(np.asarray(rgb, np.float32), np.float32(floor)))
+
+
+def cell_colour(log_rgb: np.ndarray, stride_px: int, grid_shape: tuple[int, int]) -> np.ndarray:
+    """(R, C, 3) mean log colour of each window's cell (``cell_bounds``) of an H × W × 3 log-colour image."""
+    import cv2
+
+    height, width = log_rgb.shape[:2]
+    integral = cv2.integral(np.ascontiguousarray(log_rgb, np.float64))  # (H+1, W+1, 3)
+    rows = np.array([cell_bounds(r, stride_px, height) for r in range(grid_shape[0])])
+    cols = np.array([cell_bounds(c, stride_px, width) for c in range(grid_shape[1])])
+    r0, r1 = rows[:, 0][:, None], rows[:, 1][:, None]
+    c0, c1 = cols[:, 0][None, :], cols[:, 1][None, :]
+    total = integral[r1, c1] - integral[r0, c1] - integral[r1, c0] + integral[r0, c0]
+    area = np.maximum((r1 - r0) * (c1 - c0), 1)[..., None]
+    return (total / area).astype(np.float32)
+
+
+def guided_upsample(inv_grid: np.ndarray, var_grid: np.ndarray, log_rgb: np.ndarray, stride_px: int,
+                    colour_sigma: float, band_rows: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    """(1/d, variance of 1/d) at every pixel of an H × W frame from its window grid (R × C, NaN where no read).
+
+    Each pixel reads the 2 × 2 windows around it, weighted by the bilinear weight times
+    exp(−|g_p − g_w|² / 2 ``colour_sigma``²), g_p the pixel's log colour (``log_rgb``, H × W × 3) and g_w
+    the mean log colour of window w's cell: across a colour edge the pixel follows the windows of its own
+    side. Its variance is the mixture's: Σ w (var_w + (1/d_w − 1/d_p)²), so a pixel whose windows disagree
+    reports that. Where every colour weight vanishes (a colour none of its windows has) the bilinear weights
+    stand. NaN where none of the 2 × 2 windows has a read. Processed in bands of ``band_rows`` rows.
+    """
+    if not colour_sigma > 0:
+        raise ValueError(f"guided upsampling needs colour_sigma > 0, got {colour_sigma}")
+    height, width = log_rgb.shape[:2]
+    rows, cols = inv_grid.shape
+    cells = cell_colour(log_rgb, stride_px, (rows, cols))
+    ok_grid = np.isfinite(inv_grid) & np.isfinite(var_grid)
+    inv_g = np.where(ok_grid, inv_grid, 0.0).astype(np.float32)
+    var_g = np.where(ok_grid, var_grid, 0.0).astype(np.float32)
+    out_inv = np.full((height, width), np.nan, np.float32)
+    out_var = np.full((height, width), np.nan, np.float32)
+    # window k's centre is at pixel k·stride − ½: pixel x lies between windows floor(u) and floor(u) + 1
+    u_col = (np.arange(width) + 0.5) / stride_px
+    k_col = np.clip(np.floor(u_col).astype(int), 0, cols - 1)
+    f_col = np.clip(u_col - k_col, 0.0, 1.0).astype(np.float32)
+    k_col1 = np.minimum(k_col + 1, cols - 1)
+    inv_two_c2 = np.float32(0.5 / colour_sigma ** 2)
+    for top in range(0, height, band_rows):
+        bottom = min(height, top + band_rows)
+        u_row = (np.arange(top, bottom) + 0.5) / stride_px
+        k_row = np.clip(np.floor(u_row).astype(int), 0, rows - 1)
+        f_row = np.clip(u_row - k_row, 0.0, 1.0).astype(np.float32)
+        k_row1 = np.minimum(k_row + 1, rows - 1)
+        g = log_rgb[top:bottom]
+        weights, values, variances = [], [], []
+        for kr, wr in ((k_row, 1.0 - f_row), (k_row1, f_row)):
+            for kc, wc in ((k_col, 1.0 - f_col), (k_col1, f_col)):
+                ok = ok_grid[kr][:, kc]
+                spatial = np.where(ok, wr[:, None] * wc[None, :], 0.0).astype(np.float32)
+                diff = g - cells[kr][:, kc]
+                colour = np.exp(-(diff * diff).sum(axis=-1) * inv_two_c2)
+                weights.append((spatial, spatial * colour))
+                values.append(inv_g[kr][:, kc])
+                variances.append(var_g[kr][:, kc])
+        spatial_sum = sum(w[0] for w in weights)
+        guided_sum = sum(w[1] for w in weights)
+        use_guided = guided_sum > 1e-6 * np.maximum(spatial_sum, 1e-30)
+        norm = np.where(use_guided, guided_sum, spatial_sum)
+        any_read = spatial_sum > 0
+        safe = np.where(any_read, norm, 1.0)
+        ws = [np.where(use_guided, w[1], w[0]) / safe for w in weights]
+        mean = sum(w * v for w, v in zip(ws, values))
+        var = sum(w * (s + (v - mean) ** 2) for w, v, s in zip(ws, values, variances))
+        out_inv[top:bottom] = np.where(any_read, mean, np.nan)
+        out_var[top:bottom] = np.where(any_read, var, np.nan)
+    return out_inv, out_var
