@@ -4,7 +4,9 @@ A PSF with ``--oversample 1001`` needs ~24 GB and an inference tile of
 100000 px 224 GiB: left to run, the first wakes the kernel's OOM killer
 (which may take other processes with it) and the second dies with a NumPy
 traceback. Callers estimate their peak from the arguments (formulas measured
-in docs/reliability.md) and call ``check_fits`` first.
+in docs/reliability.md) and call ``check_fits`` first; a command-line option
+that sizes an allocation (``bmi simulate --size``) calls ``check_allocation``,
+whose one-line refusal names the option and its value.
 
 The limit is 4 GiB or 75 % of the memory available now (``MemAvailable``),
 whichever is less, or ``BMI_MAX_MEMORY_MB`` when set. No PSF or tile the SDK
@@ -22,7 +24,15 @@ DEFAULT_CAP_BYTES = 4 * 2**30
 
 
 class MemoryBudgetError(ValueError):
-    """The estimated memory of a request exceeds the limit; nothing was allocated."""
+    """The estimated memory of a request exceeds the limit; nothing was allocated.
+
+    ``option`` is the command-line option that asked for it (``check_allocation``), None otherwise: the
+    ``bmi`` command exits 2 for an error that names an option, as for any other bad option value.
+    """
+
+    def __init__(self, message: str, option: str | None = None):
+        super().__init__(message)
+        self.option = option
 
 
 def _available_bytes() -> int | None:
@@ -54,10 +64,31 @@ def limit_bytes() -> tuple[int, str]:
     return int(available * AVAILABLE_SHARE), f"{AVAILABLE_SHARE:.0%} of the {available / 2**30:.1f} GiB available"
 
 
+def _over_limit(estimate_bytes: float) -> str | None:
+    """"more than the L GiB limit (where L comes from)" when ``estimate_bytes`` exceeds the limit (or is not a
+    number), None when it fits."""
+    limit, source = limit_bytes()
+    if estimate_bytes <= limit:
+        return None
+    return f"more than the {limit / 2**30:.1f} GiB limit ({source}; {ENV_LIMIT} sets it)"
+
+
 def check_fits(estimate_bytes: float, what: str, hint: str = "") -> None:
     """Raise ``MemoryBudgetError`` when ``estimate_bytes`` exceeds ``limit_bytes()``; ``what`` names the request."""
-    limit, source = limit_bytes()
-    if estimate_bytes > limit:
-        raise MemoryBudgetError(f"{what} needs about {estimate_bytes / 2**30:.1f} GiB, more than the "
-                                f"{limit / 2**30:.1f} GiB limit ({source}; {ENV_LIMIT} sets it)"
+    over = _over_limit(estimate_bytes)
+    if over:
+        raise MemoryBudgetError(f"{what} needs about {estimate_bytes / 2**30:.1f} GiB, {over}"
                                 + (f"; {hint}" if hint else ""))
+
+
+def check_allocation(option: str, value: object, estimate_bytes: float, hint: str = "") -> None:
+    """Refuse a command-line option whose value would allocate more than ``limit_bytes()``, before allocating.
+
+    One line names the option, its value, the estimate and the limit, e.g. ``--size 100000 needs about
+    112.0 GiB, more than the 4.0 GiB limit (the default cap; BMI_MAX_MEMORY_MB sets it); hint``. The error
+    carries ``option``. A NaN estimate is refused too (an option value no formula can size).
+    """
+    over = _over_limit(estimate_bytes)
+    if over:
+        raise MemoryBudgetError(f"{option} {value} needs about {estimate_bytes / 2**30:.1f} GiB, {over}"
+                                + (f"; {hint}" if hint else ""), option=option)

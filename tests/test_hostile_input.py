@@ -1,0 +1,162 @@
+"""Hostile values on the command lines of simulate, acquire, calibrate, firmware-sim, psf, lens and crlb (issue 37).
+
+Every refusal is one line naming the option, before any rendering, capture or fitting: exit 2 for a bad option
+value (argparse's usage errors and ``OptionError``), the frames and files a user has kept never replaced.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bmi_sdk.cli import main
+
+
+def _refusal(capsys, argv: list[str]) -> str:
+    """Run ``bmi ARGV``; it must exit 2 with one line on stderr, which is returned."""
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse's usage errors
+        code = exc.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2, (code, err)
+    return err[-1]
+
+
+# -- memory -----------------------------------------------------------------------------------------------------
+
+def test_simulate_size_past_the_memory_limit_is_refused_naming_option_estimate_and_limit(capsys, tmp_path):
+    line = _refusal(capsys, ["simulate", "--procedural", "0", "--size", "100000", "--out", str(tmp_path / "s.dng")])
+    assert "--size 100000 needs about 1303.9 GiB" in line and "GiB limit" in line
+    assert not list(tmp_path.iterdir())
+
+
+def test_check_allocation_names_option_value_estimate_and_limit(monkeypatch):
+    from bmi_sdk.memory_budget import MemoryBudgetError, check_allocation
+
+    monkeypatch.setenv("BMI_MAX_MEMORY_MB", "100")
+    check_allocation("--window-px", 64, 50 * 2**20)
+    with pytest.raises(MemoryBudgetError) as err:
+        check_allocation("--window-px", 100000, 200 * 2**30)
+    assert err.value.option == "--window-px"
+    assert str(err.value).startswith("--window-px 100000 needs about 200.0 GiB, more than the 0.1 GiB limit "
+                                     "(BMI_MAX_MEMORY_MB=100")
+    with pytest.raises(MemoryBudgetError):
+        check_allocation("--window-px", "nan", float("nan"))
+
+
+# -- simulate: values that rendered a wrong frame, or failed late -------------------------------------------------
+
+@pytest.mark.parametrize("option, value, expected", [
+    ("--field-deg", "-20", "argument --field-deg: -20 is outside [0, 60]"),
+    ("--field-deg", "nan", "argument --field-deg: nan is not a finite number"),
+    ("--field-deg", "inf", "argument --field-deg: inf is not a finite number"),
+    ("--azimuth-deg", "1e9", "argument --azimuth-deg: 1e9 is outside"),
+    ("--noise", "1e6", "argument --noise: 1e6 is outside [0, 1]"),
+    ("--noise", "-0.1", "argument --noise: -0.1 is outside [0, 1]"),
+    ("--procedural", "-1", "argument --procedural: -1 is outside [0, 4294967295]"),
+    ("--seed", "-1", "argument --seed: -1 is outside [0, 4294967295]"),
+    ("--size", "0", "argument --size: 0 is outside [2, inf) px"),
+    ("--size", "5000", "--size"),
+])
+def test_simulate_refuses_out_of_range_options_naming_them(capsys, tmp_path, option, value, expected):
+    argv = ["simulate", "--out", str(tmp_path / "s.dng"), option, value]
+    if option != "--procedural":
+        argv += ["--procedural", "0"]
+    assert expected in _refusal(capsys, argv)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("term, expected", [
+    ("decenter_um=1e9,0", "|decenter_um| is at most 1000 um"),
+    ("tilt_arcmin=0,1e6", "|tilt_arcmin| is at most 60 arcmin"),
+    ("decenter_um=nan,0", "decenter_um needs 2 finite number(s)"),
+    ("stray_light_fraction=2", "stray_light_fraction must lie in"),
+    ("nonsense=1", "expected NAME=VALUE"),
+])
+def test_simulate_perturbation_names_the_option_and_its_range(capsys, tmp_path, term, expected):
+    line = _refusal(capsys, ["simulate", "--procedural", "0", "--size", "64", "--perturb", term,
+                             "--out", str(tmp_path / "s.dng")])
+    assert f"--perturb {term}" in line and expected in line and "surface" not in line
+
+
+def test_a_perturbation_that_sends_rays_past_the_sensor_names_the_option_not_a_surface(monkeypatch):
+    from bmi_sdk.cli import _options
+
+    assert _options.perturbation_option("--perturb", ["decenter_um=10,0"]).decenter_um == (10.0, 0.0)
+    # every value within the limits forms an image; the trace behind them is the last word on what does
+    assert _options.perturbation_option("--simulate", ["decenter_um=1000,0", "tilt_arcmin=0,60",
+                                                       "sensor_radius_error_pct=-49"]).tilt_arcmin == (0.0, 60.0)
+    monkeypatch.setitem(_options.PERTURBATION_LIMITS, "decenter_um", 1e10)
+    with pytest.raises(_options.OptionError, match=r"^--simulate decenter_um=1e9,0: with these errors no image "
+                                                   r"forms \(the chief ray .*\); use smaller values$"):
+        _options.perturbation_option("--simulate", ["decenter_um=1e9,0"])
+
+
+@pytest.mark.parametrize("depth, expected", [
+    (np.full((64, 64), np.nan, np.float32), "no pixel holds a finite range > 0 m"),
+    (np.full((64, 64), -2.0, np.float32), "no pixel holds a finite range > 0 m"),
+    (np.full((64, 64), np.inf, np.float32), "no pixel holds a finite range > 0 m"),
+    (np.full((64, 64), 1e-6, np.float32), "nearer than 0.7 m"),
+    (np.ones((32, 64), np.float32), "does not match the image"),
+])
+def test_simulate_refuses_a_depth_map_that_would_render_a_wrong_frame(capsys, tmp_path, depth, expected):
+    np.save(tmp_path / "rgb.npy", np.full((64, 64, 3), 0.5, np.float32))
+    np.save(tmp_path / "d.npy", depth)
+    line = _refusal(capsys, ["simulate", "--rgb", str(tmp_path / "rgb.npy"), "--depth", str(tmp_path / "d.npy"),
+                             "--out", str(tmp_path / "s.dng")])
+    assert line.startswith(f"bmi simulate: error: --depth {tmp_path / 'd.npy'}: ") and expected in line
+
+
+def test_simulate_depth_that_is_not_a_npy_array_is_named(capsys, tmp_path):
+    np.save(tmp_path / "rgb.npy", np.full((64, 64, 3), 0.5, np.float32))
+    (tmp_path / "x.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
+    line = _refusal(capsys, ["simulate", "--rgb", str(tmp_path / "rgb.npy"), "--depth", str(tmp_path / "x.png"),
+                             "--out", str(tmp_path / "s.dng")])
+    assert "--depth" in line and "not a NumPy .npy array" in line and "allow_pickle" not in line
+
+
+def test_a_depth_map_with_some_unknown_pixels_is_loaded_with_a_warning(caplog):
+    from bmi_sdk.cli.simulate import _load_depth
+
+    depth = np.full((4, 4), 2.0, np.float32)
+    depth[0] = np.nan
+    depth[1, 0] = -1
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as folder:
+        np.save(Path(folder) / "d.npy", depth)
+        loaded = _load_depth(str(Path(folder) / "d.npy"), (4, 4), nearest_m=0.7)
+    assert np.isnan(loaded[1, 0]) and np.count_nonzero(np.isnan(loaded)) == 5
+    assert "31.2% of the pixels have no finite range" in caplog.text
+
+
+@pytest.mark.parametrize("out, expected", [
+    ("X", "--out {tmp}/X: name it *.dng"),
+    ("afile/s.dng", "--out {tmp}/afile/s.dng: cannot create the folder"),
+])
+def test_simulate_checks_its_output_before_rendering(capsys, tmp_path, out, expected):
+    (tmp_path / "afile").write_text("a file, not a folder")
+    line = _refusal(capsys, ["simulate", "--procedural", "0", "--size", "64", "--out", str(tmp_path / out)])
+    assert expected.format(tmp=tmp_path) in line and ".dng." not in line  # no hidden temp name
+
+
+# -- the fisheye's frames name the lens its model and decoders take ------------------------------------------------
+
+def test_a_fisheye_camera_names_the_lens_profile_its_shipped_model_was_trained_for():
+    import json
+    from importlib.resources import files
+
+    from bmi_sdk.lenses import lens_geometry, lens_tensor
+    from devices import Roi, open_camera
+    from firmware_sim import FirmwareDevice, FlatField, RenderedScene
+
+    manifest = json.loads(files("bmi_sdk.models").joinpath("fisheye.manifest.json").read_text())
+    device = FirmwareDevice(source=FlatField(), geometry=lens_geometry("fisheye"), lens="fisheye")
+    with open_camera("sim://", device=device) as cam:
+        cam.settings.roi = Roi(2968, 2226, 64, 48)
+        frame = cam.capture()
+    assert frame.lens["name"] == manifest["lens"] == "fisheye"
+    scene = RenderedScene(np.zeros((4, 4, 3)), np.ones((4, 4)), tensor=lens_tensor("fisheye"))
+    assert scene.metadata()["lens"] == "fisheye"
