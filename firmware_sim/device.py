@@ -36,12 +36,22 @@ from .register_file import RegisterFile
 from .sources import IrradianceSource, PolarChart
 
 
+LENS_PROFILE_ALIASES = {"monocentric": "bmi_monocentric", "bmi": "bmi_monocentric", "fisheye_matched": "fisheye"}
+"""Other names ``optics.get_lens`` takes for a lens profile (``bmi_sdk.lenses``), and the profile each means."""
+
+
+def lens_profile_name(name: str) -> str:
+    """The lens profile a lens name stands for (``fisheye_matched``, the Lens the ``fisheye`` profile traces, is
+    ``fisheye``): frames name the profile, which decoders and models match (``models/fisheye.manifest.json``)."""
+    return LENS_PROFILE_ALIASES.get(name, name)
+
+
 def lens_identity(name: str = "bmi_monocentric") -> dict:
-    """Name and optical SHA-256 of the lens the camera carries."""
+    """Name (the lens profile, ``lens_profile_name``) and optical SHA-256 of the lens the camera carries."""
     from bmi_sdk.optics import get_lens
 
     lens = get_lens(name)  # "fisheye" is the baseline matched to the monocentric lens
-    return {"name": lens.name, "sha256": lens.sha256()}
+    return {"name": lens_profile_name(lens.name), "sha256": lens.sha256()}
 
 
 class NotHeld(RuntimeError):

@@ -57,7 +57,10 @@ class RenderedScene:
         self.range_m = np.asarray(range_m, dtype=np.float32)
         self.row0, self.col0 = int(row0), int(col0)
         self.tensor = tensor
-        self.lens = lens if tensor is None else tensor.lens.name
+        from .device import lens_profile_name
+
+        # the lens profile frames name: a given tensor's lens ("fisheye_matched" → "fisheye")
+        self.lens = lens if tensor is None else lens_profile_name(tensor.lens.name)
         self.geometry = geometry
         self.name = name
         self.psf_mode = psf_mode
