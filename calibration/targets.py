@@ -191,7 +191,7 @@ class PointSourceScene:
         k = plan.kernel_px
         theta, phi, depth = ([getattr(p, a) for p in s] for a in ("field_deg", "azimuth_deg", "depth_m"))
         self.patches = []  # (row0, col0, K×K×3 irradiance)
-        self.landing_px = None
+        self.landing_px: np.ndarray | None = None  # the first channel's landing points (x, y) px
         per_channel = {}
         for c in target.channels:
             _, land, _ = trace_spots(lens, perturbation, theta, phi, depth, CHANNEL_NM[c] * 1e-3,
@@ -249,8 +249,9 @@ class Captures:
                 h.update(f"{kind}:{exposure}:{pixel_sha256(frame.data)}".encode())
         return h.hexdigest()
 
-    def save(self, folder) -> Path:
-        """Write every frame as DNG + sidecar and ``captures.json`` (written last, atomically)."""
+    def save(self, folder, overwrite: bool = False) -> Path:
+        """Write every frame as DNG + sidecar and ``captures.json`` (written last, atomically); a frame of the
+        same name already in ``folder`` is refused (``FileExistsError``) unless ``overwrite``."""
         from devices.dng import pixel_sha256
 
         folder = Path(folder)
@@ -259,7 +260,7 @@ class Captures:
         for i, spot in enumerate(self.frames):
             for j, (kind, exposure, frame) in enumerate(spot):
                 name = f"src{i:02d}_{kind}_{exposure}us_{j:02d}.dng"
-                frame.save_dng(folder / name)
+                frame.save_dng(folder / name, overwrite=overwrite)
                 listing.append({"source": i, "kind": kind, "exposure_us": exposure, "file": name,
                                 "pixel_sha256": pixel_sha256(frame.data)})
         write_json(folder / "captures.json", {
@@ -287,7 +288,7 @@ def load_captures(folder) -> Captures:
         if not isinstance(meta.get(key), kind):
             raise CalibrationError(f"{path}: {key!r} must be a JSON {'object' if kind is dict else 'array'}")
     target, plan = Target.from_dict(meta["target"]), CapturePlan.from_dict(meta["plan"])
-    frames = [[] for _ in target.sources]
+    frames: list[list[tuple]] = [[] for _ in target.sources]  # per source: (kind, exposure_us, RawFrame)
     for item in meta["frames"]:
         if not isinstance(item, dict) or not {"file", "pixel_sha256", "source", "kind", "exposure_us"} <= set(item):
             raise CalibrationError(f"{path}: each entry of 'frames' is an object with file, pixel_sha256, "
@@ -356,5 +357,5 @@ def simulate_captures(target: Target, plan: CapturePlan, perturbation: Perturbat
             frames.append(spot)
         info = cam.info
     dev = {k: info.get(k) for k in ("model", "serial", "firmware_version", "lens")}
-    return Captures(target, plan, frames, dev, perturbation, extra={"seed": seed,
-                                                                      "true_landing_px": scene.landing_px.tolist()})
+    landing = None if scene.landing_px is None else scene.landing_px.tolist()
+    return Captures(target, plan, frames, dev, perturbation, extra={"seed": seed, "true_landing_px": landing})
