@@ -39,7 +39,8 @@ from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
 
 @runtime_checkable
 class IrradianceSource(Protocol):
-    name: str
+    @property
+    def name(self) -> str: ...  # read-only: the sources are frozen dataclasses
 
     def irradiance(self, row0: int, col0: int, height: int, width: int) -> np.ndarray: ...
 
