@@ -88,13 +88,14 @@ def _is_sidecar_of(side: Path, dng: Path) -> bool:
     return isinstance(doc, dict) and doc.get("schema") == SIDECAR_SCHEMA and doc.get("dng") == dng.name
 
 
-def save_dng(frame: RawFrame, path, overwrite: bool = True) -> None:
+def save_dng(frame: RawFrame, path, overwrite: bool = False) -> None:
     """Write ``frame`` to ``path`` (a .dng) and its sidecar, atomically.
 
-    The sidecar ``<name>.json`` never replaces a JSON file that is not the
-    sidecar of ``<name>.dng`` (e.g. a calibration file of the same name):
-    ``FileExistsError``, nothing written. With ``overwrite=False`` an existing
-    DNG or sidecar is refused too (``bmi acquire`` never replaces a capture).
+    An existing DNG or sidecar is refused (``FileExistsError``, nothing
+    written) unless ``overwrite=True``, as the command line refuses one
+    without ``--overwrite``: a capture is not lost to a repeated call. Even
+    then the sidecar ``<name>.json`` never replaces a JSON file that is not
+    the sidecar of ``<name>.dng`` (e.g. a calibration file of the same name).
     """
     import tifffile
 
@@ -102,13 +103,13 @@ def save_dng(frame: RawFrame, path, overwrite: bool = True) -> None:
     if path.suffix.lower() != ".dng":
         raise ValueError(f"DNG files end in .dng, got {path}")
     side = sidecar_path(path)
-    if not overwrite:
-        for existing in (path, side):
-            if existing.exists():
-                raise FileExistsError(f"{existing} exists; refusing to replace it")
     if side.exists() and not _is_sidecar_of(side, path):
         raise FileExistsError(f"{side} exists and is not the sidecar of {path.name}; refusing to replace it "
                               "(choose another name for the DNG)")
+    if not overwrite:
+        for existing in (path, side):
+            if existing.exists():
+                raise FileExistsError(f"{existing} exists; refusing to replace it (overwrite=True replaces it)")
     data = np.ascontiguousarray(frame.data, dtype=np.uint16)
     if data.ndim != 2:
         raise ValueError(f"a raw frame is H×W, got shape {data.shape}")

@@ -19,7 +19,7 @@ import numpy as np
 from bmi_sdk.geometry import SensorGeometry
 from bmi_sdk.sensor import NoiseProfile
 
-from .errors import IncompleteFrameError
+from .errors import ConfigurationError, IncompleteFrameError
 
 SIDECAR_SCHEMA = "bmi-raw-sidecar/1"
 
@@ -32,12 +32,27 @@ class FrameStatus(str, enum.Enum):
 
 @dataclass(frozen=True)
 class Roi:
-    """Readout window on the full sensor, in pixels (offsets and sizes even: whole RGGB cells)."""
+    """Readout window on the full sensor, in pixels (offsets and sizes even: whole RGGB cells).
+
+    The constructor refuses what no sensor holds (``ConfigurationError``): values that are not whole numbers,
+    negative offsets, sizes below 1 px. Evenness and the sensor's bounds are the camera's to check
+    (``Settings.check_roi``): a foreign raw file may have odd sizes.
+    """
 
     x_px: int
     y_px: int
     width_px: int
     height_px: int
+
+    def __post_init__(self):
+        least_px = {"x_px": 0, "y_px": 0, "width_px": 1, "height_px": 1}
+        for name, least in least_px.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise ConfigurationError(f"Roi {name} must be a whole number of pixels, got {value!r}")
+            if value < least:
+                raise ConfigurationError(f"Roi {name} must be ≥ {least} px, got {value}")
+            object.__setattr__(self, name, int(value))
 
 
 @dataclass(eq=False)
@@ -108,11 +123,11 @@ class RawFrame:
             "noise_profile": None if self.noise_profile is None else self.noise_profile.to_dict(),
         }
 
-    def save_dng(self, path, overwrite: bool = True) -> None:
+    def save_dng(self, path, overwrite: bool = False) -> None:
         """Write a DNG (readable by rawpy) and its JSON sidecar ``<path>.json``, both atomically.
 
-        A same-named JSON that is not this DNG's sidecar is never replaced;
-        ``overwrite=False`` refuses an existing DNG or sidecar too (``devices.dng.save_dng``).
+        An existing DNG or sidecar is refused (``FileExistsError``) unless ``overwrite=True``; a same-named
+        JSON that is not this DNG's sidecar is never replaced (``devices.dng.save_dng``).
         """
         from .dng import save_dng
 

@@ -160,3 +160,34 @@ def test_a_fisheye_camera_names_the_lens_profile_its_shipped_model_was_trained_f
     assert frame.lens["name"] == manifest["lens"] == "fisheye"
     scene = RenderedScene(np.zeros((4, 4, 3)), np.ones((4, 4)), tensor=lens_tensor("fisheye"))
     assert scene.metadata()["lens"] == "fisheye"
+
+
+# -- the Python API ------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("values, expected", [
+    ((-2, 0, 64, 48), "Roi x_px must be ≥ 0 px, got -2"),
+    (("a", 0, 64, 48), "Roi x_px must be a whole number of pixels, got 'a'"),
+    ((0, 0, 0, 48), "Roi width_px must be ≥ 1 px, got 0"),
+    ((0, 0, 64, 2.5), "Roi height_px must be a whole number of pixels, got 2.5"),
+    ((0, True, 64, 48), "Roi y_px must be a whole number of pixels, got True"),
+])
+def test_roi_is_validated_when_made_not_at_capture(values, expected):
+    from devices import ConfigurationError, Roi
+
+    with pytest.raises(ConfigurationError, match=f"^{expected}$"):
+        Roi(*values)
+    assert Roi(np.int64(2), 4, 6, 8) == Roi(2, 4, 6, 8)
+
+
+def test_save_dng_refuses_an_existing_frame_unless_asked(tmp_path):
+    from devices import open_camera
+
+    with open_camera("sim://?scene=flat") as cam:
+        cam.settings.roi = (2968, 2226, 16, 16)
+        first, second = cam.capture(), cam.capture()
+    first.save_dng(tmp_path / "f.dng")
+    kept = (tmp_path / "f.dng").read_bytes()
+    with pytest.raises(FileExistsError, match="f.dng exists; refusing to replace it"):
+        second.save_dng(tmp_path / "f.dng")
+    assert (tmp_path / "f.dng").read_bytes() == kept
+    second.save_dng(tmp_path / "f.dng", overwrite=True)

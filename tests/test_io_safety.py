@@ -53,17 +53,17 @@ def test_dng_sidecar_never_replaces_a_json_that_is_not_its_sidecar(tmp_path):
         frame.save_dng(tmp_path / "X.dng")
     assert json.loads(calib.read_text())["precious"] is True
     assert not (tmp_path / "X.dng").exists()
-    # its own sidecar is replaced when the DNG is written again (overwrite=True, the default)
+    # its own sidecar is replaced when the DNG is written again with overwrite=True; by default nothing is
     frame.save_dng(tmp_path / "Y.dng")
-    frame.save_dng(tmp_path / "Y.dng")
+    frame.save_dng(tmp_path / "Y.dng", overwrite=True)
     assert load_raw(tmp_path / "Y.dng").frame_id == frame.frame_id
-    with pytest.raises(FileExistsError, match="refusing to replace"):
-        frame.save_dng(tmp_path / "Y.dng", overwrite=False)
+    with pytest.raises(FileExistsError, match=r"refusing to replace it \(overwrite=True replaces it\)"):
+        frame.save_dng(tmp_path / "Y.dng")
 
 
 @pytest.mark.parametrize("roi, match", [
     ({"x_px": 5990, "y_px": 2226, "width_px": 64, "height_px": 48}, "outside the 6000×4500 sensor"),
-    ({"x_px": -2, "y_px": 2226, "width_px": 64, "height_px": 48}, "outside"),
+    ({"x_px": -2, "y_px": 2226, "width_px": 64, "height_px": 48}, "x_px must be ≥ 0 px, got -2"),
     ({"x_px": 100, "y_px": 100, "width_px": 32, "height_px": 48}, "does not match"),
     ([1, 2, 3, 4], "expected an object"),
 ])

@@ -45,7 +45,7 @@ def _run(args) -> int:
         print(f"simulated {sum(len(f) for f in captures.frames)} ROI frames of {len(captures.target.sources)} point "
               f"sources through sim:// in {time.perf_counter() - t0:.1f} s (injected {truth.to_dict()})")
         if args.save_captures:
-            captures.save(args.save_captures)
+            captures.save(args.save_captures, overwrite=args.overwrite)
             print(f"wrote captures to {args.save_captures}")
     t0 = time.perf_counter()
     extraction = extract_spots(captures)
