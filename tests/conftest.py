@@ -1,6 +1,14 @@
-"""Shared test set-up: PSF caches go to a per-session temporary folder, never the user's."""
+"""Shared test set-up: PSF caches go to a per-session temporary folder, never the user's; the ``bmi`` fixture
+runs the command line as a user does."""
+
+import subprocess
+import sys
 
 import pytest
+
+SUBPROCESS_PATIENCE_S = 1800.0
+"""A safety net against a hung command only: a render on a cold PSF cache takes ~160 s alone and several times
+that on a loaded 2-core machine, so no bound close to the idle run time belongs here."""
 
 
 @pytest.fixture(autouse=True, scope="session")
@@ -24,3 +32,20 @@ def passthrough_model(tmp_path_factory):
             return x[:, :3] * 1.0, 1.0 + x[:, 3:4]
 
     return export_model(PassThrough(), tmp_path_factory.mktemp("passthrough") / "pass.onnx", preset="test-pass")
+
+
+@pytest.fixture(scope="session")
+def bmi():
+    """``bmi(*args, check=True, cwd=None)``: run ``bmi ARGS`` (``python -m bmi_sdk.cli``, arguments passed through
+    ``str``) in a fresh interpreter and return the ``CompletedProcess`` with its text output. With ``check`` a
+    non-zero exit fails the test and shows the end of stderr; ``check=False`` is for tests of refusals."""
+
+    def run(*args, check: bool = True, cwd=None) -> subprocess.CompletedProcess:
+        done = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", *map(str, args)], capture_output=True, text=True,
+                              cwd=cwd, timeout=SUBPROCESS_PATIENCE_S)
+        if check:
+            command = " ".join(map(str, args))
+            assert done.returncode == 0, f"bmi {command} exited {done.returncode}: {done.stderr[-3000:]}"
+        return done
+
+    return run

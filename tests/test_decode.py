@@ -5,8 +5,6 @@ output files, and the simulate → calibrate → infer loop with the calibrated 
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -567,17 +565,10 @@ def test_a_built_camera_is_hashed_by_everything_that_makes_its_kernels():
     assert built.psf_map().perturbation == built.perturbation
 
 
-def _bmi(*args, cwd=None):
-    run = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", *map(str, args)], capture_output=True, text=True,
-                         cwd=cwd)
-    assert run.returncode == 0, run.stderr[-3000:]
-    return run.stdout
-
-
-def test_infer_classical_writes_depth_sigma_confidence_and_ply_sigma(tmp_path):
-    _bmi("simulate", "--procedural", 5, "--size", 128, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
-         "--out", tmp_path / "f.dng")
-    out = _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--decoder", "classical", "--quiet")
+def test_infer_classical_writes_depth_sigma_confidence_and_ply_sigma(tmp_path, bmi):
+    bmi("simulate", "--procedural", 5, "--size", 128, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
+        "--out", tmp_path / "f.dng")
+    out = bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--decoder", "classical", "--quiet").stdout
     assert "classical decoder" in out
     depth = np.load(tmp_path / "o" / "depth.npy")
     sigma = np.load(tmp_path / "o" / "depth_sigma.npy")
@@ -598,7 +589,7 @@ def test_infer_classical_writes_depth_sigma_confidence_and_ply_sigma(tmp_path):
     assert report["decoder_stats"]["noise_sigma"] == pytest.approx(0.005, rel=0.05)
 
 
-def test_simulate_calibrate_infer_loop_uses_the_calibrated_kernels(tmp_path):
+def test_simulate_calibrate_infer_loop_uses_the_calibrated_kernels(tmp_path, bmi):
     """A built camera (decenter 8 µm) → calibrated from its own point-source captures → its frames decoded
     with the calibrated kernels, by the classical and the default (learned) decoder, whose AiF then goes through
     those kernels too; the report carries the fitted errors and the camera's hash."""
@@ -615,10 +606,10 @@ def test_simulate_calibrate_infer_loop_uses_the_calibrated_kernels(tmp_path):
     result = fit_calibration(extraction)
     calib = write_calibration(tmp_path / "calib.json", result, captures, extraction, tensor_fields_deg=(0.0,),
                               tensor_depths_m=(4.0,))
-    _bmi("simulate", "--procedural", 5, "--size", 96, "--field-deg", 20, "--noise", 0.005,
-         "--perturb", "decenter_um=8,0", "--out", tmp_path / "f.dng")
-    _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--decoder", "classical", "--calibration",
-         tmp_path / "calib.json", "--candidates", 12, "--quiet")
+    bmi("simulate", "--procedural", 5, "--size", 96, "--field-deg", 20, "--noise", 0.005,
+        "--perturb", "decenter_um=8,0", "--out", tmp_path / "f.dng")
+    bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--decoder", "classical", "--calibration",
+        tmp_path / "calib.json", "--candidates", 12, "--quiet")
     report = json.loads((tmp_path / "o" / "report.json").read_text())
     assert report["calibration_id"] == calib.id
     fitted = report["camera"]["perturbation"]["decenter_um"][0]
@@ -631,33 +622,32 @@ def test_simulate_calibrate_infer_loop_uses_the_calibrated_kernels(tmp_path):
     assert sidecar["source"]["injected_perturbation"]["decenter_um"] == [8.0, 0.0]
     assert np.isfinite(np.load(tmp_path / "o" / "depth.npy")).any()
     # the default (learned) decoder on the calibrated camera: its AiF goes through the camera's kernels
-    _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "l", "--calibration", tmp_path / "calib.json", "--quiet")
+    bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "l", "--calibration", tmp_path / "calib.json", "--quiet")
     report = json.loads((tmp_path / "l" / "report.json").read_text())
     assert report["decoder"] == "learned" and report["calibration_id"] == calib.id
     assert report["aif_consistency_step"] is True
     assert np.isfinite(np.load(tmp_path / "l" / "aif.npy")).all()
 
 
-def test_overwriting_a_classical_run_with_the_network_leaves_no_stale_sigma(tmp_path, passthrough_model):
+def test_overwriting_a_classical_run_with_the_network_leaves_no_stale_sigma(tmp_path, passthrough_model, bmi):
     """--overwrite replaces the whole set: the network writes no depth σ, so the classical run's must go."""
-    _bmi("simulate", "--procedural", 5, "--size", 96, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
-         "--out", tmp_path / "f.dng")
-    _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--decoder", "classical", "--quiet")
+    bmi("simulate", "--procedural", 5, "--size", 96, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
+        "--out", tmp_path / "f.dng")
+    bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--decoder", "classical", "--quiet")
     assert (tmp_path / "o" / "depth_sigma.npy").exists() and (tmp_path / "o" / "confidence.png").exists()
-    _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--model", passthrough_model, "--tile-px", 64,
-         "--overwrite", "--quiet")
+    bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--model", passthrough_model, "--tile-px", 64,
+        "--overwrite", "--quiet")
     report = json.loads((tmp_path / "o" / "report.json").read_text())
     assert report["decoder"] == "cnn"
     assert not (tmp_path / "o" / "depth_sigma.npy").exists() and not (tmp_path / "o" / "confidence.png").exists()
     assert sorted(p.name for p in (tmp_path / "o").iterdir()) == sorted(report["files"]) + ["report.json"]
 
 
-def test_a_refused_run_leaves_no_output_folder(tmp_path):
-    _bmi("simulate", "--procedural", 5, "--size", 64, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
-         "--out", tmp_path / "f.dng")
-    run = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", "infer", str(tmp_path / "f.dng"), "--out",
-                          str(tmp_path / "o"), "--decoder", "classical", "--candidates", "2"], capture_output=True,
-                         text=True)
+def test_a_refused_run_leaves_no_output_folder(tmp_path, bmi):
+    bmi("simulate", "--procedural", 5, "--size", 64, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
+        "--out", tmp_path / "f.dng")
+    run = bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--decoder", "classical", "--candidates", 2,
+              check=False)
     assert run.returncode == 1 and "at least 3 candidates" in run.stderr
     assert not (tmp_path / "o").exists()
 

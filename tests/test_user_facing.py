@@ -4,18 +4,12 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
 import bmi_sdk
 from bmi_sdk.runtime import Model, run_job
-
-SUBPROCESS_PATIENCE_S = 1800.0
-"""A safety net against a hung command only: a render on a cold PSF cache takes ~160 s alone and several times
-that on a loaded 2-core machine, so no bound close to the idle run time belongs here."""
 
 
 @pytest.fixture(scope="module")
@@ -34,14 +28,8 @@ def dng(tmp_path_factory):
     return path
 
 
-def _bmi(*args):
-    return subprocess.run([sys.executable, "-m", "bmi_sdk.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=SUBPROCESS_PATIENCE_S)
-
-
-def test_version_flag_prints_the_sdk_version():
-    run = _bmi("--version")
-    assert run.returncode == 0 and run.stdout.strip() == f"bmi-sdk {bmi_sdk.__version__}"
+def test_version_flag_prints_the_sdk_version(bmi):
+    assert bmi("--version").stdout.strip() == f"bmi-sdk {bmi_sdk.__version__}"
 
 
 def test_cnn_report_records_versions_provider_and_input_path(model_path, dng, tmp_path):
@@ -92,14 +80,14 @@ def test_provider_by_short_or_full_name_and_session_options(model_path):
     assert Model(model_path, tile_px=64, sess_options=opts).threads == 1
 
 
-def test_unavailable_provider_is_refused_naming_the_available_ones(model_path, dng, tmp_path):
+def test_unavailable_provider_is_refused_naming_the_available_ones(model_path, dng, tmp_path, bmi):
     with pytest.raises(ValueError, match="'WarpDrive'.*available: .*CPUExecutionProvider"):
         Model(model_path, tile_px=64, providers="WarpDrive")
-    run = _bmi("infer", dng, "--out", tmp_path / "o", "--model", model_path, "--tile-px", 64, "--provider",
-               "WarpDrive")
+    run = bmi("infer", dng, "--out", tmp_path / "o", "--model", model_path, "--tile-px", 64, "--provider",
+              "WarpDrive", check=False)
     assert run.returncode == 1 and "available: " in run.stderr and "CPUExecutionProvider" in run.stderr
     assert not (tmp_path / "o").exists()
-    run = _bmi("infer", dng, "--out", tmp_path / "o", "--decoder", "classical", "--provider", "cpu")
+    run = bmi("infer", dng, "--out", tmp_path / "o", "--decoder", "classical", "--provider", "cpu", check=False)
     assert run.returncode == 1 and "classical decoder runs none" in run.stderr
 
 
@@ -118,10 +106,9 @@ def test_default_provider_is_the_best_available(monkeypatch):
     assert choose_providers("cuda") == ["CUDAExecutionProvider", "CPUExecutionProvider"]
 
 
-def test_cli_infer_runs_on_the_provider_asked_for(model_path, dng, tmp_path):
-    run = _bmi("infer", dng, "--out", tmp_path, "--model", model_path, "--tile-px", 64, "--threads", 1,
-               "--provider", "cpu", "--quiet")
-    assert run.returncode == 0, run.stderr
+def test_cli_infer_runs_on_the_provider_asked_for(model_path, dng, tmp_path, bmi):
+    bmi("infer", dng, "--out", tmp_path, "--model", model_path, "--tile-px", 64, "--threads", 1, "--provider", "cpu",
+        "--quiet")
     assert json.loads((tmp_path / "report.json").read_text())["execution_provider"] == "CPUExecutionProvider"
 
 
@@ -185,13 +172,12 @@ def test_fixed_depth_range_colours_the_preview_the_same_in_every_frame(tmp_path)
         write_outputs(tmp_path / "bad", aif, depth, BMI_SENSOR, depth_range_m=(10, 0.7))
 
 
-def test_cli_depth_range(model_path, dng, tmp_path):
-    run = _bmi("infer", dng, "--out", tmp_path / "o", "--model", model_path, "--tile-px", 64, "--threads", 1,
-               "--depth-range", "0.7,10", "--quiet")
-    assert run.returncode == 0, run.stderr
+def test_cli_depth_range(model_path, dng, tmp_path, bmi):
+    bmi("infer", dng, "--out", tmp_path / "o", "--model", model_path, "--tile-px", 64, "--threads", 1,
+        "--depth-range", "0.7,10", "--quiet")
     assert (tmp_path / "o" / "depth_preview.png").is_file() and (tmp_path / "o" / "depth_z.npy").is_file()
     for bad in ("10,0.7", "0.7", "near,far"):
-        run = _bmi("infer", dng, "--out", tmp_path / "x", "--model", model_path, "--depth-range", bad)
+        run = bmi("infer", dng, "--out", tmp_path / "x", "--model", model_path, "--depth-range", bad, check=False)
         assert run.returncode == 1 and "--depth-range" in run.stderr, (bad, run.stderr)
         assert not (tmp_path / "x").exists()
 
@@ -221,7 +207,7 @@ def test_psf_export_writes_a_png_when_the_name_says_png(tmp_path, capsys):
     assert not np.array_equal(np.load(tmp_path / "k.npy"), kernel)
 
 
-def test_simulate_save_truth_writes_the_window_the_frame_shows(tmp_path):
+def test_simulate_save_truth_writes_the_window_the_frame_shows(tmp_path, bmi):
     from bmi_sdk.scenes import generate_scene
 
     rng = np.random.default_rng(1)
@@ -230,9 +216,8 @@ def test_simulate_save_truth_writes_the_window_the_frame_shows(tmp_path):
     depth[2, 3] = 0                                               # unknown
     np.save(tmp_path / "rgb.npy", rgb)
     np.save(tmp_path / "d.npy", depth)
-    run = _bmi("simulate", "--rgb", tmp_path / "rgb.npy", "--depth", tmp_path / "d.npy", "--psf-mode", "tensor",
-               "--field-deg", 20, "--noise", 0.005, "--out", tmp_path / "f.dng", "--save-truth")
-    assert run.returncode == 0, run.stderr[-2000:]
+    bmi("simulate", "--rgb", tmp_path / "rgb.npy", "--depth", tmp_path / "d.npy", "--psf-mode", "tensor",
+        "--field-deg", 20, "--noise", 0.005, "--out", tmp_path / "f.dng", "--save-truth")
     sidecar = json.loads((tmp_path / "f.json").read_text())
     truth_range = np.load(tmp_path / "f_truth_range.npy")
     truth_rgb = np.load(tmp_path / "f_truth_rgb.npy")
@@ -241,9 +226,8 @@ def test_simulate_save_truth_writes_the_window_the_frame_shows(tmp_path):
                                                           np.delete(depth[:, :66].ravel(), 2 * 66 + 3))
     np.testing.assert_array_equal(truth_rgb, rgb[:, :66])
 
-    run = _bmi("simulate", "--procedural", 5, "--size", 64, "--psf-mode", "tensor", "--noise", 0.005,
-               "--out", tmp_path / "p.dng", "--save-truth")
-    assert run.returncode == 0, run.stderr[-2000:]
+    bmi("simulate", "--procedural", 5, "--size", 64, "--psf-mode", "tensor", "--noise", 0.005,
+        "--out", tmp_path / "p.dng", "--save-truth")
     scene = generate_scene(64, 64, 5)
     np.testing.assert_array_equal(np.load(tmp_path / "p_truth_range.npy"), scene.range_m)
     np.testing.assert_array_equal(np.load(tmp_path / "p_truth_rgb.npy"), scene.rgb)
