@@ -46,12 +46,6 @@ def identity_model(tmp_path_factory):
                         preset="test-identity", extra_channels=_channels(), classical_config=CONFIG.to_dict())
 
 
-def _bmi(*args):
-    run = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", *map(str, args)], capture_output=True, text=True)
-    assert run.returncode == 0, run.stderr[-3000:]
-    return run.stdout
-
-
 def test_a_warm_started_refinement_computes_the_shipped_network():
     """New input channels and the σ output start at zero: the refinement's depth and AiF are the shipped
     model's (run by onnxruntime), whatever the classical channels hold."""
@@ -105,16 +99,16 @@ def test_a_refinement_warm_started_from_a_refinement_keeps_its_trained_sigma_hea
     assert np.std(ref_sigma / ref_depth) > 1e-3  # a trained head: not the constant 0.2 of a fresh one
 
 
-def test_an_identity_refinement_returns_the_classical_decode_through_the_tiled_runtime(tmp_path, identity_model):
+def test_an_identity_refinement_returns_the_classical_decode_through_the_tiled_runtime(tmp_path, identity_model, bmi):
     """Tiles of 64 px over a 128² frame, each fed its slice of the classical channels: the learned decoder's
     depth, 1σ and AiF must be the classical decoder's (the channels' clips aside); the design camera's AiF takes no
     step through its kernels (``runtime.learned.consistent_aif``)."""
-    _bmi("simulate", "--procedural", 5, "--size", 128, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
-         "--out", tmp_path / "f.dng")
-    _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "c", "--decoder", "classical", "--candidates", 12,
-         "--quiet")
-    out = _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "l", "--decoder", "learned", "--model",
-               identity_model, "--tile-px", 64, "--quiet")
+    bmi("simulate", "--procedural", 5, "--size", 128, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
+        "--out", tmp_path / "f.dng")
+    bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "c", "--decoder", "classical", "--candidates", 12,
+        "--quiet")
+    out = bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "l", "--decoder", "learned", "--model",
+              identity_model, "--tile-px", 64, "--quiet").stdout
     assert "learned refinement" in out
     report = json.loads((tmp_path / "l" / "report.json").read_text())
     assert report["decoder"] == "learned" and report["tiles_run"] > 1 and report["model"]["decoder"] == "learned"
@@ -159,7 +153,7 @@ def _doubled_model(path, rel: float, fusion: dict | None = None):
 
 
 @pytest.mark.parametrize("rel, fusion", [(30.0, None), (1e-4, None), (0.1, FITTED), (0.1, FITTED_WITH_VARIATION)])
-def test_bmi_infer_returns_the_fusion_of_the_two_reads(tmp_path, rel, fusion):
+def test_bmi_infer_returns_the_fusion_of_the_two_reads(tmp_path, rel, fusion, bmi):
     """Through ``bmi infer --decoder learned``: a network that reads 2× the classical depth with a huge σ leaves
     the classical read (within its weight's share of log 2); one with a tiny σ decides alone; a manifest's
     fitted weights are the ones used. Each time the written depth and σ are ``fuse_log_depth`` of the classical
@@ -168,12 +162,12 @@ def test_bmi_infer_returns_the_fusion_of_the_two_reads(tmp_path, rel, fusion):
 
     model = _doubled_model(tmp_path / "doubled.onnx", rel, fusion)
     weights = INVERSE_VARIANCE if fusion is None else FusionWeights.from_dict(fusion)
-    _bmi("simulate", "--procedural", 5, "--size", 128, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
-         "--out", tmp_path / "f.dng")
-    _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "c", "--decoder", "classical", "--candidates", 12,
-         "--quiet")
-    out = _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "l", "--decoder", "learned", "--model", model,
-               "--tile-px", 64, "--quiet")
+    bmi("simulate", "--procedural", 5, "--size", 128, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
+        "--out", tmp_path / "f.dng")
+    bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "c", "--decoder", "classical", "--candidates", 12,
+        "--quiet")
+    out = bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "l", "--decoder", "learned", "--model", model,
+              "--tile-px", 64, "--quiet").stdout
     assert "the classical read's mean weight" in out
     depth_c, sigma_c = np.load(tmp_path / "c" / "depth.npy"), np.load(tmp_path / "c" / "depth_sigma.npy")
     depth_l, sigma_l = np.load(tmp_path / "l" / "depth.npy"), np.load(tmp_path / "l" / "depth_sigma.npy")
@@ -207,7 +201,7 @@ def test_bmi_infer_returns_the_fusion_of_the_two_reads(tmp_path, rel, fusion):
         assert 0.01 < share < 0.99
 
 
-def test_fit_fusion_writes_weights_the_runtime_reads_and_a_rerun_writes_the_same(tmp_path, passthrough_model):
+def test_fit_fusion_writes_weights_the_runtime_reads_and_a_rerun_writes_the_same(tmp_path, passthrough_model, bmi):
     """``bmi fit-fusion`` on a refinement whose network reads 2× the classical depth: the fitted fusion's objective
     is no worse than the inverse-variance one's (the fit starts there and only descends), the weights land in the
     manifest, ``Model`` reads them, a second run writes the same weights, and a run over weights the runtime
@@ -218,7 +212,7 @@ def test_fit_fusion_writes_weights_the_runtime_reads_and_a_rerun_writes_the_same
 
     model = _doubled_model(tmp_path / "doubled.onnx", 0.1)
     args = ("fit-fusion", "--model", model, "--tiles", 1, "--scales", "4", "--sigmas", "0.005,0.02", "--pixels", 3000)
-    out = _bmi(*args)
+    out = bmi(*args).stdout
     assert "| scale 4, σ 0.02 |" in out and "wrote the weights" in out
     fit = json.loads(manifest_path(model).read_text())["fusion"]
     assert fit["fit"]["objective"]["fitted"] <= fit["fit"]["objective"]["inverse_variance"]
@@ -226,14 +220,14 @@ def test_fit_fusion_writes_weights_the_runtime_reads_and_a_rerun_writes_the_same
     weights = FusionWeights.from_dict(fit["weights"])
     assert Model(model, tile_px=64, warmup=False).fusion_weights == weights
     assert (weights.noise_ref_sigma, weights.noise_levels) == (0.005, (0.02,))
-    _bmi(*args)
+    bmi(*args)
     assert json.loads(manifest_path(model).read_text())["fusion"]["weights"] == fit["weights"]
     # a manifest whose weights the runtime refuses is repaired by a refit
     doc = json.loads(manifest_path(model).read_text())
     manifest_path(model).write_text(json.dumps({**doc, "fusion": {"weights": {**fit["weights"], "gap": "steep"}}}))
     with pytest.raises(ModelError, match="fusion weights are unreadable"):
         Model(model, tile_px=64, warmup=False)
-    _bmi(*args)
+    bmi(*args)
     assert json.loads(manifest_path(model).read_text())["fusion"]["weights"] == fit["weights"]
     run = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", "fit-fusion", "--model", str(passthrough_model),
                           "--tiles", "1"], capture_output=True, text=True)
@@ -366,16 +360,16 @@ def test_a_job_without_a_decoder_runs_the_kind_of_model_it_is_given(identity_mod
         decoder_kind("nope")
 
 
-def test_the_shipped_refinement_is_the_default_decoder(tmp_path):
+def test_the_shipped_refinement_is_the_default_decoder(tmp_path, bmi):
     """`bmi infer` with no decoder named decodes with the packaged learned.onnx: verified, its classical knobs
     give the channels its graph reads, and it writes depth with a positive 1σ inside the image circle."""
     from bmi_sdk.runtime.model import LEARNED_MODEL
 
     manifest = verify_model(LEARNED_MODEL)
     assert manifest["decoder"] == "learned" and manifest["calibration_id"] is None
-    _bmi("simulate", "--procedural", 5, "--size", 96, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
-         "--out", tmp_path / "f.dng")
-    _bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--quiet")
+    bmi("simulate", "--procedural", 5, "--size", 96, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
+        "--out", tmp_path / "f.dng")
+    bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--quiet")
     report = json.loads((tmp_path / "o" / "report.json").read_text())
     assert report["decoder"] == "learned" and report["model"]["sha256"] == manifest["sha256"]
     depth, sigma = np.load(tmp_path / "o" / "depth.npy"), np.load(tmp_path / "o" / "depth_sigma.npy")
