@@ -1,4 +1,4 @@
-"""Export a trained ``DualHeadMimoUNet``: its exported graph and channels, its training metadata, shipping it.
+"""Export a trained ``DualHeadMimoUNet``: its exported graph and channels, and its training metadata.
 
 The exporting itself (receptive-field probe, ONNX with dynamic N, H, W, atomic write, the
 onnxruntime-against-torch check, the manifest with ``largest_psf_px``) is
@@ -10,12 +10,10 @@ so the home is there. What is left here is what only the trained network knows: 
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
-from bmi_sdk.io_atomic import atomic_path
 from bmi_sdk.model_io import INPUT_CHANNELS, OUTPUT_NAMES, SIGMA_OUTPUT_NAME
-from bmi_sdk.model_manifest import manifest_path, verify_model, write_manifest
+from bmi_sdk.model_manifest import manifest_path
 from bmi_sdk.nn.model import DualHeadMimoUNet, InferenceWrapper
 from bmi_sdk.runtime import export as runtime_export
 
@@ -51,10 +49,3 @@ def export_with_manifest(net: DualHeadMimoUNet, path: str | Path, *, preset: str
     return manifest_path(onnx_path)
 
 
-def ship(src: str | Path, dst: str | Path, metrics: dict) -> Path:
-    """Copy a verified run model to ``dst`` (e.g. bmi_sdk/models/default.onnx) with its manifest plus ``metrics``."""
-    manifest = verify_model(src)
-    keep = {k: v for k, v in manifest.items() if k not in ("schema", "sha256", "file", "metrics")}
-    with atomic_path(dst, suffix=".onnx") as tmp:
-        shutil.copyfile(src, tmp)
-    return write_manifest(dst, **keep, metrics=metrics)
