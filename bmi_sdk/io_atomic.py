@@ -57,8 +57,3 @@ def write_json(path: str | os.PathLike, obj: Any) -> None:
 def save_npy(path: str | os.PathLike, array: np.ndarray) -> None:
     with atomic_path(path, suffix=".npy") as tmp:
         np.save(tmp, array, allow_pickle=False)
-
-
-def save_npz(path: str | os.PathLike, **arrays: np.ndarray) -> None:
-    with atomic_path(path, suffix=".npz") as tmp:
-        np.savez(tmp, **arrays)
