@@ -30,12 +30,6 @@ def _nearest_sorted(r: np.ndarray, grid: np.ndarray) -> np.ndarray:
     return np.where(r - left <= right - r, j - 1, j)
 
 
-def depth_of_layer(k, depth_grid_m: np.ndarray):
-    """Grid depth (m) of layer index ``k`` (0 = farthest)."""
-    grid = np.asarray(depth_grid_m)
-    return grid[len(grid) - 1 - np.asarray(k)]
-
-
 def tensor_depth_index(k, n_depths: int):
     """Index into the tensor's depth axis for layer ``k``."""
     return n_depths - 1 - np.asarray(k)
