@@ -9,7 +9,7 @@ source. Supported formulas (λ in µm):
   through nd at the d line with nF − nC = (nd − 1)/vd. Used for published
   prescriptions that list only nd/vd; accurate to a few 1e-4 across the visible.
 
-Users add glasses with :func:`register_glass` or their own catalogue file.
+Users add glasses with :func:`register_glass`.
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from importlib import resources
-from pathlib import Path
 
 import numpy as np
 
@@ -78,12 +77,6 @@ def _glass_from_entry(name: str, entry: dict, source: str) -> Glass:
         raise ValueError(f"glass {name}: formula {formula} needs {missing}")
     valid = tuple(entry.get("valid_um", (0.35, 1.1)))
     return Glass(name=name.upper(), formula=formula, coefficients=dict(entry), valid_um=valid, source=source)
-
-
-def load_catalogue(path: str | Path) -> list[str]:
-    """Register every glass of a catalogue JSON file; returns the names added."""
-    data = json.loads(Path(path).read_text())
-    return _register_catalogue(data)
 
 
 def _register_catalogue(data: dict) -> list[str]:
