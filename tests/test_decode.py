@@ -65,7 +65,11 @@ def test_tapered_model_is_the_expected_periodogram_of_a_blurred_1_over_f2_field(
         return np.abs(ratio - np.median(ratio))
 
     assert np.percentile(misfit(folded_model(kernel[None], 32)[0]), 95) < 0.05
-    assert misfit(folded_model(kernel[None], 32, tapered=False)[0]).max() > 1.5
+    full = np.zeros((64, 64))  # the unsmoothed model: Σ_aliases |K|² S on the plane's bins
+    full[:k, :k] = kernel
+    f64 = sfft.fftfreq(64)
+    unsmoothed = fold_power(np.abs(sfft.fft2(full)) ** 2 * power_law_prior(f64, f64, 1 / 64), 32)[:, :17]
+    assert misfit(unsmoothed).max() > 1.5
 
 
 @pytest.mark.parametrize("depth_m", [1.7, 3.4])
@@ -238,11 +242,13 @@ def test_the_noise_the_evidence_uses_given_then_profile_then_estimated():
     profile = NoiseProfile(2e-4, 1e-6)
     assert frame_noise(ClassicalConfig(noise_sigma=0.02), planes, profile) == (NoiseProfile(0.0, 0.02 ** 2), "given")
     assert frame_noise(ClassicalConfig(), planes, profile) == (profile, "profile")
-    estimated, source = frame_noise(ClassicalConfig(noise_model="estimate"), planes, profile)
+    estimated, source = frame_noise(ClassicalConfig(), planes, None)
     assert source == "estimated" and estimated.scale == 0 and np.sqrt(estimated.offset) == pytest.approx(0.01, rel=0.2)
-    assert frame_noise(ClassicalConfig(), planes, None)[1] == "estimated"
-    with pytest.raises(ValueError, match="noise_model"):
-        ClassicalConfig(noise_model="guess")
+    for bad in ("estimate", "guess"):  # a profile present is always used
+        with pytest.raises(ValueError, match="noise_model"):
+            ClassicalConfig(noise_model=bad)
+    with pytest.raises(ValueError, match="window_model"):
+        ClassicalConfig(window_model="untapered")
 
 
 def test_refinement_recovers_an_analytic_parabola_on_uneven_candidates():

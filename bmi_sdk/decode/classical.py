@@ -67,21 +67,21 @@ from .evidence import Evidence, hann_taper, plane_nll, taper_variance_inflation,
 from .kernels import ZONE_STEP_DEG, ZoneKernels
 from .pooling import pool_evidence, window_colour
 
-NOISE_MODELS = ("profile", "estimate")
-WINDOW_MODELS = ("tapered", "untapered")
+NOISE_MODELS = ("profile",)  # ``frame_noise``; a manifest's classical_config names it
+WINDOW_MODELS = ("tapered",)  # the taper-smoothed evidence model (``evidence``); a manifest names it too
 
 
 def frame_noise(config: "ClassicalConfig", planes: np.ndarray, profile: NoiseProfile | None) -> tuple[NoiseProfile, str]:
     """The noise model the evidence uses, and where it came from.
 
-    A given ``noise_sigma`` wins (constant σ); then, with ``noise_model="profile"``, the frame's own
-    ``NoiseProfile`` (the camera's photon transfer: shot noise grows with the signal, so dark windows are
-    cleaner than bright ones); otherwise a constant σ estimated from the frame's flattest blocks
-    (``bayer.estimate_noise_sigma``), which image detail inflates on a sharp, textured frame.
+    A given ``noise_sigma`` wins (constant σ); then the frame's own ``NoiseProfile`` (the camera's photon
+    transfer: shot noise grows with the signal, so dark windows are cleaner than bright ones); a frame without
+    one gets a constant σ estimated from its flattest blocks (``bayer.estimate_noise_sigma``), which image
+    detail inflates on a sharp, textured frame.
     """
     if config.noise_sigma is not None:
         return NoiseProfile(0.0, float(config.noise_sigma) ** 2), "given"
-    if config.noise_model == "profile" and profile is not None:
+    if profile is not None:
         return profile, "profile"
     return NoiseProfile(0.0, max(estimate_noise_sigma(planes), 1e-4) ** 2), "estimated"
 
@@ -110,10 +110,9 @@ class ClassicalConfig:
     aif_step: int = 4
     aif_model_error: float = 0.1  # the AiF's kernel is never exact (depth error, blend between candidates): its
     #                               Wiener filter counts (ε · block mean signal)² as noise besides the sensor's
-    noise_sigma: float | None = None  # a given constant σ (units of full scale) overrides both noise models
-    noise_model: str = "profile"  # "profile": the frame's NoiseProfile when it has one; "estimate": from the picture
-    window_model: str = "tapered"  # "untapered": the evidence model before the taper's smoothing (``evidence``), which
-    #                                learned models trained on its channels name in their manifests
+    noise_sigma: float | None = None  # a given constant σ (units of full scale) overrides the frame's noise
+    noise_model: str = "profile"  # the frame's NoiseProfile, else estimated from the picture (``frame_noise``)
+    window_model: str = "tapered"  # the evidence model with the taper's smoothing (``evidence.folded_model``)
     threads: int | None = None  # blocks read at once (default: all cores; 1 on a one-thread Dask worker)
 
     def __post_init__(self):
@@ -178,13 +177,10 @@ class ClassicalDecoder:
             raise ValueError(f"{psf_map.kernel_px}-px kernels do not fit {config.window_px}-px windows")
         self.config = config
         self.candidates = candidates
-        self.zones = ZoneKernels(psf_map, candidates, config.slopes, config.window_px,
-                                 tapered=config.window_model == "tapered")
+        self.zones = ZoneKernels(psf_map, candidates, config.slopes, config.window_px)
         self.threads = config.threads or os.cpu_count() or 1
-        # the tapered estimate scatters further than its likelihood's curvature says (``evidence``); the legacy
-        # untapered evidence reports the bare curvature its trained refinements read
-        self.laplace_inflation = (np.sqrt(taper_variance_inflation(hann_taper(config.window_px // 2)))
-                                  if config.window_model == "tapered" else 1.0)
+        # the tapered estimate scatters further than its likelihood's curvature says (``evidence``)
+        self.laplace_inflation = np.sqrt(taper_variance_inflation(hann_taper(config.window_px // 2)))
 
     @classmethod
     def for_psf_map(cls, psf_map, config: ClassicalConfig = ClassicalConfig()) -> "ClassicalDecoder":
@@ -209,8 +205,7 @@ class ClassicalDecoder:
         grid = models if grid_models is None else grid_models
         total: np.ndarray | None = None
         for p, power in enumerate(spectra):
-            best = np.min([plane_nll(power, models[p, a], noise_vars[p], taper_energy, self.zones.tapered,
-                                     grid_model=grid[p, a])
+            best = np.min([plane_nll(power, models[p, a], noise_vars[p], taper_energy, grid_model=grid[p, a])
                            for a in range(models.shape[1])], axis=0)
             best[clipped[p]] = 0.0
             total = best if total is None else total + best

@@ -92,7 +92,7 @@ TAPER_OVERSAMPLE = 2
 """The taper's spectral window is applied on a grid this many times finer than the window's DFT bins."""
 
 
-def folded_model(kernels: np.ndarray, n_plane: int, slope: float = 2.0, tapered: bool = True) -> np.ndarray:
+def folded_model(kernels: np.ndarray, n_plane: int, slope: float = 2.0) -> np.ndarray:
     """(..., n_plane, n_plane // 2 + 1) model power of a Hann-tapered plane window's rfft bins, per Σt².
 
     ``kernels`` (..., K, K) are full-resolution, centred, unit-sum kernels (K ≤ 2 n_plane). The plane's
@@ -101,11 +101,10 @@ def folded_model(kernels: np.ndarray, n_plane: int, slope: float = 2.0, tapered:
     the taper's spectral window, E|Y_t(ω)|² = ∫ |T(ω − ν)|² M(ν) dν (T the taper's DTFT). A near
     kernel's OTF oscillates about once per DFT bin of a 64-px window, so without the smoothing the
     model has zeros the data cannot show, and near candidates are wrongly penalised. The integral is
-    evaluated on a grid ``TAPER_OVERSAMPLE`` times finer than the bins. ``tapered=False`` gives the
-    unsmoothed Σ_aliases |K|² S (the flat-spectrum limit, where the smoothing changes nothing).
+    evaluated on a grid ``TAPER_OVERSAMPLE`` times finer than the bins.
     """
     k = kernels.shape[-1]
-    os_ = TAPER_OVERSAMPLE if tapered else 1
+    os_ = TAPER_OVERSAMPLE
     n_os = n_plane * os_
     n_full = 2 * n_os
     if k > 2 * n_plane:
@@ -116,10 +115,9 @@ def folded_model(kernels: np.ndarray, n_plane: int, slope: float = 2.0, tapered:
     f = sfft.fftfreq(n_full)
     power = (otf.real ** 2 + otf.imag ** 2) * power_law_prior(f, f[:n_full // 2 + 1], 1.0 / (2 * n_plane), slope)
     folded = fold_power(_full_from_half(power, n_full), n_os)              # (..., n_os, n_os) the plane's spectrum
-    if tapered:
-        folded[..., 0, 0] = 0.0  # the window's mean is removed
-        folded = sfft.irfft2(sfft.rfft2(folded) * _spectral_window_ft(n_plane, os_), s=(n_os, n_os))
-        folded = folded[..., ::os_, ::os_]
+    folded[..., 0, 0] = 0.0  # the window's mean is removed
+    folded = sfft.irfft2(sfft.rfft2(folded) * _spectral_window_ft(n_plane, os_), s=(n_os, n_os))
+    folded = folded[..., ::os_, ::os_]
     return np.asarray(folded[..., :, :n_plane // 2 + 1], np.float64)
 
 
@@ -141,21 +139,18 @@ def _spectral_window_ft(n_plane: int, oversample: int) -> np.ndarray:
     return sfft.rfft2(window / window.sum())
 
 
-def rfft_multiplicity(n_plane: int, tapered: bool = True) -> np.ndarray:
+def rfft_multiplicity(n_plane: int) -> np.ndarray:
     """(n, n//2+1) how many full-spectrum bins each rfft bin stands for (1 on the self-conjugate columns).
 
     DC and its eight neighbours get 0: the window's mean is removed, and through the taper that removal takes
     about half the expected power of the neighbouring bins (measured against a Monte Carlo periodogram,
     ``tests/test_decode.py``), which no stationary model holds; from two bins out the model matches to 1–2 %.
-    ``tapered=False`` (the untapered model's evidence) leaves out DC only.
     """
     m = np.full((n_plane, n_plane // 2 + 1), 2.0)
     m[:, 0] = 1.0
     if n_plane % 2 == 0:
         m[:, -1] = 1.0
-    if tapered:
-        m[[0, 1, -1], :2] = 0.0
-    m[0, 0] = 0.0
+    m[[0, 1, -1], :2] = 0.0
     return m
 
 
@@ -179,8 +174,7 @@ def window_spectra(plane: np.ndarray, n_plane: int, stride_plane: int, taper: np
     return (spec.real ** 2 + spec.imag ** 2).astype(np.float32), noise_mean, (rows, cols)
 
 
-def inverse_depth_information(model: np.ndarray, inv_depth_per_m: np.ndarray, beta_rel: float,
-                              tapered: bool = True) -> np.ndarray:
+def inverse_depth_information(model: np.ndarray, inv_depth_per_m: np.ndarray, beta_rel: float) -> np.ndarray:
     """(D,) Fisher information about 1/d (m²) of one plane's window at each candidate depth, β a nuisance.
 
     ``model`` (D, n, m) is ``folded_model`` × the taper energy and ``beta_rel`` the prior level in units of the
@@ -190,7 +184,7 @@ def inverse_depth_information(model: np.ndarray, inv_depth_per_m: np.ndarray, be
     The informations of the planes add; 1 / √I is the Cramér–Rao bound of the estimate from an untapered window,
     which a tapered one exceeds by √``taper_variance_inflation``.
     """
-    mult = rfft_multiplicity(model.shape[1], tapered) * REAL_FIELD_WEIGHT
+    mult = rfft_multiplicity(model.shape[1]) * REAL_FIELD_WEIGHT
     a = np.asarray(model, np.float64)
     v = beta_rel * a + 1.0
     g = beta_rel * np.gradient(a, np.asarray(inv_depth_per_m, np.float64), axis=0) / v
@@ -252,7 +246,7 @@ class Evidence:
 
 
 def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: float,
-              tapered: bool = True, grid_model: np.ndarray | None = None) -> np.ndarray:
+              grid_model: np.ndarray | None = None) -> np.ndarray:
     """(windows, D) NLL of one plane's window spectra, β profiled out (module doc).
 
     ``power`` (windows, n, m) float32; ``model`` (D, n, m) = Σ_aliases |K_d|² S per candidate;
@@ -260,23 +254,22 @@ def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: flo
     ``sensor.NoiseProfile``). Each window is measured in units of its own noise power s: with
     P' = P / s and β' = β / s, P / V + log V = P' / (β' A + 1) + log(β' A + 1) + log s, so one grid of
     β' and one matrix product serve windows of every noise level, exactly; the log s term is the
-    same for every candidate of a window and is kept, so the NLL is the true one. ``tapered``: the bins
-    ``rfft_multiplicity`` uses with a ``folded_model`` of the same flag, and the ½ of the module doc; the
-    untapered (legacy) evidence keeps the full-spectrum count that refinements trained on it read.
+    same for every candidate of a window and is kept, so the NLL is the true one; the bins are those
+    ``rfft_multiplicity`` keeps, each counted with the ½ of the module doc.
     ``grid_model``: the candidates whose gains place the β grid (default ``model``'s own). The grid's
     levels change the profiled NLL by up to a few tenths of a nat, so NLLs that are compared with each
     other (a coarse pass's and the fine pass that completes it) must share one grid.
     """
     nw = power.shape[0]
     n_cand = model.shape[0]
-    mult = rfft_multiplicity(model.shape[1], tapered)
+    mult = rfft_multiplicity(model.shape[1])
     keep = mult > 0
 
     def bins(m: np.ndarray) -> np.ndarray:  # (candidates, F): the kept bins of models, in units of the taper's energy
         return m.reshape(m.shape[0], -1)[:, keep.ravel()] * taper_energy
 
     a = bins(model)                                                       # (D, F)
-    mult = mult[keep] * (REAL_FIELD_WEIGHT if tapered else 1.0)
+    mult = mult[keep] * REAL_FIELD_WEIGHT
     s = np.maximum(np.broadcast_to(np.asarray(noise_var, np.float64), (nw,)), 1e-12) * taper_energy  # (W,)
     p = power.reshape(nw, -1)[:, keep.ravel()] * (1.0 / s)[:, None].astype(np.float32)  # P' (W, F)
     # moment estimate of β' per window and candidate: Σ m P' ≈ β' Σ m A + Σ m

@@ -26,14 +26,13 @@ class ZoneKernels:
     memo, disk shards and trace counters are not thread-safe), a zone's evidence models are made under that zone's
     lock (once, and other zones' at the same time), and memoised entries are read without either."""
 
-    def __init__(self, psf_map, candidates, slopes: tuple[float, ...], window_px: int, tapered: bool = True):
+    def __init__(self, psf_map, candidates, slopes: tuple[float, ...], window_px: int):
         if window_px % 2 or window_px < 8:
             raise ValueError(f"window_px must be even and >= 8, got {window_px}")
         self.psf_map = psf_map
         self.candidates = candidates
         self.slopes = tuple(float(a) for a in slopes)
         self.window_px = window_px
-        self.tapered = tapered  # ``evidence.folded_model``: the taper's smoothing in the model (False: legacy)
         self._kernels: dict[tuple, np.ndarray] = {}
         self._models: dict[tuple, np.ndarray] = {}
         self.kernel_sets_computed = 0
@@ -115,7 +114,7 @@ class ZoneKernels:
                 missing = [int(j) for j in which if zone + (int(j),) not in self._models]
                 if missing:
                     k = self.kernels(zone, np.asarray(missing))                       # (C, m, K, K)
-                    per_channel = np.stack([[folded_model(k[c], n_plane, a, self.tapered) for a in self.slopes]
+                    per_channel = np.stack([[folded_model(k[c], n_plane, a) for a in self.slopes]
                                             for c in range(k.shape[0])])               # (C, A, m, n, n/2+1)
                     for n, j in enumerate(missing):
                         self._models[zone + (j,)] = per_channel[:, :, n].astype(np.float32)
