@@ -19,22 +19,21 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import dataclass
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Callable, Iterator, Protocol
 
 import numpy as np
 
 from bmi_sdk.geometry import BMI_SENSOR, SensorGeometry
 from bmi_sdk.protocol import registers as R
-from bmi_sdk.protocol.wire import FLAG_TEST_PATTERN, HEARTBEAT_S, MODEL_NAME, FrameHeader, packed_size, pack12
+from bmi_sdk.protocol.wire import FLAG_TEST_PATTERN, HEARTBEAT_S, MODEL_NAME, FrameHeader, pack12, packed_size
 from bmi_sdk.sensor import CFA_PATTERN, SensorModel
 
 from .faults import FaultInjector, FaultPlan
 from .readout import Readout, ReadoutCancelled
 from .register_file import RegisterFile
 from .sources import IrradianceSource, PolarChart
-
 
 LENS_PROFILE_ALIASES = {"monocentric": "bmi_monocentric", "bmi": "bmi_monocentric", "fisheye_matched": "fisheye"}
 """Other names ``optics.get_lens`` takes for a lens profile (``bmi_sdk.lenses``), and the profile each means."""
