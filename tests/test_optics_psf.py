@@ -2,8 +2,6 @@
 
 import json
 import math
-import subprocess
-import sys
 from dataclasses import replace
 
 import numpy as np
@@ -149,22 +147,19 @@ def test_tensor_save_load_and_corruption(tmp_path):
         PsfTensor.load(path)
 
 
-def test_cli_psf_export_and_lens_json(tmp_path):
+def test_cli_psf_export_and_lens_json(tmp_path, bmi):
     out = tmp_path / "psf.npy"
-    run = [sys.executable, "-m", "bmi_sdk.cli"]
-    subprocess.run(run + ["psf", "export", "--wavelength-nm", "486.1", "--depth-m", "0.7", "--field-deg", "60",
-                          "--out", str(out)], check=True, capture_output=True)
+    bmi("psf", "export", "--wavelength-nm", 486.1, "--depth-m", 0.7, "--field-deg", 60, "--out", out)
     k = np.load(out)
     assert k.shape[0] % 2 == 1 and k.shape[0] == k.shape[1] and k.sum() == pytest.approx(1.0, abs=1e-5)
     rows = np.arange(k.shape[0]) - k.shape[0] // 2
     assert abs((k.sum(axis=1) * rows).sum()) < 1e-4  # sagittally centred on the chief ray (mirror symmetry)
-    report = json.loads(subprocess.run(run + ["lens", "--json"], check=True, capture_output=True, text=True).stdout)
+    report = json.loads(bmi("lens", "--json").stdout)
     for key in ("efl_mm", "epd_mm", "f_number", "petzval_radius_mm", "seidel_w040_waves"):
         assert isinstance(report[key], float)
     rows = report["wavefront"]
     assert {r["wavelength_nm"] for r in rows} == {656.3, 587.6, 486.1}
     assert any(r["depth_m"] is None for r in rows) and min(r["depth_m"] or 99 for r in rows) == 0.7
     assert set(rows[0]) >= {"wavelength_nm", "depth_m", "w020_waves", "w040_waves", "w060_waves", "rms_waves"}
-    bad = subprocess.run(run + ["psf", "export", "--wavelength-nm", "587.6", "--depth-m", "-1", "--field-deg", "0",
-                                "--out", str(out)], capture_output=True, text=True)
+    bad = bmi("psf", "export", "--wavelength-nm", 587.6, "--depth-m", -1, "--field-deg", 0, "--out", out, check=False)
     assert bad.returncode != 0 and "depth" in bad.stderr

@@ -1,8 +1,6 @@
 """`bmi simulate`: scene → lens → sensor → DNG, checked value by value against the forward model."""
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -12,7 +10,7 @@ from bmi_sdk.geometry import BMI_SENSOR
 from bmi_sdk.sensor import SensorModel, bayer_mosaic, relative_illumination
 
 
-def test_simulate_writes_the_coded_scene_as_raw_dng(tmp_path):
+def test_simulate_writes_the_coded_scene_as_raw_dng(tmp_path, bmi):
     rng = np.random.default_rng(0)
     rgb = rng.uniform(0.1, 0.6, (64, 64, 3)).astype(np.float32)
     depth = np.full((64, 64), 2.0, np.float32)
@@ -20,10 +18,8 @@ def test_simulate_writes_the_coded_scene_as_raw_dng(tmp_path):
     np.save(tmp_path / "rgb.npy", rgb)
     np.save(tmp_path / "depth.npy", depth)
     out = tmp_path / "frame.dng"
-    subprocess.run([sys.executable, "-m", "bmi_sdk.cli", "simulate", "--rgb", str(tmp_path / "rgb.npy"),
-                    "--depth", str(tmp_path / "depth.npy"), "--out", str(out), "--field-deg", "30",
-                    "--azimuth-deg", "45", "--noise", "0", "--psf-mode", "tensor", "--preview"],
-                   check=True, capture_output=True)
+    bmi("simulate", "--rgb", tmp_path / "rgb.npy", "--depth", tmp_path / "depth.npy", "--out", out, "--field-deg", 30,
+        "--azimuth-deg", 45, "--noise", 0, "--psf-mode", "tensor", "--preview")
     meta = json.loads(out.with_suffix(".json").read_text())
     roi = meta["roi"]
     row_c, col_c = BMI_SENSOR.pixel_of_field(30.0, 45.0)
@@ -46,12 +42,11 @@ def test_simulate_writes_the_coded_scene_as_raw_dng(tmp_path):
     assert (tmp_path / "frame_coded.png").exists() and (tmp_path / "frame_scene.png").exists()
 
 
-def test_simulate_refuses_a_scene_that_does_not_fit(tmp_path):
+def test_simulate_refuses_a_scene_that_does_not_fit(tmp_path, bmi):
     np.save(tmp_path / "rgb.npy", np.zeros((400, 400, 3), np.float32))
     np.save(tmp_path / "depth.npy", np.ones((400, 400), np.float32))
-    bad = subprocess.run([sys.executable, "-m", "bmi_sdk.cli", "simulate", "--rgb", str(tmp_path / "rgb.npy"),
-                          "--depth", str(tmp_path / "depth.npy"), "--out", str(tmp_path / "x.dng"),
-                          "--field-deg", "59"], capture_output=True, text=True)
+    bad = bmi("simulate", "--rgb", tmp_path / "rgb.npy", "--depth", tmp_path / "depth.npy", "--out", tmp_path / "x.dng",
+              "--field-deg", 59, check=False)
     assert bad.returncode != 0 and "does not fit" in bad.stderr
     assert not (tmp_path / "x.dng").exists()
 
