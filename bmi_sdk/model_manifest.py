@@ -106,7 +106,8 @@ def read_manifest(onnx_path: str | os.PathLike) -> dict:
 
 
 def model_decoder(manifest: dict) -> str:
-    """``cnn`` (the end-to-end network) or ``learned`` (the refinement of the classical decoder)."""
+    """``cnn`` (the end-to-end network), ``learned`` (the refinement of the classical decoder) or ``evidence`` (the
+    network over the classical evidence volume)."""
     return manifest.get("decoder", "cnn")
 
 
@@ -119,14 +120,31 @@ def _refinement_channels(manifest: dict) -> bool:
         and isinstance(manifest.get("classical_config"), dict)
 
 
+EVIDENCE_INPUT_NAME = "volume"
+EVIDENCE_OUTPUT_NAMES = ("inv_depth", "sigma_inv", "logits")
+
+
+def _evidence_inputs(manifest: dict) -> bool:
+    """An evidence network (``runtime.evidence``): the classical volume's 2 curves in, the candidates it was
+    trained on, the classical knobs that made its volume and the colour scale of its upsampling."""
+    cands = manifest.get("candidates_inv_depth_per_m")
+    return manifest["input_channels"] == 2 and isinstance(cands, list) and len(cands) >= 3 \
+        and isinstance(manifest.get("classical_config"), dict) \
+        and isinstance(manifest.get("upsample_colour_sigma"), (int, float))
+
+
 MODEL_CONTRACTS = {
-    "cnn": ([*OUTPUT_NAMES], _end_to_end_channels, f"{INPUT_NAME!r} × {INPUT_CHANNELS}, outputs {list(OUTPUT_NAMES)}"),
-    "learned": ([*OUTPUT_NAMES, SIGMA_OUTPUT_NAME], _refinement_channels,
+    "cnn": (INPUT_NAME, [*OUTPUT_NAMES], _end_to_end_channels,
+            f"{INPUT_NAME!r} × {INPUT_CHANNELS}, outputs {list(OUTPUT_NAMES)}"),
+    "learned": (INPUT_NAME, [*OUTPUT_NAMES, SIGMA_OUTPUT_NAME], _refinement_channels,
                 f"{INPUT_NAME!r} × ({INPUT_CHANNELS} + classical channels), a classical_config, outputs "
                 f"{[*OUTPUT_NAMES, SIGMA_OUTPUT_NAME]}"),
+    "evidence": (EVIDENCE_INPUT_NAME, [*EVIDENCE_OUTPUT_NAMES], _evidence_inputs,
+                 f"{EVIDENCE_INPUT_NAME!r} × 2 curves over its candidates_inv_depth_per_m, a classical_config, an "
+                 f"upsample_colour_sigma, outputs {list(EVIDENCE_OUTPUT_NAMES)}"),
 }
-"""A manifest's ``decoder`` (the model's kind) → (its outputs, the check of its input channels, the contract in
-words)."""
+"""A manifest's ``decoder`` (the model's kind) → (its input's name, its outputs, the check of its inputs, the
+contract in words)."""
 
 
 def check_contract(manifest: dict, name: str) -> None:
@@ -134,8 +152,8 @@ def check_contract(manifest: dict, name: str) -> None:
     decoder = model_decoder(manifest)
     if decoder not in MODEL_CONTRACTS:
         raise ModelError(f"model {name}: unknown decoder {decoder!r} in its manifest ({' or '.join(MODEL_CONTRACTS)})")
-    outputs, channels_ok, expected = MODEL_CONTRACTS[decoder]
-    if manifest["input_name"] != INPUT_NAME or list(manifest["output_names"]) != outputs \
+    input_name, outputs, channels_ok, expected = MODEL_CONTRACTS[decoder]
+    if manifest["input_name"] != input_name or list(manifest["output_names"]) != outputs \
             or not channels_ok(manifest):
         raise ModelError(f"model {name} follows another I/O contract (input {manifest['input_name']!r}"
                          f" × {manifest['input_channels']}, outputs {manifest['output_names']}); this SDK expects "

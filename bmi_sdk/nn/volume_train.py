@@ -159,6 +159,29 @@ def export(net: VolumeNet, inv_depth_per_m, path: str | Path, sample: dict | Non
 
 
 
+UPSAMPLE_COLOUR_SIGMA = 0.3
+"""Colour scale (log colour) of the guided upsampling an evidence network's manifest names (``bmi bench
+evidence`` measures it)."""
+
+
+def write_evidence_manifest(onnx_path: str | Path, inv_depth_per_m, training: dict, metrics: dict,
+                            lens: str = "bmi_monocentric") -> Path:
+    """The manifest of an exported evidence network: the evidence contract (``model_manifest``), the classical
+    knobs its volume is made with (the defaults the training pairs used), its candidates and its training."""
+    from bmi_sdk.decode import ClassicalConfig
+    from bmi_sdk.lenses import lens_tensor
+    from bmi_sdk.model_manifest import EVIDENCE_INPUT_NAME, EVIDENCE_OUTPUT_NAMES, write_manifest
+
+    tensor = lens_tensor(lens)
+    config = {k: v for k, v in ClassicalConfig().to_dict().items() if k != "threads"}
+    return write_manifest(onnx_path, preset=f"evidence-w{training.get('width', 8)}", decoder="evidence",
+                          receptive_field_px=16 * 31 + 64, lens=lens,
+                          psf_tensor_key=tensor.spec.cache_key(tensor.lens), training=training, metrics=metrics,
+                          input_name=EVIDENCE_INPUT_NAME, output_names=EVIDENCE_OUTPUT_NAMES, input_channels=2,
+                          size_multiple=4, candidates_inv_depth_per_m=[float(x) for x in inv_depth_per_m],
+                          classical_config=config, upsample_colour_sigma=UPSAMPLE_COLOUR_SIGMA)
+
+
 def steps_for(seconds: float, train_dirs, batch_size: int, crop: int, width: int, device: str) -> int:
     """How many steps of ``train`` fit in ``seconds`` here: 10 timed steps of a throwaway network."""
     pairs = VolumePairs(train_dirs)
@@ -212,6 +235,8 @@ def main(argv=None) -> None:
                 "log_sigma_floor": float(net.log_sigma_floor.detach()),
                 "log_anchor": float(net.log_anchor.detach())})
     out.with_suffix(".log.json").write_text(json.dumps(log, indent=1))
+    write_evidence_manifest(out, pairs.inv_depth_per_m, {k: v for k, v in log.items() if k not in ("before", "after")},
+                            {"val_before": log["before"], "val_after": log["after"]})
     print(json.dumps({"before": log["before"], "after": log["after"]}))
 
 

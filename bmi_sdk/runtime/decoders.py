@@ -243,3 +243,38 @@ class ClassicalDecoderKind:
 
     def head(self) -> dict:
         return {"decoder": self.kind, "camera": camera_head(self.camera), "calibration_id": self.camera.calibration_id}
+
+
+@register
+class EvidenceDecoder:
+    """The camera's own evidence volume read by a small network, guided to every pixel (``runtime.evidence``);
+    with a depth 1σ from the network's posterior."""
+
+    kind = "evidence"
+    title = "evidence network"
+    model_kind = "evidence"
+    takes_config = False
+
+    def __init__(self, camera: BuiltCamera, model, config, options: DecoderOptions):
+        from .evidence import EvidenceNetwork, evidence_stage
+        from .model import select_model
+
+        self.camera, self.options = camera, options
+        if model is None:
+            try:
+                model = select_model(lens=camera.lens_name, decoder=self.model_kind)
+            except ModelError as exc:
+                others = ", ".join(f"--decoder {k}" for k in DECODERS if k != self.kind)
+                raise ModelError(f"{exc}; decode this frame with {others}") from None
+        self.model = EvidenceNetwork(getattr(model, "path", model), threads=options.threads,
+                                     providers=options.providers)
+        self.stage = evidence_stage(self.model, camera, options.threads)
+
+    def decode(self, frame, progress: bool = False) -> DecodedFrame:
+        from .evidence import decode_evidence
+
+        return decode_evidence(self.model, self.stage, frame, self.camera, progress=progress)
+
+    def head(self) -> dict:
+        return {"decoder": self.kind, "model": self.model.describe(), "camera": camera_head(self.camera),
+                "calibration_id": self.camera.calibration_id}

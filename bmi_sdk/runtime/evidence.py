@@ -1,0 +1,139 @@
+"""The evidence decoder: the camera's own evidence volume, read by a small network, then guided to every pixel.
+
+Steps for one frame (docs/decoder.md):
+
+1. the classical decoder over the camera's kernels (``BuiltCamera.psf_map``: the design's, or a calibrated
+   camera's exact kernels) scores every window against every depth candidate, with the knobs of the network's
+   manifest, and keeps its cost volume (``decode.DecodeResult.grid_pooled`` / ``grid_curves``);
+2. the network (``evidence.onnx``, ``nn.volume_net``) turns the volume into logits over the candidates; 1/d is
+   the posterior mean, its 1σ the posterior spread, scaled and floored as fitted on held-out pairs. The grid is
+   padded to a multiple of 4 windows and read in bands of ``BAND_ROWS`` grid rows (with a halo of
+   ``HALO_ROWS``), so memory stays bounded on a full frame;
+3. 1/d and its variance go to every pixel by colour-guided upsampling (``decode.volume.guided_upsample``) over
+   the demosaiced frame: a pixel between windows takes those of its own colour, and its σ includes the
+   spread of the windows it mixes;
+4. the AiF is the Wiener deconvolution of the frame with the kernels at that depth
+   (``ClassicalDecoder.restore_aif`` with a zero prior).
+
+No step is retrained for a calibrated camera: its kernels change the volume, and the network reads the volume.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..built_camera import BuiltCamera
+from ..decode import ClassicalConfig, ClassicalDecoder
+from ..decode.volume import guided_upsample, pixel_log_colour, volume_inputs
+from ..model_io import raw_to_rgb
+from ..model_manifest import ModelError, verify_model
+from ..sensor import NoiseProfile
+from .decoders import DecodedFrame
+from .pipeline import check_decodable
+
+EVIDENCE_MODEL = Path(__file__).resolve().parents[1] / "models" / "evidence.onnx"
+PAD_MULTIPLE = 4
+"""The network halves the grid twice: its rows and columns are padded to a multiple of this."""
+BAND_ROWS = 64
+"""Grid rows the network reads at once (a full frame has ~280): bounds onnxruntime's arena."""
+HALO_ROWS = 8
+"""Grid rows read above and below a band and dropped: the network's reach across rows is ±7 windows."""
+
+
+class EvidenceNetwork:
+    """A verified evidence network (manifest and SHA-256 checked) in one onnxruntime session."""
+
+    def __init__(self, path: str | os.PathLike = EVIDENCE_MODEL, threads: int | None = None, providers=None):
+        import onnxruntime as ort
+
+        from .model import choose_providers, session_options
+
+        self.path = Path(path)
+        self.manifest = verify_model(self.path)
+        if self.manifest.get("decoder") != "evidence":
+            raise ModelError(f"model {self.path.name} is a {self.manifest.get('decoder', 'cnn')} model, not an "
+                             "evidence network")
+        self.inv_depth_per_m = np.asarray(self.manifest["candidates_inv_depth_per_m"], np.float64)
+        self.classical_config = dict(self.manifest["classical_config"])
+        self.colour_sigma = float(self.manifest["upsample_colour_sigma"])
+        self.session = ort.InferenceSession(str(self.path), sess_options=session_options(threads),
+                                            providers=choose_providers(providers))
+        self.provider = self.session.get_providers()[0]
+
+    def describe(self) -> dict:
+        return {"file": self.path.name, "sha256": self.manifest["sha256"], "provider": self.provider,
+                "lens": self.manifest["lens"]}
+
+    def read(self, volume: np.ndarray, guide: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(1/d, 1σ of 1/d), each R × C, of a (2, D, R, C) volume and (4, R, C) guide (``volume_inputs``)."""
+        rows, cols = guide.shape[1:]
+        inv = np.empty((rows, cols), np.float32)
+        sig = np.empty((rows, cols), np.float32)
+        for top in range(0, rows, BAND_ROWS):
+            bottom = min(rows, top + BAND_ROWS)
+            lo, hi = max(0, top - HALO_ROWS), min(rows, bottom + HALO_ROWS)
+            pad_r = -(hi - lo) % PAD_MULTIPLE
+            pad_c = -cols % PAD_MULTIPLE
+            vol = np.pad(volume[:, :, lo:hi], ((0, 0), (0, 0), (0, pad_r), (0, pad_c)))[None]
+            gd = np.pad(guide[:, lo:hi], ((0, 0), (0, pad_r), (0, pad_c)))[None]
+            out = self.session.run(["inv_depth", "sigma_inv"], {"volume": vol, "guide": gd})
+            inv[top:bottom] = out[0][0, top - lo:bottom - lo, :cols]
+            sig[top:bottom] = out[1][0, top - lo:bottom - lo, :cols]
+        return inv, sig
+
+
+def evidence_stage(network: EvidenceNetwork, camera: BuiltCamera, threads: int | None = None) -> ClassicalDecoder:
+    """The classical decoder whose volume ``network`` reads: the camera's kernels, the manifest's knobs, and the
+    candidates the network was trained on (refused, naming both, when the camera's kernels give others)."""
+    config = ClassicalConfig(**{**network.classical_config,
+                                "slopes": tuple(network.classical_config.get("slopes", (2.0,))), "threads": threads})
+    stage = ClassicalDecoder.for_psf_map(camera.psf_map(disk_cache=True), config)
+    got = stage.candidates.inv_depth_per_m
+    if got.shape != network.inv_depth_per_m.shape or not np.allclose(got, network.inv_depth_per_m, rtol=1e-5):
+        raise ModelError(f"evidence network {network.path.name} reads {len(network.inv_depth_per_m)} depth "
+                         f"candidates, but camera {camera.lens_name}'s kernels give {len(got)} others")
+    return stage
+
+
+def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, camera: BuiltCamera,
+                    progress: bool = False) -> DecodedFrame:
+    """Decode a ``devices.RawFrame`` of ``camera`` (module doc); ``parts["classical"]`` holds the classical
+    stage's whole result (its own read, the volume)."""
+    check_decodable(frame, camera.lens_name, "the decoder's camera has", "the evidence decoder")
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    row0, col0 = frame.roi.y_px, frame.roi.x_px
+    result = stage.decode(frame.data, frame.black_level_dn, frame.white_level_dn, frame.geometry, row0=row0,
+                          col0=col0, cfa=frame.cfa, progress=progress, noise_profile=frame.noise_profile, aif=False)
+    timings["evidence_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    volume, guide, grid_valid = volume_inputs(result.grid_pooled, result.grid_curves, result.grid_colour)
+    inv_grid, sig_grid = network.read(volume, guide)
+    inv_grid = np.where(grid_valid, inv_grid, np.nan)
+    timings["network_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    rgb = raw_to_rgb(frame.data, frame.black_level_dn, frame.white_level_dn, frame.cfa)
+    inv_px, var_px = guided_upsample(inv_grid, sig_grid.astype(np.float64) ** 2, pixel_log_colour(rgb),
+                                     stage.config.stride_px, network.colour_sigma)
+    valid = result.valid & np.isfinite(inv_px) & (inv_px > 0)
+    depth = np.where(valid, 1.0 / np.where(valid, inv_px, 1.0), np.nan).astype(np.float32)
+    sigma = np.where(valid, np.sqrt(np.maximum(var_px, 0.0)) * depth.astype(np.float64) ** 2, np.nan)
+    timings["upsample_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    noise = NoiseProfile(**result.stats["noise_profile"])  # the noise the stage decoded with
+    aif = stage.restore_aif(frame.data, frame.black_level_dn, frame.white_level_dn, frame.geometry, depth,
+                            np.zeros(depth.shape + (3,), np.float32), noise, row0, col0, frame.cfa)
+    timings["aif_s"] = time.perf_counter() - t0
+    stats = dict(result.stats, camera_sha256=camera.sha256(), calibration_id=camera.calibration_id)
+    confident = valid & (sigma <= 0.1 * np.where(valid, depth, 1.0))
+    report = {"valid_fraction": float(valid.mean()),
+              "confident_coverage": float(confident.sum() / max(valid.sum(), 1)),
+              "blocks_run": stats["blocks_run"], "blocks_skipped": stats["blocks_skipped"],
+              "decoder_stats": stats, "timings_s": {**stats["timings_s"], **timings}}
+    return DecodedFrame(aif, depth, valid, sigma.astype(np.float32), report,
+                        {"classical": result, "grid_inv_depth": inv_grid, "grid_sigma_inv": sig_grid})
+

@@ -1,0 +1,153 @@
+"""The evidence decoder's parts against independent references: the volume's normalisation, cell targets,
+the posterior, colour-guided upsampling (bilinear on a flat image, each side of a colour edge), the network's
+untrained identity and its ONNX export."""
+
+import numpy as np
+import pytest
+
+from bmi_sdk.decode.classical import upsample_grid
+from bmi_sdk.decode.volume import CLIP_NATS, cell_colour, grid_targets, guided_upsample, posterior, volume_inputs
+
+
+def _curves(rng, rows=6, cols=7, d=9):
+    own = rng.uniform(0, 30, (rows, cols, d)).astype(np.float32)
+    own -= own.min(axis=-1, keepdims=True)
+    return own
+
+
+def test_volume_inputs_takes_each_curves_minimum_and_clips():
+    rng = np.random.default_rng(0)
+    own = _curves(rng)
+    pooled = own + 500.0  # a pooled curve's minimum is its neighbours' cost there
+    pooled[0, 0, :] = np.nan
+    colour = rng.normal(0, 1, own.shape[:2] + (3,)).astype(np.float32)
+    vol, guide, valid = volume_inputs(pooled, own, colour)
+    assert vol.shape == (2, own.shape[2], *own.shape[:2]) and guide.shape == (4, *own.shape[:2])
+    assert not valid[0, 0] and valid.sum() == valid.size - 1
+    assert np.all(vol[:, :, 0, 0] == 0) and guide[3, 0, 0] == 0 and np.all(guide[3][valid] == 1)
+    np.testing.assert_allclose(vol[0].min(axis=0)[valid], 0.0)
+    np.testing.assert_allclose(vol[0].transpose(1, 2, 0)[valid], np.minimum(own, CLIP_NATS)[valid], atol=1e-4)
+    np.testing.assert_allclose(guide[:3].transpose(1, 2, 0)[valid].mean(axis=0), 0.0, atol=1e-5)
+
+
+def test_volume_inputs_refuses_mismatched_shapes():
+    own = np.zeros((4, 4, 5), np.float32)
+    with pytest.raises(ValueError, match="R × C × D"):
+        volume_inputs(own, own[:, :3], np.zeros((4, 4, 3)))
+
+
+def test_grid_targets_are_each_cells_median_inverse_depth():
+    stride = 16
+    range_m = np.full((64, 80), 2.0, np.float32)
+    range_m[:, 40:] = 5.0
+    range_m[:4, :4] = np.nan  # window (0, 0)'s cell is [0, 8)²: 16 of its 64 pixels unknown
+    t = grid_targets(range_m, stride, (5, 6))
+    assert t[0, 0] == pytest.approx(0.5)
+    assert t[2, 2] == pytest.approx(0.5)             # cell columns [24, 40): all 2 m
+    assert t[2, 3] == pytest.approx(0.2)             # cell columns [40, 56): all 5 m
+    assert t[2, 5] == pytest.approx(0.2)             # the last cell, [72, 80), clipped to the frame
+    range_m[:, :] = np.nan
+    assert np.isnan(grid_targets(range_m, stride, (5, 6))).all()
+
+
+def test_posterior_matches_a_brute_force_sum():
+    rng = np.random.default_rng(1)
+    logits = rng.normal(0, 3, (7, 4, 5))
+    x = np.linspace(1.4, 0.1, 7)
+    mean, std = posterior(logits, x, axis=0)
+    p = np.exp(logits) / np.exp(logits).sum(axis=0)
+    brute_mean = np.einsum("dij,d->ij", p, x)
+    brute_var = np.einsum("dij,dij->ij", p, (x[:, None, None] - brute_mean) ** 2)
+    np.testing.assert_allclose(mean, brute_mean, rtol=1e-12)
+    np.testing.assert_allclose(std, np.sqrt(brute_var), rtol=1e-10)
+
+
+def test_guided_upsample_on_a_flat_image_is_the_decoders_bilinear_interpolation():
+    rng = np.random.default_rng(2)
+    stride, height, width = 16, 96, 128
+    rows, cols = -(-height // stride) + 1, -(-width // stride) + 1
+    inv = rng.uniform(0.1, 1.4, (rows, cols)).astype(np.float32)
+    var = np.full_like(inv, 1e-4)
+    flat = np.zeros((height, width, 3), np.float32)
+    got, got_var = guided_upsample(inv, var, flat, stride, colour_sigma=0.3)
+    want = upsample_grid(inv, stride, height, width)
+    np.testing.assert_allclose(got, want, atol=2e-5)
+    # the mixture's variance: the windows' own plus their spread about the pixel's mean
+    assert np.all(got_var >= 1e-4 - 1e-9)
+
+
+def test_guided_upsample_follows_each_side_of_a_colour_edge():
+    stride, height, width = 16, 64, 64
+    rows, cols = 5, 5
+    log_rgb = np.zeros((height, width, 3), np.float32)
+    log_rgb[:, 44:] = 2.0   # a colour edge at column 44, inside window 3's cell [40, 56)
+    inv = np.where(np.arange(cols)[None, :] >= 3, 1.0, 0.25).astype(np.float32) * np.ones((rows, 1), np.float32)
+    var = np.full((rows, cols), 1e-6, np.float32)
+    got, got_var = guided_upsample(inv, var, log_rgb, stride, colour_sigma=0.2)
+    cells = cell_colour(log_rgb, stride, (rows, cols))
+    assert cells[0, 3, 0] == pytest.approx(1.5) and cells[0, 2, 0] == 0.0
+    np.testing.assert_allclose(got[:, 44:60], 1.0, atol=1e-3)   # right of the edge: the right surface only
+    np.testing.assert_allclose(got[:, 24:44], 0.25, atol=1e-3)  # left of it: the left surface only
+    assert got_var[:, 44:60].max() < 1e-3
+    bilinear = upsample_grid(inv, stride, height, width)
+    assert np.abs(bilinear[:, 40:48] - got[:, 40:48]).max() > 0.3  # plain interpolation blurs the step
+
+
+def test_guided_upsample_refuses_a_zero_colour_scale_and_keeps_nan_outside():
+    inv = np.full((3, 3), np.nan, np.float32)
+    got, _ = guided_upsample(inv, inv, np.zeros((32, 32, 3), np.float32), 16, 0.3)
+    assert np.isnan(got).all()
+    with pytest.raises(ValueError, match="colour_sigma"):
+        guided_upsample(inv, inv, np.zeros((32, 32, 3), np.float32), 16, 0.0)
+
+
+torch = pytest.importorskip("torch")
+
+
+def test_untrained_network_returns_the_pooled_evidence_posterior():
+    from bmi_sdk.nn.volume_net import VolumeDecoderGraph, VolumeNet, VolumeNetConfig
+
+    rng = np.random.default_rng(3)
+    d = 9
+    own = _curves(rng, 8, 12, d)
+    pooled = own * 2.0
+    vol, guide, _ = volume_inputs(pooled, own, rng.normal(0, 1, (8, 12, 3)).astype(np.float32))
+    x = np.linspace(1.4, 0.1, d)
+    graph = VolumeDecoderGraph(VolumeNet(VolumeNetConfig(candidates=d)), x)
+    with torch.no_grad():
+        mean, _, logits = graph(torch.as_tensor(vol[None]), torch.as_tensor(guide[None]))
+    np.testing.assert_allclose(logits[0].numpy(), -vol[0], atol=1e-5)
+    want, _ = posterior(-vol[0].astype(np.float64), x, axis=0)
+    np.testing.assert_allclose(mean[0].numpy(), want, rtol=1e-5)
+
+
+def test_two_hot_target_has_the_target_as_its_expectation():
+    from bmi_sdk.nn.volume_train import two_hot
+
+    x = torch.tensor(np.linspace(1.4, 0.1, 11), dtype=torch.float32)
+    t = torch.tensor([[[0.1, 0.37], [1.4, 0.9]]], dtype=torch.float32)
+    w = two_hot(t, x)
+    assert torch.allclose(w.sum(dim=1), torch.ones_like(t))
+    assert torch.allclose((w * x.view(1, -1, 1, 1)).sum(dim=1), t, atol=1e-6)
+    assert (w >= 0).all() and ((w > 0).sum(dim=1) <= 2).all()
+
+
+def test_export_round_trips_through_onnxruntime(tmp_path):
+    from bmi_sdk.nn.volume_net import VolumeNet, VolumeNetConfig
+    from bmi_sdk.nn.volume_train import export
+
+    ort = pytest.importorskip("onnxruntime")
+    torch.manual_seed(0)
+    net = VolumeNet(VolumeNetConfig(candidates=7, width=4))
+    with torch.no_grad():  # a trained-looking head: the residual is not zero
+        net.head.weight.normal_(0, 0.1)
+    x = np.linspace(1.4, 0.1, 7)
+    path = export(net, x, tmp_path / "ev.onnx")
+    rng = np.random.default_rng(4)
+    vol, guide, _ = volume_inputs(_curves(rng, 12, 20, 7) * 3, _curves(rng, 12, 20, 7), rng.normal(0, 1, (12, 20, 3)))
+    out = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
+        None, {"volume": vol[None], "guide": guide[None]})
+    with torch.no_grad():
+        logits = net(torch.as_tensor(vol[None]), torch.as_tensor(guide[None]))[0].numpy()
+    np.testing.assert_allclose(out[2][0], logits, atol=1e-4)
+    assert not np.allclose(logits, -vol[0], atol=1e-3)
