@@ -111,6 +111,9 @@ def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, ca
                           col0=col0, cfa=frame.cfa, progress=progress, noise_profile=frame.noise_profile, aif=False)
     timings["evidence_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
+    if result.grid_pooled is None or result.grid_curves is None or result.grid_colour is None:
+        raise ModelError(f"evidence network {network.path.name}: its classical_config decodes without pooling "
+                         "(pool_sigma_px = 0), so there is no volume to read")
     volume, guide, grid_valid = volume_inputs(result.grid_pooled, result.grid_curves, result.grid_colour)
     inv_grid, sig_grid = network.read(volume, guide)
     inv_grid = np.where(grid_valid, inv_grid, np.nan)
