@@ -99,18 +99,24 @@ def test_an_unwritable_out_is_refused_before_inference(model, dng, tmp_path, mon
 def test_a_point_cloud_step_or_thread_count_below_one_is_refused_before_inference(model, dng, tmp_path, monkeypatch,
                                                                                     capsys):
     """`--ply-step 0` failed only when the point cloud was written, after the whole decode; `--threads -2` was
-    handed to onnxruntime as it was. Both are refused first, for every decoder, and nothing is written."""
+    handed to onnxruntime as it was. Both are refused first (argparse, exit 2; ``run_job`` for the API), for every
+    decoder, and nothing is written."""
     import bmi_sdk.runtime.job as job
 
     def must_not_run(*args, **kw):
         raise AssertionError("inference ran before its options were checked")
     monkeypatch.setattr(job, "open_decoder", must_not_run)
     for decoder in ("cnn", "classical", "learned"):
-        for flags, named in ((["--ply-step", "0"], "ply_step_px"), (["--threads", "-2"], "threads")):
+        for flags, named in ((["--ply-step", "0"], "--ply-step"), (["--threads", "-2"], "--threads")):
             model_flags = ["--model", str(model)] if decoder == "cnn" else []
-            code = main(["infer", str(dng), "--out", str(tmp_path / "o"), "--decoder", decoder, *model_flags, *flags])
+            with pytest.raises(SystemExit) as refused:
+                main(["infer", str(dng), "--out", str(tmp_path / "o"), "--decoder", decoder, *model_flags, *flags])
             err = capsys.readouterr().err
-            assert code == 1 and named in err and "Traceback" not in err, (decoder, flags, err)
+            assert refused.value.code == 2 and named in err and "Traceback" not in err, (decoder, flags, err)
+            assert not (tmp_path / "o").exists()
+        for option, value in (("ply_step_px", 0), ("threads", -2)):
+            with pytest.raises(ValueError, match=option):
+                run_job(dng, tmp_path / "o", decoder=decoder, **{option: value})
             assert not (tmp_path / "o").exists()
 
 

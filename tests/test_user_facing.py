@@ -178,7 +178,7 @@ def test_cli_depth_range(model_path, dng, tmp_path, bmi):
     assert (tmp_path / "o" / "depth_preview.png").is_file() and (tmp_path / "o" / "depth_z.npy").is_file()
     for bad in ("10,0.7", "0.7", "near,far"):
         run = bmi("infer", dng, "--out", tmp_path / "x", "--model", model_path, "--depth-range", bad, check=False)
-        assert run.returncode == 1 and "--depth-range" in run.stderr, (bad, run.stderr)
+        assert run.returncode == 2 and "--depth-range" in run.stderr, (bad, run.stderr)
         assert not (tmp_path / "x").exists()
 
 

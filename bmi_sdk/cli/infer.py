@@ -2,6 +2,25 @@
 
 from __future__ import annotations
 
+import argparse
+
+from ._options import OptionError, number, whole
+
+
+def window_px(text: str) -> int:
+    """``--window-px``: a whole multiple of 4, at least 16 (``decode.ClassicalConfig``'s rule)."""
+    value = whole(16)(text)
+    if value % 4:
+        raise argparse.ArgumentTypeError(f"{text} is not a multiple of 4; valid: [16, inf), a multiple of 4")
+    return value
+
+
+def noise_sigma(text: str) -> float:
+    """``--noise-sigma``: a raw noise σ in (0, ``decode.classical.NOISE_SIGMA_MAX``] (units of full scale)."""
+    from bmi_sdk.decode.classical import NOISE_SIGMA_MAX
+
+    return number(0, NOISE_SIGMA_MAX, lo_open=True)(text)
+
 
 def depth_range(text: str) -> tuple[float, float]:
     """``--depth-range NEAR,FAR`` (metres) → (near, far), refused unless 0 < NEAR < FAR."""
@@ -9,24 +28,25 @@ def depth_range(text: str) -> tuple[float, float]:
 
     parts = text.split(",")
     if len(parts) != 2:
-        raise ValueError(f"--depth-range wants NEAR,FAR in metres (e.g. 0.7,10), got {text!r}")
+        raise OptionError(f"--depth-range wants NEAR,FAR in metres (e.g. 0.7,10), got {text!r}", "--depth-range")
     try:
         return check_depth_range(parts)
     except ValueError as exc:
-        raise ValueError(f"--depth-range {text}: {exc}") from None
+        raise OptionError(f"--depth-range {text}: {exc}", "--depth-range") from None
 
 
 CLASSICAL_FLAGS = {
-    "window_px": (int, "evidence window (px)"),
-    "stride_px": (int, "window stride (px)"),
-    "candidates": (int, "depth candidates spaced in 1/d, snapped to the kernel grid"),
-    "noise_sigma": (float, "a constant raw noise σ in units of full scale (default: the frame's NoiseProfile tag, "
-                           "the camera's photon transfer; estimated from the picture when the file has none)"),
-    "pool_sigma_px": (float, "radius over which each window's evidence pools its like-coloured neighbours' (0: each "
+    "window_px": (window_px, "evidence window (px), a multiple of 4 >= 16"),
+    "stride_px": (whole(2, even=True), "window stride (px), even >= 2"),
+    "candidates": (whole(3, 1000), "depth candidates spaced in 1/d, snapped to the kernel grid (3 to 1000)"),
+    "noise_sigma": (noise_sigma, "a constant raw noise σ in units of full scale, > 0 and at most half the range "
+                                 "(default: the frame's NoiseProfile tag, the camera's photon transfer; estimated from "
+                                 "the picture when the file has none)"),
+    "pool_sigma_px": (number(0), "radius over which each window's evidence pools its like-coloured neighbours' (0: each "
                              "window alone; docs/decoder.md, method step 4b)"),
 }
 """The ``decode.ClassicalConfig`` fields ``bmi infer --decoder classical`` takes as flags (``--window-px`` …): their
-type and help; each default is the dataclass's own. Any other decoder refuses a changed value."""
+checked type (``_options``: a bad value is refused by argparse, naming the option and the valid range) and help; each default is the dataclass's own. Any other decoder refuses a changed value."""
 
 WINDOW_KNOBS = ("window_px", "stride_px", "candidates")
 """The classical decoder's window grid options, which ``bmi eval`` takes too (``add_classical_arguments``)."""
@@ -47,7 +67,7 @@ def add_classical_arguments(p, knobs=tuple(CLASSICAL_FLAGS)) -> None:
     for knob in knobs:
         kind, text = CLASSICAL_FLAGS[knob]
         shown = "" if defaults[knob] is None else f" (default {defaults[knob]:g})"
-        p.add_argument(f"--{knob.replace('_', '-')}", type=kind, default=defaults[knob],
+        p.add_argument(f"--{knob.replace('_', '-')}", type=kind, default=defaults[knob], metavar=knob.upper(),
                        help=f"classical: {text}{shown}")
 
 
@@ -72,6 +92,9 @@ def _run(args) -> int:
 
     if args.depth_range is not None:
         args.depth_range = depth_range(args.depth_range)
+    if args.overlap_px is not None and args.overlap_px >= args.tile_px:
+        raise OptionError(f"--overlap-px {args.overlap_px} must be less than --tile-px {args.tile_px} (the tiles "
+                          "must advance)", "--overlap-px")
     args.decoder = decoder_kind(args.decoder, args.model)
     takes_config = DECODERS[args.decoder].takes_config
     knobs = changed_classical_flags(args)
@@ -162,17 +185,18 @@ def register(subparsers) -> None:
     p.add_argument("--calibration", default=None, metavar="FILE",
                    help="calibration file from bmi calibrate (validated once; the camera's fitted errors: its "
                         "kernels and rays)")
-    p.add_argument("--tile-px", type=int, default=512, help="tile size, a multiple of 4 (default 512)")
-    p.add_argument("--overlap-px", type=int, default=None,
+    p.add_argument("--tile-px", type=whole(4), default=512, help="tile size, a multiple of 4 (default 512)")
+    p.add_argument("--overlap-px", type=whole(0), default=None,
                    help="tile overlap (default: the model's receptive field, from its manifest: tiled equals untiled)")
     p.add_argument("--provider", default=None, metavar="NAME",
                    help="onnxruntime execution provider for the network, e.g. cpu, cuda, tensorrt or "
                         "CUDAExecutionProvider (default: the best available: TensorRT, CUDA, then CPU)")
-    p.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: all cores)")
+    p.add_argument("--threads", type=whole(1, 1024), default=None,
+                   help="onnxruntime intra-op threads, 1 to 1024 (default: all cores)")
     p.add_argument("--depth-range", default=None, metavar="NEAR,FAR",
                    help="fixed range (metres) of depth_preview.png's colours, e.g. 0.7,10, so that frames compare "
                         "(default: each frame's 1st-99th percentile)")
-    p.add_argument("--ply-step", type=int, default=1, help="one point per N×N pixels in points.ply (default 1)")
+    p.add_argument("--ply-step", type=whole(1), default=1, help="one point per N×N pixels in points.ply (default 1)")
     p.add_argument("--decoder", choices=tuple(DECODERS), default=None,
                    help=f"learned: the classical evidence refined by a network (learned.onnx), with a depth 1σ; "
                         f"classical: depth evidence from the camera's own (calibrated) kernels, no network, with a "

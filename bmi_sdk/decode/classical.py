@@ -86,6 +86,12 @@ def frame_noise(config: "ClassicalConfig", planes: np.ndarray, profile: NoisePro
     return NoiseProfile(0.0, max(estimate_noise_sigma(planes), 1e-4) ** 2), "estimated"
 
 
+NOISE_SIGMA_MAX = 0.5
+"""The largest constant raw noise σ (units of full scale) a ``ClassicalConfig`` takes: a σ of half the sensor's
+range drowns any signal it can hold, and every window then reads its prior: one depth everywhere, every pixel
+marked valid."""
+
+
 @dataclass(frozen=True)
 class ClassicalConfig:
     """Accuracy knobs of the classical decoder (error against run time: ``bmi bench decoder``)."""
@@ -137,8 +143,9 @@ class ClassicalConfig:
             raise ValueError(f"window_model must be one of {WINDOW_MODELS}, got {self.window_model!r}")
         if self.noise_model not in NOISE_MODELS:
             raise ValueError(f"noise_model must be one of {NOISE_MODELS}, got {self.noise_model!r}")
-        if self.noise_sigma is not None and not self.noise_sigma > 0:
-            raise ValueError(f"noise_sigma must be > 0, got {self.noise_sigma}")
+        if self.noise_sigma is not None and not 0 < self.noise_sigma <= NOISE_SIGMA_MAX:
+            raise ValueError(f"noise_sigma must lie in (0, {NOISE_SIGMA_MAX}] (units of full scale), "
+                             f"got {self.noise_sigma}")
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -8,17 +8,80 @@ is trained, so a calibration reaches the decoder as soon as its file is read.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import os
+from dataclasses import dataclass, replace
 
 from ..built_camera import BuiltCamera
 from ..decode import ClassicalConfig, ClassicalDecoder
+from ..memory_budget import check_allocation, limit_bytes
 from .decoders import DecodedFrame
 from .pipeline import check_decodable
+
+MEMORY_KNOBS = ("window_px", "stride_px", "candidates", "pool_sigma_px")
+"""The ``ClassicalConfig`` fields that size the decoder's arrays (``classical_peak_bytes``)."""
+
+
+def classical_peak_bytes(config: ClassicalConfig, height_px: int = 0, width_px: int = 0) -> float:
+    """Estimated peak bytes of a classical decode of an H × W frame (0 × 0: what opening the decoder allocates).
+
+    The terms follow ``decode.ClassicalDecoder``'s arrays: the taper (n² float64, n = window_px / 2), the blocks
+    read at once (``block_windows``² windows of n² float32 each, copied, tapered and transformed, on every
+    thread), the kernel models (4 planes × slopes × candidates × n × (n/2 + 1) float32), the reflected planes
+    (4 × (H/2 + n + stride/2) × (W/2 + n + stride/2) float32, stacked), the window grid's curves and pooled curves
+    (grid × candidates float32, five copies while pooling), the pooling's padded grid (reach 2 pool_sigma / stride
+    windows each side) and the per-pixel maps (~40 bytes a pixel)."""
+    n = config.window_px // 2
+    m = n // 2 + 1
+    depths = config.candidates
+    threads = config.threads or os.cpu_count() or 1
+    taper = 3.0 * 8 * n * n
+    blocks = threads * 4 * config.block_windows ** 2 * (3 * 4 * n * n + 8 * n * m)
+    models = 3 * 4 * len(config.slopes) * depths * n * m * 4
+    sp = config.stride_px // 2
+    planes = 2 * 4 * (height_px // 2 + n + sp) * (width_px // 2 + n + sp) * 4
+    rows, cols = -(-height_px // config.stride_px) + 1, -(-width_px // config.stride_px) + 1
+    grid = rows * cols * (64 + 5 * 4 * depths)
+    reach = 2.0 * config.pool_sigma_px / config.stride_px
+    pool = (rows + 2 * reach + 1) * (cols + 2 * reach + 1) * (depths + 4) * 4 if config.pool_sigma_px > 0 else 0
+    pixels = 40 * height_px * width_px
+    return float(taper + blocks + models + planes + grid + pool + pixels)
+
+
+def check_classical_memory(config: ClassicalConfig, height_px: int = 0, width_px: int = 0) -> None:
+    """Refuse, before any allocation, a ``config`` whose decode of an H × W frame (0 × 0: the decoder's opening)
+    would not fit the memory limit (``memory_budget``): ``MemoryBudgetError`` naming the option (``--window-px``
+    …), its value, the estimate and the limit. Each of ``MEMORY_KNOBS`` that differs from the default is judged
+    with the others at theirs, then all together (naming the one that asks the most); a default decode is
+    never refused here."""
+    defaults = replace(ClassicalConfig(), threads=config.threads)
+    base = classical_peak_bytes(defaults, height_px, width_px)
+    alone = {}
+    for name in MEMORY_KNOBS:
+        value = getattr(config, name)
+        if value != getattr(defaults, name):
+            alone[name] = classical_peak_bytes(replace(defaults, **{name: value}), height_px, width_px)
+    frame = f" on a {height_px}×{width_px} px frame" if height_px else ""
+    for name, estimate in alone.items():
+        if estimate > base:
+            check_allocation(_flag(name), getattr(config, name), estimate,
+                             f"lower it{frame} (default {getattr(defaults, name):g})")
+    total = classical_peak_bytes(config, height_px, width_px)
+    grows = {name: estimate for name, estimate in alone.items() if estimate > base}
+    if grows and total > limit_bytes()[0]:
+        name = max(grows, key=lambda k: grows[k])
+        check_allocation(_flag(name), getattr(config, name), total,
+                         f"with {', '.join(f'{_flag(k)} {getattr(config, k)}' for k in grows)}{frame}; lower one")
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
 
 
 def classical_decoder(camera: BuiltCamera, config: ClassicalConfig = ClassicalConfig()) -> ClassicalDecoder:
     """A decoder over ``camera``'s kernels at ``config.candidates`` depths spaced in 1/d (a calibrated camera's exact
-    kernels kept in the disk cache: its next frame or run reads them)."""
+    kernels kept in the disk cache: its next frame or run reads them); refused first when its arrays would not fit
+    in memory (``check_classical_memory``)."""
+    check_classical_memory(config)
     return ClassicalDecoder.for_psf_map(camera.psf_map(disk_cache=True), config)
 
 
@@ -79,6 +142,7 @@ def decode_frame(decoder: ClassicalDecoder, frame, camera: BuiltCamera, progress
     """Decode a ``devices.RawFrame`` taken by ``camera`` (refused, naming why, when it cannot be). The result's
     ``parts["classical"]`` is the decoder's whole ``decode.DecodeResult`` (window grids, evidence)."""
     check_decodable(frame, camera.lens_name, "the decoder's camera has", "the classical decoder")
+    check_classical_memory(decoder.config, *frame.data.shape)
     out = decoder.decode(frame.data, frame.black_level_dn, frame.white_level_dn, frame.geometry,
                          row0=frame.roi.y_px, col0=frame.roi.x_px, cfa=frame.cfa, progress=progress,
                          noise_profile=frame.noise_profile)

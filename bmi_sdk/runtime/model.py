@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..memory_budget import check_fits
+from ..memory_budget import check_allocation
 from ..model_io import INPUT_NAME
 from ..model_manifest import ModelError, model_decoder, verify_model
 
@@ -147,8 +147,7 @@ class Model:
             tile_px = fixed[0]
         if tile_px is None or tile_px <= 0 or tile_px % multiple:
             raise ValueError(f"tile_px must be a positive multiple of {multiple}, got {tile_px}")
-        check_fits(TILE_BYTES_PER_PX * tile_px * tile_px, f"a {tile_px}×{tile_px} px inference tile",
-                   "lower --tile-px (512 is the default)")
+        check_allocation("--tile-px", tile_px, TILE_BYTES_PER_PX * tile_px * tile_px, "lower it (default 512)")
         self.tile_px = int(tile_px)
         self.threads = int(threads or os.cpu_count() or 1)
         self.optimization = optimization

@@ -72,10 +72,12 @@ class TilePlan:
         half_rf = round_up(receptive_field_px / 2, step_px)
         if overlap_px is None:
             overlap_px = 2 * half_rf
-        overlap_px = round_up(overlap_px, step_px)
+        if overlap_px < 0:  # checked as given: rounding first would report -10 as -8
+            raise ValueError(f"overlap_px must be >= 0, got {overlap_px}")
+        given_px, overlap_px = overlap_px, round_up(overlap_px, step_px)
         context = min(half_rf, overlap_px // 2)
         if overlap_px >= tile_px:
-            raise ValueError(f"tile_px={tile_px} is too small for an overlap of {overlap_px} px "
+            raise ValueError(f"tile_px={tile_px} is too small for an overlap of {given_px} px "
                              f"(receptive field {receptive_field_px} px)")
         return cls(height_px, width_px, tile_px, overlap_px, context, half_rf, step_px)
 

@@ -1,0 +1,110 @@
+"""`bmi infer` and its Python API under hostile input (issue 37): option values that would exhaust memory or that no
+decoder can use, concurrent runs into one folder, left-over staging folders, frames whose sidecar lies, and a
+summary a user can read."""
+
+from __future__ import annotations
+
+import pytest
+
+from bmi_sdk.cli import main
+from devices import Roi, open_camera
+from firmware_sim import FirmwareDevice, make_source
+
+ROI = Roi(2980, 2240, 96, 64)
+
+
+@pytest.fixture(scope="module")
+def dng(tmp_path_factory):
+    path = tmp_path_factory.mktemp("raw") / "frame.dng"
+    with open_camera("sim://", device=FirmwareDevice(source=make_source("chart"), seed=1)) as cam:
+        cam.settings.roi = ROI
+        cam.capture().save_dng(path)
+    return path
+
+
+@pytest.fixture
+def no_decode(monkeypatch):
+    """Fail the test if any frame is decoded: every refusal here comes before the decode."""
+    import bmi_sdk.decode.classical as classical
+    import bmi_sdk.runtime.tiling as tiling
+
+    def must_not_run(*args, **kw):
+        raise AssertionError("the frame was decoded before the option was refused")
+    monkeypatch.setattr(classical.ClassicalDecoder, "decode", must_not_run)
+    monkeypatch.setattr(tiling.TilePlan, "tiles", must_not_run)
+
+
+def _infer(capsys, *args) -> tuple[int, str]:
+    try:
+        code = main(["infer", *map(str, args), "--quiet"])
+    except SystemExit as exc:  # argparse's refusal of a value its type rejects
+        code = exc.code
+    return code, capsys.readouterr().err
+
+
+NUMERIC_OPTIONS = {"--tile-px": "cnn", "--overlap-px": "cnn", "--threads": "cnn", "--ply-step": "cnn",
+                   "--window-px": "classical", "--stride-px": "classical", "--candidates": "classical",
+                   "--noise-sigma": "classical", "--pool-sigma-px": "classical"}
+HOSTILE = ("100000", "1e6", "-10", "0", "nan", "inf")
+ACCEPTED = {("--overlap-px", "0"), ("--pool-sigma-px", "0"), ("--ply-step", "100000")}
+"""Hostile-looking values that are valid: no overlap, no pooling, one point in the point cloud."""
+
+
+@pytest.mark.parametrize("option", NUMERIC_OPTIONS)
+def test_every_numeric_option_refuses_huge_negative_zero_nan_and_inf_in_one_line_naming_it(option, dng, tmp_path,
+                                                                                           capsys, no_decode):
+    """--window-px 100000 allocated 23.5 GB and was OOM-killed; --stride-px 100000 and --pool-sigma-px 1e6 ended
+    in numpy tracebacks; --noise-sigma 1e9 decoded to one depth everywhere. Each is refused before the decode,
+    exit 2, its last line naming the option and its value, and nothing is left in --out."""
+    for value in HOSTILE:
+        if (option, value) in ACCEPTED:
+            continue
+        out = tmp_path / "out"
+        code, err = _infer(capsys, dng, "--out", out, "--decoder", NUMERIC_OPTIONS[option], option, value)
+        last = err.strip().splitlines()[-1] if err.strip() else ""
+        assert code == 2 and option in last and "Traceback" not in err, (option, value, err)
+        assert not out.exists(), (option, value)
+
+
+def test_a_memory_refusal_names_the_option_its_value_the_estimate_and_the_limit(dng, tmp_path, capsys, no_decode):
+    for option in ("--window-px", "--stride-px", "--pool-sigma-px"):
+        code, err = _infer(capsys, dng, "--out", tmp_path / "o", "--decoder", "classical", option, "100000")
+        assert code == 2 and len(err.strip().splitlines()) == 1, err
+        assert f"{option} 100000" in err and "GiB, more than the" in err and "GiB limit" in err, err
+
+
+def test_the_memory_estimate_refuses_no_default_decode_and_follows_each_option():
+    from dataclasses import replace
+
+    from bmi_sdk.decode import ClassicalConfig
+    from bmi_sdk.memory_budget import MemoryBudgetError
+    from bmi_sdk.runtime.classical import check_classical_memory, classical_peak_bytes
+
+    default = ClassicalConfig()
+    check_classical_memory(default, 4500, 6000)  # a full frame with the defaults
+    for name, bigger in (("window_px", 128), ("stride_px", 4), ("candidates", 96), ("pool_sigma_px", 200.0)):
+        grown = replace(default, **{name: bigger})
+        assert classical_peak_bytes(grown, 4500, 6000) > classical_peak_bytes(default, 4500, 6000), name
+    with pytest.raises(MemoryBudgetError, match=r"--window-px 100000 needs about") as caught:
+        check_classical_memory(replace(default, window_px=100000))  # before the decoder allocates its taper
+    assert caught.value.option == "--window-px"
+
+
+def test_overlap_is_reported_as_given(capsys, dng, tmp_path):
+    """--overlap-px -10 was reported as -8 (rounded up to the model's step first)."""
+    from bmi_sdk.runtime.tiling import TilePlan
+
+    with pytest.raises(ValueError, match="got -10"):
+        TilePlan.for_model(64, 96, 64, 20, step_px=4, overlap_px=-10)
+    with pytest.raises(ValueError, match="overlap of 62 px"):
+        TilePlan.for_model(64, 96, 64, 20, step_px=4, overlap_px=62)
+    code, err = _infer(capsys, dng, "--out", tmp_path / "o", "--overlap-px", "-10")
+    assert code == 2 and "--overlap-px: -10 is outside" in err
+
+
+def test_noise_sigma_beyond_half_the_range_is_refused_in_the_api_too():
+    from bmi_sdk.decode import ClassicalConfig
+
+    with pytest.raises(ValueError, match=r"noise_sigma must lie in \(0, 0.5\].*got 1000000000.0"):
+        ClassicalConfig(noise_sigma=1e9)
+    ClassicalConfig(noise_sigma=0.5)
