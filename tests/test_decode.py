@@ -522,6 +522,7 @@ def _scene_window():
         NoiseProfile.additive(0.005)
 
 
+@pytest.mark.slow  # the exhaustive decode is the reference; the default decoder's accuracy is tested on its own
 def test_the_coarse_to_fine_pass_reads_what_scoring_every_candidate_reads_with_fewer_evaluations():
     """A procedural scene from 0.7 to 10 m: the coarse pass (every 4th candidate) and a fine pass over each window's
     coarse best ± 4 that reuses the coarse scores read the windows' depths as scoring every candidate does (the
