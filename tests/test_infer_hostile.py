@@ -108,3 +108,85 @@ def test_noise_sigma_beyond_half_the_range_is_refused_in_the_api_too():
     with pytest.raises(ValueError, match=r"noise_sigma must lie in \(0, 0.5\].*got 1000000000.0"):
         ClassicalConfig(noise_sigma=1e9)
     ClassicalConfig(noise_sigma=0.5)
+
+
+def _files(folder):
+    return {p.name: p.read_bytes() for p in folder.iterdir()}
+
+
+def test_a_second_run_into_a_folder_being_written_is_refused_not_silently_replaced(passthrough_model, dng, tmp_path,
+                                                                                   capsys):
+    """Two `bmi infer … --out SAME` started together both exited 0 and the first set was replaced. A run holds
+    the folder's lock until its set is in place; another run into it is refused, naming the holder."""
+    from bmi_sdk.runtime import run_job
+    from bmi_sdk.runtime.output_set import OutputFolderBusyError, OutputSet
+
+    out = tmp_path / "out"
+    with OutputSet(out) as first:
+        with pytest.raises(OutputFolderBusyError, match=r"being written by another run \(process \d+\)"):
+            run_job(dng, out, model_path=passthrough_model, tile_px=64, threads=1, overwrite=True)
+        code, err = _infer(capsys, dng, "--out", out, "--model", passthrough_model, "--tile-px", 64, "--overwrite")
+        assert code == 1 and "being written by another run" in err and len(err.strip().splitlines()) == 1, err
+        assert sorted(p.name for p in out.iterdir()) == sorted([first.staging.name, ".bmi-infer.lock"])
+    assert not out.exists()  # the first run made the folder and wrote nothing: none is left, lock file included
+
+
+def test_a_killed_run_s_lock_is_taken_over_and_its_staging_folder_removed_with_a_warning(passthrough_model, dng,
+                                                                                        tmp_path):
+    """A run killed by SIGKILL or the OOM killer left a `.bmi-infer-*` folder that no later run removed."""
+    import subprocess
+    import sys
+    import warnings
+
+    from bmi_sdk.runtime import run_job
+    from bmi_sdk.runtime.output_set import LeftoverStagingWarning, OutputFolderBusyError
+
+    out = tmp_path / "out"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\n"
+                               "from bmi_sdk.runtime.output_set import OutputSet\n"
+                               "s = OutputSet(sys.argv[1]).__enter__()\n"
+                               "(s.staging / 'aif.npy').write_bytes(b'half')\n"
+                               "print(s.staging.name, flush=True)\n"
+                               "time.sleep(600)\n", str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        staging = holder.stdout.readline().strip()
+        assert staging.startswith(".bmi-infer-")
+        with pytest.raises(OutputFolderBusyError, match=f"process {holder.pid}"):
+            run_job(dng, out, model_path=passthrough_model, tile_px=64, threads=1)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert (out / staging).is_dir() and (out / ".bmi-infer.lock").is_file()  # what a SIGKILL leaves
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _, report = run_job(dng, out, model_path=passthrough_model, tile_px=64, threads=1)
+    assert any(issubclass(w.category, LeftoverStagingWarning) and staging in str(w.message) for w in caught)
+    assert report["removed_staging"] == [staging]
+    assert not any(p.name.startswith(".bmi-infer") for p in out.iterdir())  # no staging folder, no lock file
+
+
+def test_write_frame_outputs_refuses_an_earlier_run_s_folder_unless_overwrite_and_then_replaces_the_set(
+        passthrough_model, dng, tmp_path):
+    """The Python API wrote into an earlier run's folder file by file: a cnn depth.npy beside a classical
+    depth_sigma.npy, with a report saying classical."""
+    import json
+
+    import numpy as np
+
+    from bmi_sdk.runtime import Model, infer_frame, run_job, write_frame_outputs
+    from devices import load_raw
+
+    out = tmp_path / "out"
+    decoded, _ = run_job(dng, out, decoder="classical", threads=1)
+    assert (out / "depth_sigma.npy").is_file()
+    before = _files(out)
+    frame = load_raw(dng)
+    result = infer_frame(Model(passthrough_model, tile_px=64, threads=1), frame)
+    with pytest.raises(FileExistsError, match="earlier run's results.*overwrite=True"):
+        write_frame_outputs(out, result, frame)
+    assert _files(out) == before
+    written = write_frame_outputs(out, result, frame, overwrite=True)
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted(written["files"]) and "depth_sigma.npy" not in names and "report.json" not in names
+    assert np.array_equal(np.load(out / "depth.npy"), result.depth_m, equal_nan=True)
+    assert json.loads(json.dumps(written["files"]))["depth.npy"] == str(out / "depth.npy")

@@ -15,7 +15,7 @@ from ..built_camera import BuiltCamera
 from ..resources import peak_rss_mb
 from .decoders import DecodedFrame, DecoderOptions, decoder_kind, open_decoder
 from .output_set import OutputSet
-from .outputs import check_depth_range, write_frame_outputs, write_report
+from .outputs import check_depth_range, write_frame_files, write_report
 from .pipeline import frame_lens_name
 from .provenance import input_path_of, provenance
 from .quality import FrameQualityWarning, quality_gate
@@ -45,7 +45,7 @@ def _write_and_report(out_dir, result, frame, quality, timings: dict, head: dict
     rays = camera.ray_geometry()
     timings["ray_geometry_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    written = write_frame_outputs(out_dir, result, frame, geometry=rays, ply_step_px=ply_step_px,
+    written = write_frame_files(out_dir, result, frame, geometry=rays, ply_step_px=ply_step_px,
                                   depth_range_m=depth_range_m)
     timings["write_outputs_s"] = time.perf_counter() - t0
     return {
@@ -161,14 +161,16 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = Fals
         t0 = time.perf_counter()
         decoded = decoder.decode(frame, progress=progress)
         timings["decode_s"] = time.perf_counter() - t0
-        report = _write_and_report(output_set.staging, decoded, frame, quality, timings,
+        report = _write_and_report(output_set.folder, decoded, frame, quality, timings,
                                    {**decoder.head(), "calibration_file": identity}, ply_step_px, depth_range_m,
                                    camera)
         provider = report["model"]["execution_provider"] if "model" in report else None
         source = input_path_of(frame_or_path) or (os.path.abspath(input_path) if input_path is not None else None)
         report.update(provenance(source, provider))
         report["files"] = {name: os.path.join(out_dir, name) for name in report["files"]}
-        write_report(output_set.staging, report)  # with the paths the files will have
+        if output_set.removed_staging:
+            report["removed_staging"] = output_set.removed_staging
+        write_report(output_set.folder, report)  # with the paths the files will have
         output_set.commit()
     return decoded, report
 

@@ -14,14 +14,23 @@ file into ``OUT`` and renames ``report.json`` last. So:
 
 It also refuses, before any work is done, an ``OUT`` that holds an earlier
 run's results (unless ``overwrite``) or that cannot be written to.
+
+One run at a time writes into an ``OUT``: a run holds an exclusive lock (``fcntl.flock``) on ``OUT/.bmi-infer.lock``
+from before its work until its set is in place, and a second run into the same folder is refused
+(``OutputFolderBusyError``, naming the process that holds it) instead of replacing the first one's set. The
+kernel drops the lock of a process that dies (SIGKILL, the OOM killer), so a dead run's lock is taken over. A
+run that holds the lock also removes the staging folders such runs leave behind (no other run into ``OUT`` can
+be writing them) and warns that it did (``LeftoverStagingWarning``).
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
 import shutil
 import tempfile
+import warnings
 from pathlib import Path
 
 from .outputs import OUTPUT_NAMES, SIGMA_OUTPUT_NAMES
@@ -30,6 +39,46 @@ REPORT_NAME = "report.json"
 RESULT_NAMES = (*OUTPUT_NAMES, *SIGMA_OUTPUT_NAMES, REPORT_NAME)
 """Every file a run may leave in ``OUT`` (``outputs.write_outputs``' names, whichever decoder ran)."""
 STAGING_PREFIX = ".bmi-infer-"
+LOCK_NAME = ".bmi-infer.lock"
+
+
+class OutputFolderBusyError(FileExistsError):
+    """Another running process is writing its outputs into the same folder."""
+
+
+class LeftoverStagingWarning(UserWarning):
+    """Staging folders of an interrupted run (killed before it could clean up) were found and removed."""
+
+
+def _lock(path: Path) -> int:
+    """An open descriptor of ``path`` holding its exclusive ``flock``, with this process's id written in it.
+
+    Taken on the file that is at ``path`` when the lock is granted: a holder unlinks the file as it lets go, so a
+    lock won on a file unlinked in between is dropped and tried again on the new one."""
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            raise OutputFolderBusyError(f"{path.parent} is being written by another run (process {holder}); "
+                                        "wait for it to finish, or choose another folder") from None
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(path))
+        except FileNotFoundError:
+            same = False
+        if same:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            return fd
+        os.close(fd)
+
+
+def _unlock(path: Path, fd: int) -> None:
+    with contextlib.suppress(FileNotFoundError):
+        path.unlink()  # while still holding the lock: a waiting run then locks a new file, never this one
+    os.close(fd)
 
 
 class OutputSet:
@@ -40,22 +89,59 @@ class OutputSet:
         self.overwrite = overwrite
         self.staging: Path | None = None
         self._created = False  # this run made out_dir: a run that fails before commit() removes it again
+        self._lock_fd: int | None = None
+        self.removed_staging: list[str] = []  # staging folders of interrupted runs removed by this one
         if self.out_dir.exists() and not self.out_dir.is_dir():
             raise NotADirectoryError(f"output folder {self.out_dir} is a file")
+        self._refuse_earlier()
+
+    def _refuse_earlier(self) -> None:
         earlier = [n for n in RESULT_NAMES if (self.out_dir / n).exists()]
-        if earlier and not overwrite:
+        if earlier and not self.overwrite:
             raise FileExistsError(f"{self.out_dir} holds an earlier run's results ({', '.join(earlier)}); "
                                   "pass --overwrite (overwrite=True) to replace them, or choose another folder")
 
     def __enter__(self) -> "OutputSet":
-        """Create the staging folder ``self.staging`` (this is the writability check)."""
+        """Lock ``out_dir`` for this run, remove what interrupted runs left there, and create the staging folder
+        ``self.staging`` (this is the writability check)."""
         try:
             self._created = not self.out_dir.exists()
             self.out_dir.mkdir(parents=True, exist_ok=True)
+            self._lock_fd = _lock(self.out_dir / LOCK_NAME)
+        except OutputFolderBusyError:
+            self._release()
+            raise
+        except OSError as exc:
+            self._release()
+            raise PermissionError(f"cannot write the outputs into {self.out_dir}: {exc.strerror or exc}") from None
+        try:
+            self._refuse_earlier()  # again, under the lock: a run may have finished since the first check
+            self._remove_leftover_staging()
             self.staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.out_dir))
         except OSError as exc:
+            self._release()
+            if isinstance(exc, FileExistsError):
+                raise
             raise PermissionError(f"cannot write the outputs into {self.out_dir}: {exc.strerror or exc}") from None
         return self
+
+    @property
+    def folder(self) -> Path:
+        """The staging folder this run writes its files into (inside the ``with`` block)."""
+        if self.staging is None:
+            raise RuntimeError("OutputSet.folder exists inside its with block only")
+        return self.staging
+
+    def _remove_leftover_staging(self) -> None:
+        """Remove the staging folders of runs killed before they cleaned up (SIGKILL, the OOM killer): with the lock
+        held no other run into ``out_dir`` is writing one."""
+        for leftover in sorted(self.out_dir.glob(STAGING_PREFIX + "*")):
+            if leftover.is_dir():
+                shutil.rmtree(leftover)
+                self.removed_staging.append(leftover.name)
+        if self.removed_staging:
+            warnings.warn(f"removed {len(self.removed_staging)} staging folder(s) an interrupted run left in "
+                          f"{self.out_dir}: {', '.join(self.removed_staging)}", LeftoverStagingWarning, stacklevel=3)
 
     def commit(self) -> dict[str, str]:
         """Move every staged file into ``out_dir``, ``report.json`` last; return {name: final path}."""
@@ -75,6 +161,13 @@ class OutputSet:
         if self.staging is not None:
             shutil.rmtree(self.staging, ignore_errors=True)
             self.staging = None
-        if self._created:  # failed before commit: leave no empty output folder behind
+        self._release()
+
+    def _release(self) -> None:
+        """Let go of the lock and remove an output folder this run created and left empty (failed before commit)."""
+        if self._lock_fd is not None:
+            _unlock(self.out_dir / LOCK_NAME, self._lock_fd)
+            self._lock_fd = None
+        if self._created:
             with contextlib.suppress(OSError):
                 self.out_dir.rmdir()

@@ -180,8 +180,8 @@ threads keep the sRGB temporaries of the AiF (~250 MB) beside one other file's."
 
 def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarray, geometry: SensorGeometry,
                   row0: int = 0, col0: int = 0, *, ply_step_px: int = 1, preview_px: int = 1500,
-                  depth_sigma_m: np.ndarray | None = None,
-                  depth_range_m: tuple[float, float] | None = None) -> dict:
+                  depth_sigma_m: np.ndarray | None = None, depth_range_m: tuple[float, float] | None = None,
+                  overwrite: bool = False) -> dict:
     """Write the image, depth and point-cloud files into ``out_dir``; return {name: path} and the point count.
 
     ``depth_range_m`` (near, far): the fixed range of ``depth_preview.png``'s colours (default: the
@@ -189,7 +189,28 @@ def write_outputs(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarr
 
     With ``depth_sigma_m`` (the decoder's 1σ of the range, metres) also ``depth_sigma.npy``,
     ``confidence.png`` (``confidence_image``) and a per-point ``sigma`` in the PLY.
+
+    The files are one set, as ``bmi infer`` writes them (``output_set.OutputSet``): a folder holding an earlier
+    run's results is refused (``FileExistsError``) unless ``overwrite``, which replaces that set whole (an
+    earlier file this call does not write, such as another decoder's ``depth_sigma.npy`` or its
+    ``report.json``, is removed); the folder changes only once every file is written.
     """
+    from .output_set import OutputSet
+
+    if depth_range_m is not None:
+        check_depth_range(depth_range_m)
+    with OutputSet(out_dir, overwrite=overwrite) as output_set:
+        written = write_files(output_set.folder, aif, depth_m, geometry, row0, col0, ply_step_px=ply_step_px,
+                              preview_px=preview_px, depth_sigma_m=depth_sigma_m, depth_range_m=depth_range_m)
+        output_set.commit()
+    return {**written, "files": {name: str(Path(out_dir) / name) for name in written["files"]}}
+
+
+def write_files(out_dir: str | os.PathLike, aif: np.ndarray, depth_m: np.ndarray, geometry: SensorGeometry,
+                row0: int = 0, col0: int = 0, *, ply_step_px: int = 1, preview_px: int = 1500,
+                depth_sigma_m: np.ndarray | None = None, depth_range_m: tuple[float, float] | None = None) -> dict:
+    """``write_outputs``' files written into ``out_dir`` as it is, each atomically but not as a set: for a folder
+    that is already one run's own (an ``OutputSet``'s staging folder)."""
     near_m, far_m = check_depth_range(depth_range_m) if depth_range_m is not None else (None, None)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -233,9 +254,23 @@ def write_frame_outputs(out_dir: str | os.PathLike, result, frame, geometry: Sen
                         **options) -> dict:
     """``write_outputs`` for a decoded frame: the ROI offset comes from ``frame`` (a ``devices.RawFrame``), the rays
     from ``geometry`` (default the frame's; a calibrated camera's traced rays), the AiF, range and (classical decoder)
-    range 1σ from ``result``. ``options``: ``write_outputs``'s keywords."""
-    return write_outputs(out_dir, result.aif, result.depth_m, geometry or frame.geometry, frame.roi.y_px,
-                         frame.roi.x_px, depth_sigma_m=getattr(result, "depth_sigma_m", None), **options)
+    range 1σ from ``result``. ``options``: ``write_outputs``'s keywords (``overwrite=True`` replaces an earlier
+    run's set)."""
+    arrays, depth_sigma_m = _frame_arrays(result, frame, geometry)
+    return write_outputs(out_dir, *arrays, depth_sigma_m=depth_sigma_m, **options)
+
+
+def write_frame_files(out_dir: str | os.PathLike, result, frame, geometry: SensorGeometry | None = None,
+                      **options) -> dict:
+    """``write_files`` for a decoded frame (``write_frame_outputs``' arguments): into a run's own staging folder."""
+    arrays, depth_sigma_m = _frame_arrays(result, frame, geometry)
+    return write_files(out_dir, *arrays, depth_sigma_m=depth_sigma_m, **options)
+
+
+def _frame_arrays(result, frame, geometry: SensorGeometry | None) -> tuple[tuple, np.ndarray | None]:
+    """(``write_outputs``' positional arguments, ``depth_sigma_m``) of a decoded frame."""
+    return ((result.aif, result.depth_m, geometry or frame.geometry, frame.roi.y_px, frame.roi.x_px),
+            getattr(result, "depth_sigma_m", None))
 
 
 def write_report(out_dir: str | os.PathLike, report: dict) -> Path:
