@@ -221,6 +221,8 @@ def load_raw(path, require_bmi: bool = True) -> RawFrame:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no raw file at {path}")
+    if path.stat().st_size == 0:  # LibRaw's own word for it is "Input/output error"
+        raise RawFileError(f"{path} is empty (0 bytes): not a DNG or any raw file")
     try:
         with rawpy.imread(str(path)) as raw:
             data = raw.raw_image_visible.copy()

@@ -4,16 +4,27 @@ Frames come back in file-name order through the same calls as a live camera
 (``start``/``grab``/``try_grab``/``capture``/``stop``). Settings are what the
 files recorded, so writing one raises ``ConfigurationError``. At the end of the
 folder ``grab`` raises ``GrabTimeoutError`` at once (``loop=True`` wraps around).
+
+A file that cannot be read as a BMI frame (junk, empty, truncated, another
+camera's) is skipped as a camera skips a corrupt readout: an
+``UnreadableFrameWarning`` names it and why, ``skipped`` lists it, and
+``stats["unreadable"]`` counts it; the frames around it still play. A folder
+with no readable frame at all is refused when opened.
 """
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Callable
 
 from .dng import load_raw
-from .errors import ConfigurationError, DeviceNotFoundError, GrabTimeoutError
+from .errors import ConfigurationError, DeviceNotFoundError, GrabTimeoutError, RawFileError
 from .frame import RawFrame
+
+
+class UnreadableFrameWarning(UserWarning):
+    """A replay folder's file could not be read as a BMI frame and was skipped (``ReplayCamera.skipped``)."""
 
 
 class ReplaySettings:
@@ -52,12 +63,36 @@ class ReplayCamera:
         self._next = 0
         self._streaming = False
         self._closed = False
-        first = load_raw(self.files[0])  # refuses a folder of foreign DNGs up front
+        self.skipped: list[tuple[Path, str]] = []  # (file, why) of every unreadable file met so far
+        self._reasons: dict[Path, str] = {}
+        self.stats = {"delivered": 0, "complete": 0, "incomplete": 0, "corrupt": 0, "unreadable": 0}
+        first = None
+        for path in self.files:  # the first readable frame gives the camera's identity
+            first = self._load(path)
+            if first is not None:
+                break
+        if first is None:
+            path, why = self.skipped[0]
+            raise DeviceNotFoundError(f"{uri}: none of the {len(self.files)} .dng files in {folder} is a readable "
+                                      f"BMI frame ({path.name}: {why})")
         self._first = first
         self.geometry, self.lens, self.device = first.geometry, first.lens, first.device
         self.info = {"model": first.device.get("model"), "serial": first.device.get("serial"), "replay": str(folder)}
         self.settings = ReplaySettings(self)
-        self.stats = {"delivered": 0, "complete": 0, "incomplete": 0, "corrupt": 0}
+
+    def _load(self, path: Path) -> RawFrame | None:
+        """The frame in ``path``, or None for an unreadable file (warned about and listed once)."""
+        if path in self._reasons:
+            return None
+        try:
+            return load_raw(path)
+        except (RawFileError, OSError) as exc:
+            why = str(exc).replace(f"{path}: ", "").replace(f"{path} ", "")
+            self._reasons[path] = why
+            self.skipped.append((path, why))
+            self.stats["unreadable"] += 1
+            warnings.warn(f"{self.uri}: skipped {path.name}: {why}", UnreadableFrameWarning, stacklevel=3)
+            return None
 
     def _peek(self) -> RawFrame:
         return self._first
@@ -65,12 +100,16 @@ class ReplayCamera:
     def _read_next(self) -> RawFrame:
         if self._closed:
             raise ConfigurationError(f"camera {self.uri} is closed")
-        if self._next >= len(self.files):
-            if not self.loop:
-                raise GrabTimeoutError(f"{self.uri}: all {len(self.files)} recorded frames played")
-            self._next = 0
-        frame = load_raw(self.files[self._next])
-        self._next += 1
+        frame = None
+        while frame is None:
+            if len(self._reasons) == len(self.files):
+                raise GrabTimeoutError(f"{self.uri}: none of the {len(self.files)} recorded frames is readable")
+            if self._next >= len(self.files):
+                if not self.loop:
+                    raise GrabTimeoutError(f"{self.uri}: all {len(self.files)} recorded frames played")
+                self._next = 0
+            frame = self._load(self.files[self._next])
+            self._next += 1
         self.stats["delivered"] += 1
         self.stats[frame.status.value] += 1
         if self.on_frame is not None:

@@ -50,6 +50,8 @@ class FaultPlan:
     stall_s: float = 0.2
 
     def __post_init__(self):
+        if not 0 <= self.seed < 2**32:
+            raise ValueError(f"fault seed must be in [0, 2**32), got {self.seed}")
         probs = self.probabilities()
         for kind, p in zip(_KINDS, probs):
             if not 0.0 <= p <= 1.0:
@@ -71,7 +73,11 @@ class FaultPlan:
             if not sep or key not in cls.__dataclass_fields__:
                 raise ValueError(f"bad fault spec item {item!r}; use KEY=VALUE with KEY in "
                                  f"{', '.join(cls.__dataclass_fields__)}")
-            kwargs[key] = int(value) if key == "seed" else float(value)
+            try:
+                kwargs[key] = int(value) if key == "seed" else float(value)
+            except ValueError:
+                raise ValueError(f"bad fault spec item {item!r}: {key} takes "
+                                 f"{'a whole number' if key == 'seed' else 'a number'}") from None
         return cls(**kwargs)
 
 

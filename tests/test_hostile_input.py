@@ -191,3 +191,114 @@ def test_save_dng_refuses_an_existing_frame_unless_asked(tmp_path):
         second.save_dng(tmp_path / "f.dng")
     assert (tmp_path / "f.dng").read_bytes() == kept
     second.save_dng(tmp_path / "f.dng", overwrite=True)
+
+
+# -- acquire: disk, replay folders, the default scene ---------------------------------------------------------------
+
+def _replay_folder(folder, count: int):
+    from devices import open_camera
+
+    folder.mkdir()
+    with open_camera("sim://?scene=flat") as cam:
+        cam.settings.roi = (2968, 2226, 64, 48)  # LibRaw reads no raw file much smaller
+        for i in range(count):
+            cam.capture().save_dng(folder / f"f{i}.dng")
+    return folder
+
+
+@pytest.mark.parametrize("option, value, expected", [
+    ("--count", "1000000000", "argument --count: 1000000000 is outside [1, 100000]"),
+    ("--count", "0", "argument --count: 0 is outside [1, 100000]"),
+    ("--gain", "nan", "--gain nan: analog_gain=nan is outside its range [1.0, 16.0]"),
+    ("--exposure-us", "-5", "--exposure-us -5: exposure_us=-5 is outside its range"),
+    ("--roi", "1,2", "--roi takes X,Y,WIDTH,HEIGHT"),
+    ("--roi", "0,0,7000,48", "--roi 0,0,7000,48: roi Roi(x_px=0, y_px=0, width_px=7000, height_px=48) does not fit"),
+    ("--timeout-s", "-1", "argument --timeout-s: -1 is outside (0, 86400] s"),
+])
+def test_acquire_refuses_out_of_range_options_naming_them(capsys, tmp_path, option, value, expected):
+    assert expected in _refusal(capsys, ["acquire", "--out", str(tmp_path / "o"), f"{option}={value}"])
+    assert not list((tmp_path / "o").glob("*.dng"))
+
+
+def test_acquire_checks_the_free_disk_space_before_the_first_frame(capsys, tmp_path):
+    line = _refusal(capsys, ["acquire", "--out", str(tmp_path / "o"), "--count", "100000", "--roi", "0,0,6000,4500"])
+    assert "--count 100000: 100000 frames of 6000×4500 px need about 5400.82 GB" in line and "GB free" in line
+    assert not list((tmp_path / "o").iterdir())
+
+
+def test_acquire_stops_cleanly_when_the_disk_fills(capsys, tmp_path, monkeypatch):
+    import errno
+
+    from devices import RawFrame
+
+    save = RawFrame.save_dng
+    room = {"frames": 2}
+
+    def a_disk_with_room_for_two_frames(frame, path, overwrite=False):
+        if room["frames"] == 0:  # the DNG goes in, its sidecar finds no room
+            path.write_bytes(b"partial")
+            raise OSError(errno.ENOSPC, "No space left on device")
+        room["frames"] -= 1
+        save(frame, path, overwrite)
+
+    monkeypatch.setattr(RawFrame, "save_dng", a_disk_with_room_for_two_frames)
+    code = main(["acquire", "--device", "sim://?scene=flat", "--roi", "2968,2226,16,16", "--count", "5",
+                 "--out", str(tmp_path)])
+    captured = capsys.readouterr()
+    assert code == 1 and "wrote 2 DNG files" in captured.out
+    assert "is full (No space left on device): stopped after 2 of 5 frames" in captured.err
+    assert sorted(p.suffix for p in tmp_path.iterdir()) == [".dng", ".dng", ".json", ".json"]
+
+
+def test_a_junk_file_in_a_replay_folder_is_skipped_and_reported(capsys, tmp_path):
+    from devices import load_raw
+
+    folder = _replay_folder(tmp_path / "rec", 2)
+    (folder / "e_junk.dng").write_bytes(b"not a raw file at all")
+    out = tmp_path / "out"
+    code = main(["acquire", "--device", f"replay://{folder}", "--count", "2", "--out", str(out)])
+    captured = capsys.readouterr()
+    assert code == 1 and "wrote 2 DNG files" in captured.out
+    assert "1 unreadable file skipped: e_junk.dng (" in captured.err.splitlines()[-1]
+    assert len([load_raw(p) for p in out.glob("*.dng")]) == 2
+
+
+def test_a_replay_folder_with_no_readable_frame_is_refused_naming_a_file(tmp_path):
+    from devices import DeviceNotFoundError, open_camera
+
+    from devices.replay import UnreadableFrameWarning
+
+    (tmp_path / "a.dng").write_bytes(b"")
+    with pytest.raises(DeviceNotFoundError, match=r"none of the 1 .dng files .* is a readable BMI frame "
+                                                  r"\(a.dng: is empty \(0 bytes\): not a DNG"), \
+            pytest.warns(UnreadableFrameWarning, match="skipped a.dng"):
+        open_camera(f"replay://{tmp_path}")
+
+
+def test_a_zero_byte_dng_is_called_empty(tmp_path):
+    from devices import RawFileError, load_raw
+
+    (tmp_path / "z.dng").write_bytes(b"")
+    with pytest.raises(RawFileError, match=r"z.dng is empty \(0 bytes\): not a DNG"):
+        load_raw(tmp_path / "z.dng")
+
+
+def test_acquire_from_sim_without_a_scene_says_it_captures_the_chart(capsys, tmp_path):
+    assert main(["acquire", "--roi", "2968,2226,16,16", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "sim:// shows its calibration chart; to capture a scene give --scene image:PATH" in out
+
+
+# -- firmware-sim serve ----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("option, value, expected", [
+    ("--duration-s", "-1", "argument --duration-s: -1 is outside [0, inf) s"),
+    ("--duration-s", "inf", "argument --duration-s: inf is not a finite number"),
+    ("--idle-timeout-s", "0", "argument --idle-timeout-s: 0 is outside (0, 86400] s"),
+    ("--seed", "-1", "argument --seed: -1 is outside"),
+    ("--serial", "1e20", "argument --serial: '1e20' is not a whole number"),
+    ("--faults", "drop=nan", "--faults drop=nan: fault probability drop=nan is outside [0, 1]"),
+    ("--faults", "seed=x", "--faults seed=x: bad fault spec item 'seed=x': seed takes a whole number"),
+])
+def test_firmware_sim_serve_refuses_what_would_run_forever_or_fail_later(capsys, option, value, expected):
+    assert expected in _refusal(capsys, ["firmware-sim", "serve", f"{option}={value}"])
