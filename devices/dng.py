@@ -206,6 +206,9 @@ def _check_sidecar_fields(path: Path, meta: dict, shape: tuple) -> None:
     if (roi.height_px, roi.width_px) != tuple(shape):
         raise RawFileError(f"{path}: sidecar ROI {roi.width_px}×{roi.height_px} does not match the "
                            f"{shape[1]}×{shape[0]} pixels")
+    if "shape" in meta and meta["shape"] != list(shape):
+        raise RawFileError(f"{path}: sidecar shape {meta['shape']} (H, W) does not match the DNG's "
+                           f"{list(shape)}: it is not this DNG's sidecar")
 
 
 def load_raw(path, require_bmi: bool = True) -> RawFrame:

@@ -190,3 +190,44 @@ def test_write_frame_outputs_refuses_an_earlier_run_s_folder_unless_overwrite_an
     assert names == sorted(written["files"]) and "depth_sigma.npy" not in names and "report.json" not in names
     assert np.array_equal(np.load(out / "depth.npy"), result.depth_m, equal_nan=True)
     assert json.loads(json.dumps(written["files"]))["depth.npy"] == str(out / "depth.npy")
+
+
+SIDECAR_EDITS = {
+    "exposure_us": lambda meta: meta.update(exposure_us=float("nan")),
+    "analog_gain": lambda meta: meta.update(analog_gain=-1.0),
+    "SHA-256": lambda meta: meta["lens"].update(sha256="0" * 64),
+    "calibration cal-0123456789ab": lambda meta: meta.update(calibration_id="cal-0123456789ab"),
+}
+
+
+@pytest.mark.parametrize("named", SIDECAR_EDITS)
+def test_a_sidecar_that_cannot_be_true_is_warned_about_on_stderr_and_in_the_report(named, passthrough_model, dng,
+                                                                                    tmp_path, capsys):
+    """A sidecar edited to hold exposure NaN, gain -1, a zeroed lens hash or an unknown calibration id was decoded
+    without a word, with nominal PSFs."""
+    import json
+    import shutil
+
+    edited = tmp_path / "edited.dng"
+    shutil.copy(dng, edited)
+    meta = json.loads(dng.with_suffix(".json").read_text())
+    SIDECAR_EDITS[named](meta)
+    edited.with_suffix(".json").write_text(json.dumps(meta))
+    code, err = _infer(capsys, edited, "--out", tmp_path / "o", "--model", passthrough_model, "--tile-px", 64,
+                       "--threads", 1)
+    assert code == 0 and "warning:" in err and named in err, err
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert any(named in w for w in report["frame_quality"]["warnings"]), report["frame_quality"]
+
+
+def test_a_sidecar_whose_shape_is_not_the_dng_s_is_refused(dng, tmp_path, capsys):
+    import json
+    import shutil
+
+    edited = tmp_path / "edited.dng"
+    shutil.copy(dng, edited)
+    meta = json.loads(dng.with_suffix(".json").read_text())
+    meta["shape"] = [32, 96]
+    edited.with_suffix(".json").write_text(json.dumps(meta))
+    code, err = _infer(capsys, edited, "--out", tmp_path / "o", "--decoder", "classical")
+    assert code == 1 and "sidecar shape [32, 96]" in err and not (tmp_path / "o").exists(), err

@@ -144,6 +144,7 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = Fals
     with OutputSet(out_dir, overwrite=overwrite) as output_set:
         frame, quality, timings = _read_checked(frame_or_path, allow_test_pattern)
         camera, identity = camera_for(frame, calibration)
+        _warn_calibration_mismatch(frame, identity, quality)
         if opened:
             if decoder.camera != camera:
                 raise ValueError(f"the {decoder.kind} decoder was opened for camera {decoder.camera.sha256()[:12]}; "
@@ -173,6 +174,18 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = Fals
         write_report(output_set.folder, report)  # with the paths the files will have
         output_set.commit()
     return decoded, report
+
+
+def _warn_calibration_mismatch(frame, identity: dict | None, quality) -> None:
+    """Warn (stderr and the report's ``frame_quality``) when the frame names a calibration other than the one it is
+    decoded with: its camera's fitted errors are then not the decoder's."""
+    named = getattr(frame, "calibration_id", None)
+    used = None if identity is None else identity["id"]
+    if named and named != used:
+        message = (f"the frame was captured with calibration {named}; it is decoded with "
+                   + (f"calibration {used}" if used else "nominal PSFs (pass --calibration with that calibration's file)"))
+        quality.warnings.append(message)
+        warnings.warn(message, FrameQualityWarning, stacklevel=3)
 
 
 def _check_counts(options: dict) -> None:

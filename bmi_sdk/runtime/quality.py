@@ -85,8 +85,34 @@ def _neighbour_correlation(data: np.ndarray, mask: np.ndarray, offset_dn: float 
     return float(cov / denom) if denom > 0 else 0.0
 
 
+def metadata_warnings(frame) -> list[str]:
+    """What the sidecar of ``frame`` says that cannot be true of a capture: an exposure or gain that is not a
+    positive number, or a lens SHA-256 that is not the named lens's prescription (the kernels that decode the
+    frame are that prescription's, so its depth would be wrong without a word)."""
+    found = []
+    for name in ("exposure_us", "analog_gain"):
+        value = getattr(frame, name, None)
+        if value is not None and not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+            found.append(f"the sidecar's {name} is {value!r}, not a positive number: its metadata is damaged")
+    lens = getattr(frame, "lens", None) or {}
+    name, sha = lens.get("name"), lens.get("sha256")
+    if name and sha:
+        from ..optics import get_lens
+
+        try:
+            expected = get_lens(name).sha256()
+        except (KeyError, ValueError):  # an unknown lens is refused, naming it, where the camera is built
+            expected = sha
+        if sha != expected:
+            found.append(f"the sidecar's lens {name!r} has SHA-256 {str(sha)[:12]}…, not the {name} prescription's "
+                         f"({expected[:12]}…): the frame is decoded with that prescription's kernels, which may not "
+                         "be its lens's")
+    return found
+
+
 def assess_frame(frame) -> FrameQuality:
-    """Measure ``frame`` (a ``devices.RawFrame``) and list what is wrong with it, in words a user can act on."""
+    """Measure ``frame`` (a ``devices.RawFrame``) and list what is wrong with it, in words a user can act on: its
+    pixels (saturated, black, no structure, a test pattern) and its sidecar (``metadata_warnings``)."""
     data = np.asarray(frame.data)
     mask = _image_circle(frame)
     span = max(1.0, float(frame.white_level_dn - frame.black_level_dn))
@@ -108,6 +134,7 @@ def assess_frame(frame) -> FrameQuality:
     elif structure < MIN_STRUCTURE and saturated <= MAX_SATURATED_FRACTION:
         quality.warnings.append(f"no optical structure (neighbour correlation {structure:.2f}, limit "
                                 f"{MIN_STRUCTURE}): the frame is noise or a flat field; depth will be meaningless")
+    quality.warnings += metadata_warnings(frame)
     return quality
 
 
