@@ -90,10 +90,10 @@ def metadata_warnings(frame) -> list[str]:
     positive number, or a lens SHA-256 that is not the named lens's prescription (the kernels that decode the
     frame are that prescription's, so its depth would be wrong without a word)."""
     found = []
-    for name in ("exposure_us", "analog_gain"):
-        value = getattr(frame, name, None)
+    for field_name in ("exposure_us", "analog_gain"):
+        value = getattr(frame, field_name, None)
         if value is not None and not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
-            found.append(f"the sidecar's {name} is {value!r}, not a positive number: its metadata is damaged")
+            found.append(f"the sidecar's {field_name} is {value!r}, not a positive number: its metadata is damaged")
     lens = getattr(frame, "lens", None) or {}
     name, sha = lens.get("name"), lens.get("sha256")
     if name and sha:
