@@ -231,3 +231,17 @@ def test_a_sidecar_whose_shape_is_not_the_dng_s_is_refused(dng, tmp_path, capsys
     edited.with_suffix(".json").write_text(json.dumps(meta))
     code, err = _infer(capsys, edited, "--out", tmp_path / "o", "--decoder", "classical")
     assert code == 1 and "sidecar shape [32, 96]" in err and not (tmp_path / "o").exists(), err
+
+
+def test_infer_frame_takes_a_dng_path_and_names_what_it_takes_otherwise(passthrough_model, dng):
+    """infer_frame(model, "x.dng") raised AttributeError."""
+    import numpy as np
+
+    from bmi_sdk.runtime import Model, infer_frame
+    from devices import load_raw
+
+    model = Model(passthrough_model, tile_px=64, threads=1)
+    by_path = infer_frame(model, str(dng))
+    assert np.array_equal(by_path.depth_m, infer_frame(model, load_raw(dng)).depth_m, equal_nan=True)
+    with pytest.raises(TypeError, match=r"devices.RawFrame .*devices.load_raw\(PATH\)"):
+        infer_frame(model, np.zeros((64, 96)))

@@ -20,6 +20,7 @@ the network runs the current one (``_TILES_AHEAD`` of them): both cores stay bus
 from __future__ import annotations
 
 import itertools
+import os
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -80,7 +81,15 @@ def check_frame(frame, model: Model) -> None:
 
 
 def infer_frame(model: Model, frame, *, overlap_px: int | None = None, progress: bool = False) -> InferenceResult:
-    """Decode a ``devices.RawFrame`` (camera capture or ``load_raw``) after ``check_frame``."""
+    """Decode a ``devices.RawFrame`` (camera capture or ``load_raw``), or the DNG a path names, after
+    ``check_frame``."""
+    if isinstance(frame, (str, os.PathLike)):
+        from devices import load_raw
+
+        frame = load_raw(frame)
+    elif not all(hasattr(frame, name) for name in ("data", "roi", "geometry", "cfa")):
+        raise TypeError(f"infer_frame takes a devices.RawFrame (camera.capture() or devices.load_raw(PATH)) or a "
+                        f"DNG path, got {type(frame).__name__}")
     check_frame(frame, model)
     return infer_raw(model, frame.data, black_level_dn=frame.black_level_dn, white_level_dn=frame.white_level_dn,
                      cfa=frame.cfa, geometry=frame.geometry, row0=frame.roi.y_px, col0=frame.roi.x_px,
