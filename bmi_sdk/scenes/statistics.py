@@ -1,0 +1,93 @@
+"""Image statistics of scenes: the amplitude spectrum slope that natural images share.
+
+Natural images have a radially averaged amplitude spectrum A(f) ∝ 1/f^α with α ≈ 1 (van der Schaaf & van Hateren
+1996, Vision Research 36(17): α = 0.94 ± 0.19 over 276 calibrated natural images; Field 1987). ``spectral_slope``
+measures α of a grey image:
+
+1. subtract the mean and multiply by a 2-D Hann window (the image is not periodic: its borders would add a
+   1/f² cross to the spectrum);
+2. |FFT| at every frequency, f = √(fx² + fy²) in cycles per pixel;
+3. average the amplitude in ``bins`` logarithmically spaced frequency bins over ``band_cpp`` (default 0.02–0.25
+   cycles/px: above the lowest few frequencies, which the window smooths, and below the octave where the Bayer
+   mosaic, the renderer's resampling and the sensor noise act);
+4. fit log A = c − α log f by least squares over the bins' mean log frequency; return α.
+
+``python -m bmi_sdk.scenes.statistics`` prints α for procedural scenes and for ``bmi eval``'s tiles (docs/scenes.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+SLOPE_BAND_CPP = (0.02, 0.25)
+"""The frequency band (cycles/px) ``spectral_slope`` fits over by default."""
+
+
+def spectral_slope(image: np.ndarray, band_cpp: tuple[float, float] = SLOPE_BAND_CPP, bins: int = 12) -> float:
+    """α of an H × W (grey) or H × W × C (its channel mean) image's amplitude spectrum A(f) ∝ 1/f^α (module doc)."""
+    image = np.asarray(image, np.float64)
+    if image.ndim == 3:
+        image = image.mean(axis=2)
+    if image.ndim != 2:
+        raise ValueError(f"spectral_slope reads an H × W or H × W × C image, got shape {image.shape}")
+    lo, hi = band_cpp
+    if not 0.0 < lo < hi <= 0.5:
+        raise ValueError(f"band_cpp must satisfy 0 < low < high <= 0.5 cycles/px, got {band_cpp}")
+    height, width = image.shape
+    if min(height, width) * lo < 2.0:
+        raise ValueError(f"a {height} × {width} image holds fewer than 2 cycles at {lo:g} cycles/px: use at least "
+                         f"{int(np.ceil(2.0 / lo))} px or a higher low end of band_cpp")
+    window = np.hanning(height)[:, None] * np.hanning(width)[None, :]
+    amplitude = np.abs(np.fft.fft2((image - image.mean()) * window)).ravel()
+    f = np.hypot(np.fft.fftfreq(height)[:, None], np.fft.fftfreq(width)[None, :]).ravel()
+    edges = np.geomspace(lo, hi, bins + 1)
+    which = np.digitize(f, edges)
+    log_f, log_a = [], []
+    for i in range(1, bins + 1):
+        inside = which == i
+        if inside.any():
+            log_f.append(np.log(f[inside]).mean())
+            log_a.append(np.log(amplitude[inside].mean()))
+    if len(log_f) < 3:
+        raise ValueError(f"a {height} × {width} image has frequencies in fewer than 3 bins of {band_cpp}")
+    return float(-np.polyfit(log_f, log_a, 1)[0])
+
+
+SCENE_SCALES = (1, 4, 16)
+"""Scene scales measured by ``python -m bmi_sdk.scenes.statistics``: those ``bmi eval`` names (×1 its stress test)."""
+
+
+def _main() -> None:
+    """Print α of procedural scenes: whole ones, and the centre crop of one drawn ×1, ×4, ×16 larger than the crop,
+    as ``bmi eval`` draws its tiles (``nn.data.scene_crop``)."""
+    import argparse
+
+    from bmi_sdk.scenes import generate_scene
+
+    parser = argparse.ArgumentParser(description="amplitude spectrum slope α of procedural scenes (A ∝ 1/f^α)")
+    parser.add_argument("--seeds", type=int, default=8, help="scenes per row (seeds 0 … N−1)")
+    parser.add_argument("--px", type=int, default=512, help="side of the whole scenes measured")
+    parser.add_argument("--crop-px", type=int, default=240,
+                        help="side of the crops (default: a bmi eval tile of 192 px with its 24-px margins)")
+    args = parser.parse_args()
+
+    def report(label: str, values: list[float]) -> None:
+        print(f"| {label} | {np.mean(values):.2f} | {np.std(values):.2f} | {min(values):.2f}–{max(values):.2f} |")
+
+    def crop(scale: int, seed: int) -> np.ndarray:
+        side = args.crop_px * scale
+        top = (side - args.crop_px) // 2
+        return generate_scene(side, side, seed).rgb[top:top + args.crop_px, top:top + args.crop_px]
+
+    print(f"| images ({args.seeds} seeds each; α over {SLOPE_BAND_CPP[0]:g}–{SLOPE_BAND_CPP[1]:g} cycles/px) | mean α "
+          "| std | range |")
+    print("|---|---|---|---|")
+    report(f"whole scenes, {args.px}² px", [spectral_slope(generate_scene(args.px, args.px, seed).rgb)
+                                            for seed in range(args.seeds)])
+    for scale in SCENE_SCALES:
+        report(f"centre {args.crop_px}² px of a scene drawn ×{scale} larger",
+               [spectral_slope(crop(scale, seed)) for seed in range(args.seeds)])
+
+
+if __name__ == "__main__":
+    _main()
