@@ -162,6 +162,18 @@ def test_a_fisheye_camera_names_the_lens_profile_its_shipped_model_was_trained_f
     assert scene.metadata()["lens"] == "fisheye"
 
 
+@pytest.mark.slow  # a fisheye render on a cold PSF cache: minutes on 2 cores
+def test_a_simulated_fisheye_frame_decodes_end_to_end_through_the_cli(tmp_path):
+    import json
+
+    dng = tmp_path / "fish.dng"
+    assert main(["simulate", "--lens", "fisheye", "--procedural", "1", "--size", "64", "--field-deg", "20",
+                 "--psf-mode", "tensor", "--out", str(dng)]) == 0
+    assert main(["infer", str(dng), "--decoder", "cnn", "--out", str(tmp_path / "out")]) == 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["model"]["lens"] == "fisheye" and np.isfinite(np.load(tmp_path / "out" / "depth.npy")).any()
+
+
 # -- the Python API ------------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("values, expected", [
@@ -302,3 +314,44 @@ def test_acquire_from_sim_without_a_scene_says_it_captures_the_chart(capsys, tmp
 ])
 def test_firmware_sim_serve_refuses_what_would_run_forever_or_fail_later(capsys, option, value, expected):
     assert expected in _refusal(capsys, ["firmware-sim", "serve", f"{option}={value}"])
+
+
+# -- --scheduler -------------------------------------------------------------------------------------------------------
+
+def test_scheduler_local_workers_are_capped_with_a_clear_error(capsys):
+    from bmi_sdk.scaleout.scheduler import max_local_workers, parse_scheduler
+
+    assert parse_scheduler(f"local:{max_local_workers()}").n_workers == max_local_workers()
+    with pytest.raises(ValueError, match=r"local:N takes 1 … \d+ workers here \(4 per CPU core\); for more, .* "
+                                         r"tcp://HOST:PORT"):
+        parse_scheduler("local:100000")
+    assert "argument --scheduler: --scheduler 'local:100000': local:N takes" in _refusal(
+        capsys, ["infer", "x.dng", "--out", "o", "--scheduler", "local:100000"])
+
+
+_DASK_RUN = """
+import sys
+from bmi_sdk.cli._logging import configure
+from bmi_sdk.scaleout import open_client
+
+if __name__ == "__main__":  # Dask's worker processes import this file again
+    configure(int(sys.argv[1]), 0, "infer")
+    with open_client("local:1") as client:
+        assert client.submit(sum, [1, 2]).result() == 3
+"""
+
+
+@pytest.mark.parametrize("verbose", [0, 2])
+def test_dask_logs_stay_at_warning_unless_asked_for_with_vv(tmp_path, verbose):
+    import os
+    import subprocess
+    import sys
+
+    script = tmp_path / "run.py"
+    script.write_text(_DASK_RUN)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DASK_")}
+    run = subprocess.run([sys.executable, str(script), str(verbose)], capture_output=True, text=True, env=env,
+                         timeout=600)
+    assert run.returncode == 0, run.stderr
+    dask_info = [line for line in run.stderr.splitlines() if line.startswith("distributed.") and ": info: " in line]
+    assert (len(dask_info) > 5) if verbose == 2 else not dask_info, run.stderr

@@ -4,16 +4,24 @@ Results and progress stay on stdout (``print``); warnings, notes and errors are 
 can silence them (``-q``: errors only) or ask for more (``-v``: info, ``-vv``: debug, the library's own
 loggers included). Python warnings (``FrameQualityWarning``, ``PsfCacheWarning``) become log records
 too, one line each instead of a warning with its source line.
+
+Dask (``--scheduler``) logs through its own handlers, in this process and in every worker process, at
+INFO by default (some 40 lines for one run). Those loggers stay at WARNING unless ``-vv`` asks for
+the library's own records; ``DASK_LOGGING__DISTRIBUTED`` set by the user wins.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import warnings
 
 LOGGER_NAME = "bmi"
 _command: str | None = None   # the running subcommand: Python warnings are logged under its name
+DASK_LEVEL_ENV = "DASK_LOGGING__DISTRIBUTED"
+"""Dask's setting for its ``distributed`` loggers, read when it is imported, worker processes included."""
+_user_dask_level = os.environ.get(DASK_LEVEL_ENV)
 
 
 class _StderrHandler(logging.StreamHandler):
@@ -55,7 +63,24 @@ def configure(verbose: int = 0, quiet: int = 0, command: str | None = None) -> N
     handler.setFormatter(_Formatter())
     root.addHandler(handler)
     root.setLevel(verbosity_level(verbose, quiet))
+    _quiet_dask(verbose, quiet)
     warnings.showwarning = _log_warning
+
+
+def dask_level(verbose: int, quiet: int) -> str:
+    """The level of Dask's loggers: WARNING unless ``-vv`` (then INFO, Dask's own default), ERROR at ``-q``."""
+    if quiet:
+        return "error"
+    return "info" if verbose >= 2 else "warning"
+
+
+def _quiet_dask(verbose: int, quiet: int) -> None:
+    """Set Dask's ``distributed`` loggers to ``dask_level``: through its setting for a Dask imported later and
+    for worker processes (they inherit the environment), and on the loggers of a Dask already imported."""
+    level = _user_dask_level or dask_level(verbose, quiet)
+    os.environ[DASK_LEVEL_ENV] = level
+    if "distributed" in sys.modules:
+        logging.getLogger("distributed").setLevel(level.upper())
 
 
 def _log_warning(message, category, filename, lineno, file=None, line=None) -> None:

@@ -2,11 +2,23 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from urllib.parse import urlsplit
 
 HELP = ("run on Dask: local:N (a local cluster of N single-threaded worker processes) or tcp://HOST:PORT "
         "(a running scheduler; see docs/scale-out.md); default: in this process")
+
+
+WORKERS_PER_CORE = 4
+"""Most local workers per CPU core: each is a process with its own interpreter (~150 MB) that waits its turn
+for a core; past a few per core they only add start-up time (local:100000 started processes for minutes
+without a word)."""
+
+
+def max_local_workers() -> int:
+    """The most workers ``local:N`` starts on this machine (``WORKERS_PER_CORE`` per CPU core)."""
+    return WORKERS_PER_CORE * (os.cpu_count() or 1)
 
 
 @dataclass(frozen=True)
@@ -25,7 +37,8 @@ class SchedulerSpec:
 
 
 def parse_scheduler(text: str | None) -> SchedulerSpec | None:
-    """``None``/empty → None (in-process); ``local:N`` with N ≥ 1; ``tcp://HOST:PORT``. Anything else: ValueError."""
+    """``None``/empty → None (in-process); ``local:N`` with 1 ≤ N ≤ ``max_local_workers()``; ``tcp://HOST:PORT``.
+    Anything else: ValueError."""
     if text is None or not text.strip():
         return None
     text = text.strip()
@@ -33,6 +46,10 @@ def parse_scheduler(text: str | None) -> SchedulerSpec | None:
         count = text[len("local:"):]
         if not count.isdigit() or int(count) < 1:
             raise ValueError(f"--scheduler {text!r}: local:N needs a whole number of workers N ≥ 1")
+        if int(count) > max_local_workers():
+            raise ValueError(f"--scheduler {text!r}: local:N takes 1 … {max_local_workers()} workers here "
+                             f"({WORKERS_PER_CORE} per CPU core); for more, run a Dask scheduler with workers on "
+                             "other machines and give tcp://HOST:PORT")
         return SchedulerSpec(n_workers=int(count))
     parts = urlsplit(text)
     if parts.scheme == "tcp":
