@@ -245,3 +245,27 @@ def test_infer_frame_takes_a_dng_path_and_names_what_it_takes_otherwise(passthro
     assert np.array_equal(by_path.depth_m, infer_frame(model, load_raw(dng)).depth_m, equal_nan=True)
     with pytest.raises(TypeError, match=r"devices.RawFrame .*devices.load_raw\(PATH\)"):
         infer_frame(model, np.zeros((64, 96)))
+
+
+def test_the_summary_speaks_a_user_s_language_and_the_report_keeps_the_internals(dng, tmp_path, capsys):
+    """bmi infer printed hashes, block counts and candidate evaluations; it says what was decoded, how long it took,
+    the depth range, how much of it is confident and where the files are. Internals go to -v and report.json."""
+    import json
+    import re
+
+    import numpy as np
+
+    out = tmp_path / "o"
+    code = main(["infer", str(dng), "--out", str(out), "--decoder", "classical", "--quiet"])
+    printed = capsys.readouterr().out
+    report = json.loads((out / "report.json").read_text())
+    depth, sigma = np.load(out / "depth.npy"), np.load(out / "depth_sigma.npy")
+    ok = np.isfinite(depth)
+    assert report["confident_coverage"] == pytest.approx(np.mean(sigma[ok] <= 0.1 * depth[ok]))
+    assert report["depth_range_m"] == pytest.approx(np.percentile(depth[ok], [1, 99]), abs=1e-4)
+    assert code == 0 and "decoded with the classical decoder" in printed and " s\n" in printed
+    assert f"of the frame; confident (1σ ≤ 10% of the depth) on {report['confident_coverage']:.0%}" in printed
+    assert f"wrote {out}/:" in printed and "report.json" in printed
+    assert not re.search(r"[0-9a-f]{12}…", printed) and "blocks run" not in printed  # no hashes or internals
+    main(["-v", "infer", str(dng), "--out", str(tmp_path / "v"), "--decoder", "classical", "--quiet"])
+    assert re.search(r"bmi infer: info: camera [0-9a-f]{12}…", capsys.readouterr().err)

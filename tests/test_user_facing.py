@@ -294,9 +294,9 @@ def test_diagnostics_go_through_logging_and_follow_v_and_q(model_path, tmp_path,
         outputs[tuple(flags)] = (code, capsys.readouterr())
     code, captured = outputs[()]
     assert code == 0 and "bmi infer: warning: median signal" in captured.err and "bmi infer: info" not in captured.err
-    assert "warning" not in captured.out and "tiles run" in captured.out       # results stay on stdout
+    assert "warning" not in captured.out and "decoded with the" in captured.out       # results stay on stdout
     code, captured = outputs[("-q",)]
-    assert code == 0 and captured.err == "" and "tiles run" in captured.out
+    assert code == 0 and captured.err == "" and "decoded with the" in captured.out
     code, captured = outputs[("-v",)]
     assert code == 0 and "bmi infer: info: input " in captured.err and "execution provider CPU" in captured.err
     assert main(["-q", "infer", str(tmp_path / "missing.dng"), "--out", str(tmp_path / "m")]) == 1

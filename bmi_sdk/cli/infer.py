@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import time
 
 from ._options import OptionError, number, whole
 
@@ -114,40 +115,66 @@ def _run(args) -> int:
     args.raw = args.raw[0]
 
     # frame-quality findings (FrameQualityWarning) reach stderr through logging: "bmi infer: warning: …"
+    t0 = time.perf_counter()
     _, report = run_job(args.raw, args.out, decoder=args.decoder, model_path=args.model,
                         calibration_path=args.calibration, classical_config=args.classical_config,
                         tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
                         providers=args.provider, ply_step_px=args.ply_step, progress=not args.quiet,
                         overwrite=args.overwrite, allow_test_pattern=args.allow_test_pattern,
                         depth_range_m=args.depth_range)
-    command_logger("infer").info("input %s; bmi-sdk %s, onnxruntime %s; execution provider %s",
-                                 report["input_path"], report["software"]["bmi_sdk"],
-                                 report["software"]["onnxruntime"], report["execution_provider"])
-    for line in summary_lines(report):
+    wall_s = time.perf_counter() - t0
+    log = command_logger("infer")
+    log.info("input %s; bmi-sdk %s, onnxruntime %s; execution provider %s", report["input_path"],
+             report["software"]["bmi_sdk"], report["software"]["onnxruntime"], report["execution_provider"])
+    for line in detail_lines(report):
+        log.info("%s", line)
+    for line in summary_lines(report, args.out, wall_s):
         print(line)
-    sigma = ", depth_sigma.npy, confidence.png" if "depth_sigma.npy" in report["files"] else ""
-    with_sigma = ", with σ" if sigma else ""
-    print(f"wrote {args.out}/aif.png, aif.npy, depth.npy, depth_z.npy{sigma}, depth_mm.png, points.ply "
-          f"({report['ply_points']} points{with_sigma}), report.json")
     return 0
 
 
-def summary_lines(report: dict) -> list[str]:
-    """What ``bmi infer`` prints of a frame's report: the decoder and its model or camera, then what ran."""
+def summary_lines(report: dict, out, wall_s: float) -> list[str]:
+    """What ``bmi infer`` prints of a frame's report, in a user's terms: the decoder and the time it took, the
+    depth range and how much of it is confident, and where the files are (hashes and internals: ``detail_lines``,
+    ``-v``, and report.json)."""
+    from bmi_sdk.runtime import DECODERS
+    from bmi_sdk.runtime.job import CONFIDENT_RELATIVE_SIGMA
+
+    calibration = f"calibration {report['calibration_id']}" if report["calibration_id"] else "nominal PSFs"
+    lines = [f"decoded with the {DECODERS[report['decoder']].title} ({report['decoder']}, {calibration}) "
+             f"in {wall_s:.1f} s"]
+    span, coverage = report["depth_range_m"], report["confident_coverage"]
+    if span is None:
+        lines.append("no pixel has a depth")
+    else:
+        depth = (f"depth {span[0]:.2f}-{span[1]:.2f} m (1st-99th percentile) on {report['valid_fraction']:.0%} "
+                 "of the frame")
+        if coverage is None:
+            depth += "; this decoder reports no 1σ"
+        else:
+            depth += (f"; confident (1σ ≤ {CONFIDENT_RELATIVE_SIGMA:.0%} of the depth) on {coverage:.0%} of those "
+                      "pixels")
+        lines.append(depth)
+    names = [n for n in report["files"] if n != "points.ply"]
+    lines.append(f"wrote {out}/: {', '.join(names)}, points.ply ({report['ply_points']} points), report.json")
+    return lines
+
+
+def detail_lines(report: dict) -> list[str]:
+    """The internals of a frame's decode (``bmi infer -v``): model or camera hashes, noise, what ran, memory, the
+    fusion's weights, clipped windows and per-stage timings."""
     lines = []
     stats = report.get("decoder_stats")
-    from bmi_sdk.runtime import DECODERS
-
-    who = [f"{DECODERS[report['decoder']].title} ({report['decoder']})"]
+    who = []
     if "model" in report:
         who.append(f"model {report['model']['preset']} {report['model']['sha256'][:12]}… on "
                    f"{report['execution_provider']}")
     if "camera" in report:
         who.append(f"camera {report['camera']['sha256'][:12]}…")
-    who.append(f"calibration {report['calibration_id'] or 'nominal PSFs'}")
     if stats is not None:
         who.append(f"noise σ {stats['noise_sigma']:.4f} ({stats['noise_source']})")
-    lines.append(", ".join(who))
+    if who:
+        lines.append(", ".join(who))
     ran = []
     if "blocks_run" in report:
         ran.append(f"classical blocks run {report['blocks_run']}, skipped {report['blocks_skipped']} (outside the "

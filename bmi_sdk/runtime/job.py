@@ -57,10 +57,32 @@ def _write_and_report(out_dir, result, frame, quality, timings: dict, head: dict
                   "lens": frame.lens, "device": frame.device, "source": frame.source},
         "frame_quality": quality.to_dict(),
         **result.summary(),
+        **depth_statistics(result),
         "stage_timings_s": timings,
         "peak_rss_mb": peak_rss_mb(),
         **written,
     }
+
+
+CONFIDENT_RELATIVE_SIGMA = 0.1
+"""A pixel's depth is confident when its 1σ is at most this share of the depth (``confident_coverage``)."""
+
+
+def depth_statistics(decoded: DecodedFrame) -> dict:
+    """The report's plain account of a decoded depth map: the share of the frame with a depth
+    (``valid_fraction``), the range its valid pixels span (``depth_range_m``: 1st and 99th percentile, metres;
+    None without one) and ``confident_coverage``, the share of valid pixels whose 1σ is at most
+    ``CONFIDENT_RELATIVE_SIGMA`` of their depth (None for a decoder that reports no 1σ)."""
+    import numpy as np
+
+    depth = decoded.depth_m
+    valid = decoded.valid & np.isfinite(depth) & (depth > 0)
+    values = depth[valid]
+    span = [round(float(v), 4) for v in np.percentile(values, [1, 99])] if values.size else None
+    coverage = None
+    if decoded.depth_sigma_m is not None and values.size:
+        coverage = float(np.mean(decoded.depth_sigma_m[valid] <= CONFIDENT_RELATIVE_SIGMA * values))
+    return {"valid_fraction": float(valid.mean()), "depth_range_m": span, "confident_coverage": coverage}
 
 
 def ray_summary(rays, sensor) -> dict:
