@@ -131,6 +131,9 @@ class StreamLink:
 
     @staticmethod
     def _raise_refusal(msg: Msg, err: dict) -> None:
+        if err["code"] == "auth_required":
+            raise AccessDeniedError("this camera needs a token: add ?token_file=FILE (a file holding it) to the "
+                                    "tcp:// URI, e.g. tcp://HOST:PORT?token_file=token.txt")
         if err["code"].startswith("auth"):
             raise AccessDeniedError(f"device refused {msg.name}: {err['reason']}")
         raise ProtocolError(f"device refused {msg.name} ({err['code']}): {err['reason']}")
@@ -197,8 +200,10 @@ class StreamLink:
     def _read_exact(self, n: int, what: str, idle_ok: bool = False) -> bytes:
         buf = bytearray(n)
         got = self._recv_into(memoryview(buf), idle_ok)
+        if got == 0:
+            raise _Closed("the camera closed the link (it stopped, or dropped this host)")
         if got < n:
-            raise _Closed(f"stream ended after {got} of {n} bytes of {what}")
+            raise _Closed(f"the camera closed the link mid-message (after {got} of {n} bytes of {what})")
         return bytes(buf)
 
     def _read_loop(self) -> None:

@@ -355,3 +355,31 @@ def test_dask_logs_stay_at_warning_unless_asked_for_with_vv(tmp_path, verbose):
     assert run.returncode == 0, run.stderr
     dask_info = [line for line in run.stderr.splitlines() if line.startswith("distributed.") and ": info: " in line]
     assert (len(dask_info) > 5) if verbose == 2 else not dask_info, run.stderr
+
+
+# -- the TCP link's messages -----------------------------------------------------------------------------------------
+
+def test_a_camera_that_wants_a_token_says_how_to_give_one():
+    from devices import AccessDeniedError, open_camera
+    from firmware_sim import FirmwareDevice, FirmwareServer, FlatField
+
+    with FirmwareServer(FirmwareDevice(source=FlatField()), token=b"s3cret") as server:
+        with pytest.raises(AccessDeniedError, match=r"^this camera needs a token: add \?token_file=FILE .* to the "
+                                                    r"tcp:// URI") as err:
+            open_camera(server.uri)
+    assert "AUTH" not in str(err.value) and "HELLO" not in str(err.value)
+
+
+def test_a_camera_that_closes_the_link_is_named_as_the_cause():
+    from devices import DeviceRemovedError, open_camera
+    from firmware_sim import FirmwareDevice, FirmwareServer, FlatField
+
+    server = FirmwareServer(FirmwareDevice(source=FlatField()))
+    server.start()
+    with open_camera(server.uri) as cam:
+        cam.settings.roi = (2968, 2226, 64, 48)
+        server.close()
+        with pytest.raises(DeviceRemovedError, match="the camera closed the link") as err:
+            for _ in range(50):  # the host notices the hang-up on its next read
+                cam.capture(timeout_s=2)
+    assert "bytes" not in str(err.value)
