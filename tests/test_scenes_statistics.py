@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from bmi_sdk.scenes import spectral_slope
+from bmi_sdk.scenes.statistics import spectral_slope
 
 
 def power_law_noise(size: int, alpha: float, seed: int) -> np.ndarray:

@@ -21,7 +21,6 @@ from bmi_sdk.scenes.placement import (
 )
 from bmi_sdk.scenes.procedural import generate_scene
 from bmi_sdk.scenes.scene import PinholeIntrinsics, Scene
-from bmi_sdk.scenes.statistics import spectral_slope
 
 __all__ = [
     "Scene", "PinholeIntrinsics", "generate_scene",
@@ -31,5 +30,4 @@ __all__ = [
     "place_patch", "place_wide", "PatchMapping", "PlacedScene", "resample_to_sensor", "corner_phi_deg",
     "tan_vs_angle_relative_error",
     "read_pfm", "write_pfm", "PfmError",
-    "spectral_slope",
 ]

@@ -1,8 +1,8 @@
 """Image statistics of scenes: the amplitude spectrum slope that natural images share.
 
-Natural images have a radially averaged amplitude spectrum A(f) ∝ 1/f^α with α ≈ 1 (van der Schaaf & van Hateren
-1996, Vision Research 36(17): α = 0.94 ± 0.19 over 276 calibrated natural images; Field 1987). ``spectral_slope``
-measures α of a grey image:
+Natural images have a radially averaged amplitude spectrum A(f) ∝ 1/f^α with α ≈ 1 (Field 1987; van der Schaaf &
+van Hateren 1996, Vision Research 36: a power-spectrum exponent near 2α ≈ 1.9 with an image-to-image spread of about
+±0.4, over 276 natural images). ``spectral_slope`` measures α of a grey image (``import`` it from this module):
 
 1. subtract the mean and multiply by a 2-D Hann window (the image is not periodic: its borders would add a
    1/f² cross to the spectrum);
