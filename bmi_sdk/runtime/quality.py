@@ -89,7 +89,9 @@ def metadata_warnings(frame) -> list[str]:
     """What the sidecar of ``frame`` says that cannot be true of a capture: an exposure or gain that is not a
     positive number, or a lens SHA-256 that is not the named lens's prescription (the kernels that decode the
     frame are that prescription's, so its depth would be wrong without a word)."""
-    found = []
+    found: list[str] = []
+    if not getattr(frame, "is_bmi", True):  # another camera's raw file has no sidecar: its placeholders say nothing
+        return found
     for field_name in ("exposure_us", "analog_gain"):
         value = getattr(frame, field_name, None)
         if value is not None and not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
