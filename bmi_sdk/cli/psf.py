@@ -7,6 +7,8 @@ import math
 import time
 from pathlib import Path
 
+from ._options import number, whole
+
 
 def _depth(text: str) -> float:
     value = math.inf if text.lower() in ("inf", "infinity") else float(text)
@@ -132,16 +134,20 @@ def register(subparsers) -> None:
     e = sub.add_parser("export", help="write one PSF (.npy float, or a .png view; odd size, centred on the chief ray)",
                        description="One pixel-integrated PSF on the sensor's tangent plane: rows sagittal, "
                                    "columns radial (+col away from the optical centre).")
-    e.add_argument("--wavelength-nm", type=float, required=True)
+    e.add_argument("--wavelength-nm", type=number(365, 1014, unit="nm"), required=True,
+                   help="365–1014 nm (where the glass catalogue's dispersion formulas hold)")
     e.add_argument("--depth-m", type=_depth, required=True, help="range from the lens centre in metres, or 'inf'")
-    e.add_argument("--field-deg", type=float, required=True)
+    e.add_argument("--field-deg", type=number(0, 80, unit="°"), required=True,
+                   help="0–80° (beyond, the traced PSF is not valid)")
     e.add_argument("--out", required=True,
                    help="output: NAME.npy, the float32 kernel (sum 1); or NAME.png, a viewable 16-bit image of "
                         "the kernel normalised to its peak (peak = 65535; not the kernel's values)")
     e.add_argument("--lens", default=DEFAULT_LENS)
-    e.add_argument("--kernel-px", type=int, default=41, help="odd kernel size (default 41: ≥ 99 %% energy at 0.7 m)")
-    e.add_argument("--pitch-um", type=float, default=2.0)
-    e.add_argument("--oversample", type=int, default=3, help="odd sub-samples per pixel for pixel integration")
+    e.add_argument("--kernel-px", type=whole(1, unit="px", odd=True), default=41,
+                   help="odd kernel size (default 41: ≥ 99 %% energy at 0.7 m)")
+    e.add_argument("--pitch-um", type=number(0.5, 5, unit="µm"), default=2.0, help="pixel pitch, 0.5–5 µm (default 2)")
+    e.add_argument("--oversample", type=whole(1, odd=True), default=3,
+                   help="odd sub-samples per pixel for pixel integration")
     e.add_argument("--overwrite", action="store_true", help="replace an existing --out (default: refuse it)")
     e.set_defaults(handler=_export)
     b = sub.add_parser("build", help="build the whole default tensor from scratch and write it",
@@ -149,7 +155,7 @@ def register(subparsers) -> None:
                                    "ignoring any cache; writes PATH (.npz) and PATH's .json metadata.")
     b.add_argument("--lens", default=DEFAULT_LENS)
     b.add_argument("--out", help="output .npz (default psf_tensor_<lens>.npz)")
-    b.add_argument("--kernel-px", type=int, default=41)
+    b.add_argument("--kernel-px", type=whole(1, unit="px", odd=True), default=41)
     b.add_argument("--spectral", action="store_true",
                    help="integrate each channel over 13 wavelengths of the RGB response instead of one")
     b.add_argument("--float16", action="store_true", help="store float16 at rest (half the size)")
@@ -169,7 +175,7 @@ def register(subparsers) -> None:
                         f"classical decoder's (default {DEFAULT_DECODER})")
     w.add_argument("--model", help="learned model whose manifest names its classical knobs (default: the packaged one)")
     w.add_argument("--lens", default=DEFAULT_LENS, help="lens of a nominal camera (without --calibration)")
-    w.add_argument("--workers", type=int, default=1, help="processes tracing zones side by side (default 1)")
+    w.add_argument("--workers", type=whole(1, 64), default=1, help="processes tracing zones side by side (default 1)")
     w.add_argument("--json", action="store_true", help="print the report as JSON")
     w.add_argument("--quiet", action="store_true", help="no progress bar")
     w.set_defaults(handler=_warm)

@@ -154,7 +154,7 @@ def psf_from_pupil(fit: PupilFit, kernel_px: int, pitch_um: float = 2.0, oversam
     n_m = 2 * int(np.ceil(m_half / d_l)) + 1
     check_fits(estimate_psf_bytes(kernel_px, oversample, n_l, n_m),
                f"a {kernel_px}×{kernel_px} px PSF at oversample {oversample} ({n_l}×{n_m} pupil samples)",
-               "lower kernel_px or oversample")
+               "lower kernel_px or oversample (bmi psf export --kernel-px, --oversample)")
     l_off = (np.arange(n_l) - n_l // 2) * d_l
     m_off = (np.arange(n_m) - n_m // 2) * d_l
     if rotation_deg % 360.0 != 0.0:
