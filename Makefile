@@ -17,8 +17,10 @@ $(STAMP): pyproject.toml constraints.txt
 
 install: $(STAMP)
 
+# A 2048×1536 window of the embedded scene by default; `make demo DEMO_ARGS=--full-frame` for the whole sensor
+# (bmi demo --help).
 demo: $(STAMP)
-	$(VENV)/bin/bmi demo
+	$(VENV)/bin/bmi demo $(DEMO_ARGS)
 
 # The static checks, fastest first: lint ([tool.ruff]), the types of the public API packages ([tool.mypy]) and the
 # import contracts ([tool.importlinter], docs/architecture.md); each configured in pyproject.toml.

@@ -1,68 +1,120 @@
-"""`bmi demo` (the `make demo` target): the SDK's main job on the embedded default.
+"""`bmi demo` (the `make demo` target): the SDK's main job, end to end, on the embedded procedural scene.
 
-Stages, each timed: the lens report and a PSF gallery across depth and field;
-a procedural scene (RGB + range); a full-resolution capture of it from the
-simulated camera (saved as ``frame.dng`` + sidecar, so ``bmi infer`` can be
-re-run on it); tiled inference with the packaged model; the output files
-(AiF image, depth map, point cloud, report); the error against the scene's
-ground truth.
+Stages, each timed, each showing its progress while it runs: the lens report and a PSF gallery across
+depth and field; the procedural scene (seed 7 by default: the scene of ``sim://…?scene=procedural:7``,
+RGB + range, over the whole 6000×4500 sensor); a capture of a window of it through the lens by the
+simulated camera (saved as ``frame.dng`` + sidecar, so ``bmi infer`` can be re-run on it); the decode
+with the default decoder (``runtime.decoders.DEFAULT_DECODER``, or ``--decoder``) and its output files
+(AiF image, range map, point cloud, ``report.json``); the error of that decode against the scene's own
+ground truth over the same window.
 
-The capture goes through the optical simulation (source ``procedural:SEED``)
-when ``firmware_sim`` has it registered, else through the optics-free
-in-focus stand-in (said loudly: depth is then not encoded in the frame). The
-model is ``bmi_sdk/models/default.onnx`` when shipped, else an *untrained*
-export of the ``tiny`` preset (said loudly: its errors mean nothing).
+The window is ``--size`` (default 2048×1536, 3.1 MP, on the optical axis): ~220 CPU-seconds with a cold
+PSF cache, ~110 MB of files. ``--full-frame`` captures the whole 6000×4500 sensor (27 MP): its exact-mode
+render (~95 s), the first tracing of a full frame's kernels (~190 s) and the decode (~55 s) take ~6 min on
+an idle 2-core machine (docs/benchmarks.md), and its files ~1 GB, so it is an option, not the default.
 """
 
 from __future__ import annotations
 
-import logging
+import argparse
+import os
+import resource
+import sys
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
-OPTICAL_SCENE_SOURCE = "procedural"
-"""Name under which the forward simulator registers its procedural scene source (``procedural:SEED``)."""
+from ._options import whole
+
+DEFAULT_SIZE_PX = (2048, 1536)
+"""The captured window (width, height), on the optical axis (``centred_roi``): 3.1 MP, about 1/9 of the sensor."""
+
+MIN_SIZE_PX = 128
+"""The smallest window side the demo takes: room for every decoder's evidence windows (the tests' fast demo)."""
+
+DEFAULT_PLY_STEP_PX = 4
+"""One point per 4×4 pixels: a 2048×1536 window gives ~0.2 M points (4 MB), a full frame ~1.7 M (~32 MB), both
+of which a point-cloud viewer opens at once (every pixel of a full frame: 27 M points, ~400 MB)."""
 
 CAPTURE_TIMEOUT_S = 1800.0
+"""How long the camera may stay silent: the render heartbeats every second, so this only catches a hang."""
+
+TICK_S = 0.5
+"""How often a stage's elapsed-time line is redrawn."""
 
 
+class Stage:
+    """One timed stage of the demo (a context manager).
 
-def _stage(timings: dict, name: str, t0: float) -> None:
-    timings[name] = time.perf_counter() - t0
-    print(f"[{timings[name]:7.2f} s] {name}", flush=True)
+    It prints its name when it starts and its time when it ends (recorded in ``timings``). A stage with no
+    progress of its own (``ticker=True``) shows a live elapsed-time line on stderr (tqdm, like the
+    decoders' own bars), so no stage is silent for more than ``TICK_S``.
+    """
+
+    def __init__(self, timings: dict, name: str, ticker: bool = True):
+        self.timings, self.name, self.ticker = timings, name, ticker
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def __enter__(self) -> Stage:
+        print(f"▶ {self.name}", flush=True)
+        self.t0 = time.perf_counter()
+        if self.ticker:
+            from tqdm import tqdm
+
+            bar = tqdm(total=None, desc=f"  {self.name}", bar_format="{desc}: {elapsed}", leave=False)
+
+            def tick():
+                while not self._stop.wait(TICK_S):
+                    bar.refresh()
+                bar.close()
+
+            self._thread = threading.Thread(target=tick, name="demo-stage-ticker", daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        elapsed_s = time.perf_counter() - self.t0
+        self.timings[self.name] = elapsed_s
+        if exc[0] is None:
+            print(f"[{elapsed_s:7.2f} s] {self.name}", flush=True)
 
 
-def _source(seed: int, scene):
-    import firmware_sim
-    from firmware_sim.sources import InFocusImageStandIn
+def parse_size(text: str) -> tuple[int, int]:
+    """``--size WxH`` (``×`` also taken) as (width_px, height_px): even (whole RGGB cells), at least
+    ``MIN_SIZE_PX``, inside the 6000×4500 sensor."""
+    from bmi_sdk.geometry import BMI_SENSOR
 
-    if OPTICAL_SCENE_SOURCE in firmware_sim.source_names():
-        return firmware_sim.make_source(f"{OPTICAL_SCENE_SOURCE}:{seed}"), None
-    warning = (f"firmware_sim has no {OPTICAL_SCENE_SOURCE!r} optical source yet: capturing through the optics-free "
-               "in-focus stand-in (no PSF, no depth encoding; the depth error below is not meaningful)")
-    return InFocusImageStandIn(scene.rgb, label=f"procedural seed {seed}"), warning
+    sensor = BMI_SENSOR
+    valid = (f"WIDTHxHEIGHT, even, {MIN_SIZE_PX}–{sensor.width_px} × {MIN_SIZE_PX}–{sensor.height_px} px "
+             "(or --full-frame)")
+    try:
+        width_px, height_px = (int(v) for v in text.lower().replace("×", "x").split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not WIDTHxHEIGHT; valid: {valid}") from None
+    if not (MIN_SIZE_PX <= width_px <= sensor.width_px and MIN_SIZE_PX <= height_px <= sensor.height_px) \
+            or width_px % 2 or height_px % 2:
+        raise argparse.ArgumentTypeError(f"{text} is outside {valid}")
+    return width_px, height_px
 
 
-def _model(out: Path, explicit: str | None):
-    from bmi_sdk.runtime import DEFAULT_MODEL, export_model
+def centred_roi(width_px: int, height_px: int):
+    """The ``devices.Roi`` of that size nearest the sensor's optical axis whose offsets fall on the simulator's
+    render blocks (``firmware_sim.optical.BLOCK_PX``, 512 px): the default 2048×1536 window then needs 12 blocks
+    rendered instead of 20, and sits within 72 px of centred."""
+    from bmi_sdk.geometry import BMI_SENSOR
+    from devices import Roi
+    from firmware_sim.optical import BLOCK_PX
 
-    if explicit:
-        return Path(explicit), None
-    if DEFAULT_MODEL.is_file():
-        return DEFAULT_MODEL, None
-    import torch
+    def offset(size_px: int, sensor_px: int) -> int:  # never past sensor_px - size_px: it rounds half of that
+        return round((sensor_px - size_px) / 2 / BLOCK_PX) * BLOCK_PX
 
-    from bmi_sdk.nn.model import DualHeadMimoUNet, InferenceWrapper, preset_config
-
-    path = out / "untrained_tiny.onnx"
-    if not path.is_file():
-        torch.manual_seed(0)
-        export_model(InferenceWrapper(DualHeadMimoUNet(preset_config("tiny"))), path, preset="tiny",
-                     probe_px=512, training={"weights": "untrained (random, seed 0): no shipped model yet"})
-    return path, (f"no shipped model at {DEFAULT_MODEL}: using an UNTRAINED tiny-preset export "
-                  "(the pipeline runs end to end; its AiF/depth errors mean nothing)")
+    return Roi(offset(width_px, BMI_SENSOR.width_px), offset(height_px, BMI_SENSOR.height_px), width_px, height_px)
 
 
 def errors_against_truth(aif: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, scene) -> dict:
@@ -81,87 +133,147 @@ def errors_against_truth(aif: np.ndarray, depth_m: np.ndarray, valid: np.ndarray
             "depth_delta_1.25": depth["delta1"], "pixels": int(ok.sum())}
 
 
+def peak_memory_mb() -> dict:
+    """Peak resident memory so far, MB: this process's, and that of the largest of its finished child processes
+    (the PSF tracing and the classical stage's worker pools). ``/usr/bin/time``'s maximum RSS is the larger."""
+    me = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    return {"process_mb": me, "largest_child_mb": kids, "peak_mb": max(me, kids)}
+
+
+def files_written(out: Path) -> dict:
+    """{relative path: bytes} of every file under ``out`` (the demo's whole footprint)."""
+    return {str(p.relative_to(out)): p.stat().st_size for p in sorted(out.rglob("*")) if p.is_file()}
+
+
+def _capture(scene, roi, seed: int, timings: dict, dng: Path):
+    """The frame of ``roi`` from a simulated camera looking at ``scene`` through the lens, saved as ``dng``;
+    a progress bar follows the render's heartbeats (blocks rendered / needed)."""
+    from tqdm import tqdm
+
+    from devices import open_camera
+    from firmware_sim import FirmwareDevice
+    from firmware_sim.optical import RenderedScene
+
+    # the scene already generated, seen through the lens: the same pixels as the `procedural:SEED` source renders
+    source = RenderedScene(scene.rgb, scene.range_m, 0, 0, name="procedural", label=f"procedural seed {seed}")
+    device = FirmwareDevice(seed=seed)
+    device.load_source(source)
+    name = f"capture {roi.width_px}×{roi.height_px} at ({roi.x_px}, {roi.y_px}) through the lens (exact-mode render)"
+    with Stage(timings, name, ticker=False):
+        bar = tqdm(total=None, desc="  render", unit="block", leave=False)
+
+        def on_progress(_frame_id: int, done: int, total: int) -> None:
+            bar.total = total
+            bar.n = done
+            bar.refresh()
+
+        try:
+            with open_camera("sim://demo", device=device, timeout_s=CAPTURE_TIMEOUT_S, on_progress=on_progress) as cam:
+                cam.settings.roi = roi
+                frame = cam.capture(timeout_s=CAPTURE_TIMEOUT_S)
+        finally:
+            bar.close()
+        frame.save_dng(dng, overwrite=True)  # the demo's folder is its own: a second run replaces its frame
+    return frame
+
+
 def _run(args) -> int:
     from bmi_sdk.cli.lens import _print_table
+    from bmi_sdk.geometry import BMI_SENSOR
     from bmi_sdk.io_atomic import write_json
     from bmi_sdk.optics import get_lens, lens_report
     from bmi_sdk.optics.gallery import psf_gallery
+    from bmi_sdk.runtime import DECODERS, BuiltCamera, DecoderOptions, open_decoder, run_job
+    from bmi_sdk.runtime.decoders import decoder_kind
+    from bmi_sdk.scenes import Scene, generate_scene
+    from devices import Roi
 
+    kind = decoder_kind(args.decoder, args.model)  # the default decoder unless asked; refused before any work
+    width_px, height_px = (BMI_SENSOR.width_px, BMI_SENSOR.height_px) if args.full_frame else args.size
+    roi = Roi(0, 0, width_px, height_px) if args.full_frame else centred_roi(width_px, height_px)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
+    if args.full_frame:
+        print("full frame: 6000×4500 px; ~6 min on an idle 2-core machine with a cold PSF cache, ~1 GB of files",
+              flush=True)
+    else:
+        print(f"window {width_px}×{height_px} px of the 6000×4500 sensor, on the optical axis "
+              "(--size WxH for another, --full-frame for the whole sensor)", flush=True)
 
-    t0 = time.perf_counter()
     lens = get_lens("bmi_monocentric")
-    _print_table(lens_report(lens))
-    _stage(timings, "lens report", t0)
-    t0 = time.perf_counter()
+    with Stage(timings, "lens report", ticker=False):
+        _print_table(lens_report(lens))
     gallery = out / "psf_gallery.png"
-    psf_gallery(lens, gallery)
-    _stage(timings, f"PSF gallery → {gallery}", t0)
+    with Stage(timings, f"PSF gallery → {gallery}"):
+        psf_gallery(lens, gallery)
 
-    from bmi_sdk.runtime import Model, run_job
-    from bmi_sdk.scenes import generate_scene
-    from devices import open_camera
-    from firmware_sim import FirmwareDevice
+    with Stage(timings, f"procedural scene, seed {args.seed}, 6000×4500"):
+        scene = generate_scene(BMI_SENSOR.height_px, BMI_SENSOR.width_px, args.seed)
+    window = (slice(roi.y_px, roi.y_px + roi.height_px), slice(roi.x_px, roi.x_px + roi.width_px))
+    truth = Scene(scene.rgb[window], scene.range_m[window], name=f"{scene.name} window")
+    print(f"  range in the window {np.nanmin(truth.range_m):.2f}–{np.nanmax(truth.range_m):.2f} m", flush=True)
 
-    t0 = time.perf_counter()
-    scene = generate_scene(4500, 6000, args.seed)
-    _stage(timings, f"procedural scene (seed {args.seed}, 6000×4500, range "
-                    f"{np.nanmin(scene.range_m):.2f}–{np.nanmax(scene.range_m):.2f} m)", t0)
+    frame = _capture(scene, roi, args.seed, timings, out / "frame.dng")
+    del scene  # the window's truth is all the error needs
 
-    t0 = time.perf_counter()
-    source, source_warning = _source(args.seed, scene)
-    if source_warning:
-        logging.getLogger("bmi.demo").warning("%s", source_warning)
-    device = FirmwareDevice(seed=args.seed)
-    device.load_source(source)
-    # The capture is a full-frame exact-mode optical render: ~160 s on an idle 2-core machine, several
-    # times that when the machine is shared; the wait is generous so a slow machine is not a failure.
-    with open_camera("sim://demo", device=device, timeout_s=CAPTURE_TIMEOUT_S) as cam:
-        frame = cam.capture(timeout_s=CAPTURE_TIMEOUT_S)
-    dng = out / "frame.dng"
-    frame.save_dng(dng)
-    _stage(timings, f"acquire full-resolution frame {frame.data.shape[1]}×{frame.data.shape[0]} from sim:// "
-                    f"({source.name}) → {dng}", t0)
+    with Stage(timings, f"open the {kind} decoder ({DECODERS[kind].title}): its model and kernels"):
+        decoder = open_decoder(BuiltCamera.for_frame(frame), kind, args.model, options=DecoderOptions(args.tile_px))
+    model = getattr(decoder, "model", None)
+    with Stage(timings, f"decode with the {kind} decoder + write outputs → {out}"):
+        # the demo's folder is its own: a second run replaces its earlier set
+        decoded, report = run_job(frame, out, decoder=decoder, progress=True, overwrite=True,
+                                  ply_step_px=args.ply_step, input_path=out / "frame.dng")
+    for name, value in report["stage_timings_s"].items():
+        print(f"            {name.removesuffix('_s'):>16}: {value:7.2f} s")
 
-    t0 = time.perf_counter()
-    model_path, model_warning = _model(out, args.model)
-    if model_warning:
-        logging.getLogger("bmi.demo").warning("%s", model_warning)
-        _stage(timings, f"export untrained stand-in model → {model_path}", t0)
-    t0 = time.perf_counter()
-    model = Model(model_path, tile_px=args.tile_px)
-    _stage(timings, f"load model {model_path.name} (SHA-256 checked, preset {model.manifest['preset']}) "
-                    f"+ warm-up {model.warmup_s:.2f} s", t0)
+    with Stage(timings, "error against the scene's ground truth"):
+        err = errors_against_truth(decoded.aif, decoded.depth_m, decoded.valid, truth)
+    model_text = f", model {model.path.name}" if model is not None and hasattr(model, "path") else ""
+    source = (f"{DECODERS[kind].title} ({kind} decoder{model_text}) on procedural scene seed {args.seed}, the "
+              f"{width_px}×{height_px} window at ({roi.x_px}, {roi.y_px}) of the 6000×4500 sensor, against the "
+              "scene's own all-in-focus RGB and range along each pixel's chief ray, over "
+              f"{err['pixels']} pixels the decoder marks valid")
+    print(f"error of the {source}:")
+    print(f"  AiF   MAE {err['aif_mae']:.4f}  PSNR {err['aif_psnr_db']:.2f} dB (linear RGB)")
+    print(f"  depth MAE {err['depth_mae_m']:.3f} m  AbsRel {err['depth_abs_rel']:.3f}  "
+          f"δ<1.25 {100 * err['depth_delta_1.25']:.1f} %")
+    print("  (docs/results.md holds each decoder's errors on bmi eval's tile sets; docs/benchmarks.md its "
+          "full-frame ones)")
 
-    t0 = time.perf_counter()
-    result, report = run_job(frame, out, model=model, progress=True, overwrite=True)  # the demo regenerates its folder
-    for name, value in result.timings_s.items():
-        print(f"            {name[:-2]:>10}: {value:7.2f} s")
-    _stage(timings, f"infer {result.tiles_run} tiles ({result.tiles_skipped} skipped) + write outputs "
-                    f"({report['stage_timings_s']['write_outputs_s']:.2f} s) → {out}", t0)
-
-    t0 = time.perf_counter()
-    err = errors_against_truth(result.aif, result.depth_m, result.valid, scene)
-    _stage(timings, "error against ground truth", t0)
-    print(f"AiF  MAE {err['aif_mae']:.4f}  PSNR {err['aif_psnr_db']:.2f} dB (linear RGB)")
-    print(f"depth MAE {err['depth_mae_m']:.3f} m  AbsRel {err['depth_abs_rel']:.3f}  "
-          f"δ<1.25 {100 * err['depth_delta_1.25']:.1f} %  over {err['pixels']} pixels")
-    for w in (source_warning, model_warning):
-        if w:
-            print(f"WARNING: {w}")
-    print(f"peak memory {report['peak_rss_mb']:.0f} MB; total {sum(timings.values()):.1f} s")
-    write_json(out / "demo_report.json", {"stages_s": timings, "errors": err, "warnings": [w for w in (
-        source_warning, model_warning) if w], "infer_report": "report.json"})
+    memory = peak_memory_mb()
+    demo_report = {"schema": "bmi-demo-report/1", "decoder": kind, "scene": {"procedural_seed": args.seed,
+                   "roi": vars(roi), "sensor_px": [BMI_SENSOR.width_px, BMI_SENSOR.height_px]},
+                   "errors_against": source, "errors": err, "stages_s": timings, "peak_memory": memory,
+                   "infer_report": "report.json"}
+    write_json(out / "demo_report.json", demo_report)
+    files = files_written(out)
+    largest = max(files, key=files.get)
+    print(f"peak memory {memory['peak_mb']:.0f} MB (this process {memory['process_mb']:.0f} MB, its largest child "
+          f"process {memory['largest_child_mb']:.0f} MB); total {sum(timings.values()):.1f} s")
+    print(f"wrote {len(files)} files, {sum(files.values()) / 1e6:.1f} MB in {out} (largest: {largest}, "
+          f"{files[largest] / 1e6:.1f} MB); points.ply: one point per {args.ply_step}×{args.ply_step} pixels")
+    sys.stdout.flush()
     return 0
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("demo", help="run the SDK's main job on the embedded default scene",
-                              description=__doc__)
-    p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
-    p.add_argument("--seed", type=int, default=7, help="procedural scene seed (default 7)")
-    p.add_argument("--model", default=None, help="ONNX model + manifest (default: the shipped model)")
-    p.add_argument("--tile-px", type=int, default=512, help="inference tile size (default 512)")
+    from bmi_sdk.runtime.decoders import DECODERS, DEFAULT_DECODER
+
+    p = subparsers.add_parser("demo", help="run the SDK's main job on the embedded procedural scene",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", default=os.path.join("out", "demo"), help="output folder (default out/demo); a second "
+                   "run replaces the demo's files there")
+    p.add_argument("--seed", type=whole(0), default=7, help="procedural scene seed (default 7)")
+    p.add_argument("--size", type=parse_size, default=DEFAULT_SIZE_PX, metavar="WxH",
+                   help=f"captured window, on the optical axis (default {DEFAULT_SIZE_PX[0]}x{DEFAULT_SIZE_PX[1]})")
+    p.add_argument("--full-frame", action="store_true",
+                   help="capture the whole 6000×4500 sensor (~6 min on 2 idle cores, ~1 GB of files)")
+    p.add_argument("--decoder", choices=tuple(DECODERS), default=None,
+                   help=f"decoder (default: the kind of --model, else the SDK's default, {DEFAULT_DECODER})")
+    p.add_argument("--model", default=None, help="ONNX model + manifest for the decoder (default: the packaged one)")
+    p.add_argument("--tile-px", type=whole(4), default=512, help="inference tile size (default 512)")
+    p.add_argument("--ply-step", type=whole(1), default=DEFAULT_PLY_STEP_PX,
+                   help=f"one point per N×N pixels in points.ply (default {DEFAULT_PLY_STEP_PX})")
     p.set_defaults(handler=_run)
