@@ -6,9 +6,28 @@ margin is the scene's mirror continuation, ``data.SCENE_MARGIN_PX``, so every
 optical system scores the very same content on each tile) whose centre is
 drawn with the seed: **centre** = θ ∈ [0°, 20°], **edge** = θ ∈ [52°, 58°]
 (its pixels span the 50–60° band; those beyond 60° are invalid). Metrics
-(``metrics``) are per tile on valid pixels, averaged over the tiles of a region.
+(``metrics``) are per tile on valid pixels, averaged over the tiles of a region;
+every row also breaks its depth error down by range band and by distance to a
+depth edge, with the confident coverage and the σ's honesty (``eval_strata``).
 
-A condition is what changes between capture and the fixed trained network:
+Scene scale: each tile is the centre of a scene drawn ``scene_scale`` × larger
+than the window, so its objects are that much larger against the tile. ``bmi eval``
+runs at ``PAPER_SCENE_SCALE`` (4: the seed paper places a 640-px NYU image in
+~12° of field, ~750 sensor px, a scale of 3–4); ×1 (a whole room in one tile:
+95 % of pixels within 32 px of a depth step) is its stress test and ×16 its
+large-surface case (``SCENE_SCALES``). ``Benchmark()`` itself defaults to ×1, the
+tile set the ``bmi bench`` targets read.
+
+Decoders are the registry's (``runtime.decoders``): each is opened once per camera
+with ``open_decoder`` and fed, tile by tile, the ``devices.RawFrame`` a camera reading
+that tile's ROI would deliver (``tile_frame``): raw DN, black and white level, the
+sensor geometry with the ROI offsets, RGGB and the noise profile of the σ it was
+given. So a tile is decoded exactly as ``bmi infer`` decodes a frame of that size.
+The camera a decoder is opened on is a ``BenchmarkCamera``: a ``BuiltCamera`` whose
+kernels are the ones the tiles were rendered with (the design's rotated tensor, or
+a built camera's exact kernels with its optical centre calibrated).
+
+A condition is what changes between capture and the fixed decoders:
 
 * noise σ (the sensor stage; ``ideal`` = σ 0, still 12-bit quantised,
   ``standard`` = 0.005, ``noise_<σ>`` the sweep);
@@ -26,8 +45,20 @@ A condition is what changes between capture and the fixed trained network:
   the on-axis spot shift is taken out of every kernel
   (``PsfMap(centre_calibrated=True)``) and the field-dependent rest and the
   PSF shapes remain;
-* another optical system (``fisheye_standard``: the fisheye lens, its plane
-  sensor and its own trained model).
+* ``built_camera_sampled``: ``cameras`` built cameras drawn from the calibration's
+  error prior, each calibrated by the real fit on simulated point-source captures
+  (``nn.sampled_cameras``), rendered like ``EXACT`` with its true errors and read
+  with its *fitted* ones; its rows average over the cameras. Cost: each camera's
+  capture and fit (~35 s median, up to ~150 s, on 2 cores; once per process), its
+  exact renders and its decoders' exact kernels (traced once, then disk-cached);
+* another optical system (``fisheye_standard``: the fisheye lens and its plane
+  sensor, read by every requested decoder with a model for that lens).
+
+Every decoder reads each condition with the design camera's kernels (its row named
+by its kind); one whose decode reads its camera's kernels (its report names the
+camera: ``classical``, ``learned``, ``evidence``) also reads a hardware condition
+with the built camera's own kernels (``<kind>_calibrated``: a perfect calibration,
+or for ``built_camera_sampled`` the fitted one).
 
 Every other condition renders with ``psf_mode="tensor"`` (the paper's
 rotated radial tensor), which by itself differs from the exact kernels
@@ -38,14 +69,14 @@ same σ (0.005), not against ``standard``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from bmi_sdk.built_camera import BuiltCamera
 from bmi_sdk.lenses import lens_geometry, lens_tensor
 from bmi_sdk.metrics import depth_metrics, image_metrics, mean_metrics
-from bmi_sdk.model_io import INPUT_CHANNELS, network_input, raw_to_rgb, window_cfa
 from bmi_sdk.nn.data import (
     SCENE_MARGIN_PX,
     STANDARD_SIGMA,
@@ -55,6 +86,7 @@ from bmi_sdk.nn.data import (
     scene_crop,
     simulate_raw,
 )
+from bmi_sdk.nn.eval_strata import StrataSums, edge_distance_px
 from bmi_sdk.optics.perturb import Perturbation
 from bmi_sdk.runtime.decoders import DEFAULT_DECODER
 from bmi_sdk.sensor import (
@@ -67,6 +99,13 @@ from bmi_sdk.sensor import (
 )
 
 REGIONS = {"centre": (0.0, 20.0), "edge": (52.0, 58.0)}
+
+PAPER_SCENE_SCALE = 4.0
+"""``bmi eval``'s scene scale: the seed paper's (a 640-px NYU image in ~12° of field, ~750 sensor px)."""
+SCENE_SCALES = {1.0: "stress test", 4.0: "paper", 16.0: "large surfaces"}
+"""The named scene scales (``bmi eval --scales 1,4,16``): ×1 draws a whole room into one tile."""
+SAMPLED = "built_camera_sampled"
+"""The condition of built cameras drawn from the error prior and read with their fitted calibration."""
 
 HARDWARE = {
     "psf_shift_0.5px": Perturbation(psf_shift_px=(0.5, 0.0)),
@@ -103,8 +142,8 @@ def noise_conditions() -> dict:
 
 
 def known_conditions() -> list[str]:
-    """Every condition name, in the default order (``fisheye_standard`` needs its own model)."""
-    return [*noise_conditions(), *HARDWARE, *EXACT, "fisheye_standard"]
+    """Every condition name, in the default order."""
+    return [*noise_conditions(), *HARDWARE, *EXACT, SAMPLED, "fisheye_standard"]
 
 
 @dataclass(frozen=True)
@@ -115,7 +154,8 @@ class Benchmark:
     seed: int = 20260
     threads: int = 2
     scheduler: str | None = None  # renders on Dask (``scaleout``: local:N or tcp://HOST:PORT); None: here
-    scene_scale: float = 1.0  # > 1: each tile's scene is drawn this much larger and its centre kept (``scene``)
+    scene_scale: float = 1.0  # > 1: each tile's scene is drawn this much larger and its centre kept (``scene``);
+    #                           bmi eval runs at PAPER_SCENE_SCALE
 
     def __post_init__(self):
         if not self.scene_scale >= 1.0:
@@ -190,7 +230,9 @@ class _WindowRenderer:
 
 
 def _render_window(state: dict, window: tuple) -> dict:
-    """Scene, optical image and position of one benchmark window (region, tile index, row0, col0)."""
+    """Scene, optical image, position and distance to the nearest depth edge (``eval_strata.edge_distance_px``, over
+    the whole rendered window, so a step just outside the tile counts) of one benchmark window (region, tile index,
+    row0, col0)."""
     from bmi_sdk.render import render_coded
 
     bench, geometry = state["bench"], state["geometry"]
@@ -201,58 +243,172 @@ def _render_window(state: dict, window: tuple) -> dict:
                            zone_px=state["zone_px"])
     optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
     return {"region": region, "tile": i, "row0": row0 + m, "col0": col0 + m, "optical_full": optical,
-            "rgb": rgb[m:-m, m:-m], "range_m": range_m[m:-m, m:-m]}
+            "rgb": rgb[m:-m, m:-m], "range_m": range_m[m:-m, m:-m],
+            "edge_distance_px": edge_distance_px(range_m)[m:-m, m:-m].astype(np.float32)}
+
+
+@dataclass(frozen=True)
+class BenchmarkCamera(BuiltCamera):
+    """A ``BuiltCamera`` whose kernels (``psf_map``) are those the benchmark renders its tiles with.
+
+    ``kernel_mode="tensor"``: the design's rotated radial tensor (or a built lens's tensor, ``HARDWARE``), as every
+    condition but ``EXACT``'s renders; ``"exact"`` with ``centre_calibrated``: a built lens traced at each zone with
+    its on-axis landing shift taken out, as ``EXACT`` and ``built_camera_sampled`` render. A registered decoder opened
+    on it (``open_tiles``) reads the tiles through the render's own kernel model, so a row measures the decoder and
+    the camera's errors, not a render-model mismatch. Its identity (``to_dict``, ``sha256``) includes both fields."""
+
+    kernel_mode: str = "tensor"
+    centre_calibrated: bool = False
+
+    def psf_map(self, mode: str | None = None, centre_calibrated: bool = False, disk_cache: bool = False):
+        return super().psf_map(mode or self.kernel_mode, centre_calibrated or self.centre_calibrated, disk_cache)
+
+    def to_dict(self) -> dict:
+        return super().to_dict() | {"kernel_mode": self.kernel_mode, "centre_calibrated": self.centre_calibrated}
+
+
+def tile_frame(raw: np.ndarray, geometry, row0: int, col0: int, noise: NoiseProfile, lens_name: str,
+               frame_id: int = 0):
+    """The ``devices.RawFrame`` a camera reading a ROI of the sensor at (``row0``, ``col0``) delivers for the raw tile
+    ``raw`` (H × W DN): the benchmark's black and white level, the full sensor ``geometry`` with the ROI's offsets,
+    RGGB, the lens name and the ``noise`` profile the tile was taken at (as a DNG's NoiseProfile tag carries it)."""
+    from devices.frame import FrameStatus, RawFrame, Roi
+
+    height, width = raw.shape
+    return RawFrame(data=raw, frame_id=frame_id, status=FrameStatus.COMPLETE, black_level_dn=BLACK_LEVEL_DN,
+                    white_level_dn=WHITE_LEVEL_DN, exposure_us=0, analog_gain=1.0, temperature_c=25.0,
+                    device_timestamp_ns=0, readout_timestamp_ns=0, host_timestamp_ns=0,
+                    roi=Roi(x_px=col0, y_px=row0, width_px=width, height_px=height), geometry=geometry,
+                    lens={"name": lens_name}, device={"model": "bmi eval benchmark"}, cfa=CFA_PATTERN,
+                    noise_profile=noise)
+
+
+class FrameTiles:
+    """A registered decoder (``runtime.decoders.Decoder``) as a benchmark decoder: raw tile in (``tile_frame``),
+    ``Decoder.decode`` on it, (AiF H × W × 3, depth, 1σ or None) out. ``name`` labels its rows."""
+
+    def __init__(self, decoder, name: str):
+        self.decoder = decoder
+        self.name = name
+
+    def __call__(self, raw: np.ndarray, geometry, row0: int, col0: int, noise: NoiseProfile):
+        out = self.decoder.decode(tile_frame(raw, geometry, row0, col0, noise, self.decoder.camera.lens_name))
+        return out.aif, out.depth_m, out.depth_sigma_m
+
+
+NETWORK_MARGIN_PX = 128
+"""A benchmark tile is read as a frame of its size, whose border the runtime pads by half the network's receptive
+field (48 px for the shipped models, ``runtime.tiling.TilePlan``): a network tile this much larger than the benchmark
+tile holds the padded frame, so the network runs once per tile and reads each pixel as ``bmi infer``'s 512-px tiles
+do, on a third of their pixels."""
+
+
+def reads_camera(decoder) -> bool:
+    """Whether a decoder's read depends on its camera's kernels: its report names the camera (``Decoder.head``), as
+    the classical, learned and evidence decoders' do; the end-to-end network's reads every camera alike."""
+    return "camera" in decoder.head()
+
+
+def evidence_window_px(decoder) -> int | None:
+    """The evidence window (px) of a decoder with a classical stage (``stage``, a ``decode.ClassicalDecoder``), else
+    None."""
+    config = getattr(getattr(decoder, "stage", None), "config", None)
+    return getattr(config, "window_px", None)
+
+
+def open_tiles(kinds, camera: BuiltCamera, models: dict, config, bench: "Benchmark", suffix: str = "",
+               skip_missing: bool = False) -> list[FrameTiles]:
+    """The registry's decoders of ``kinds`` opened once on ``camera`` (``open_decoder``), each as a ``FrameTiles``
+    named ``kind + suffix``: ``models`` maps a kind to its model (a path or a loaded one; a kind without one reads its
+    packaged model for the camera's lens), ``config`` goes to the decoders that take a ``ClassicalConfig``, and the
+    networks run with ``bench.threads`` threads on network tiles of ``bench.tile_px + NETWORK_MARGIN_PX``.
+    ``skip_missing`` leaves out a kind that has no model for the lens (``ModelError``), as the fisheye has no learned
+    refinement."""
+    from bmi_sdk.model_manifest import ModelError
+    from bmi_sdk.runtime.decoders import DECODERS, DecoderOptions, open_decoder
+
+    options = DecoderOptions(tile_px=bench.tile_px + NETWORK_MARGIN_PX, threads=bench.threads)
+    out = []
+    for kind in kinds:
+        try:
+            decoder = open_decoder(camera, kind, models.get(kind), config if DECODERS[kind].takes_config else None,
+                                   options)
+        except ModelError:
+            if skip_missing:
+                continue
+            raise
+        out.append(FrameTiles(decoder, kind + suffix))
+    return out
+
+
+def calibrated_tiles(tiles: list[FrameTiles], camera: BuiltCamera, config, bench: "Benchmark") -> list[FrameTiles]:
+    """``tiles``' decoders that read their camera's kernels (``reads_camera``), opened again on ``camera`` with the
+    same models, named ``<kind>_calibrated``."""
+    kept = [t.decoder for t in tiles if reads_camera(t.decoder)]
+    models = {d.kind: d.model for d in kept if d.model is not None}
+    return open_tiles([d.kind for d in kept], camera, models, config, bench, "_calibrated")
+
+
+class ClassicalTiles:
+    """The classical decoder (``bmi_sdk.decode``) over any ``psf_map`` as a benchmark decoder: raw tile in, AiF + depth
+    + 1σ out. The ``bmi bench`` targets use it to score decoder knobs and kernel models the registry does not name.
+    """
+
+    name = "classical"
+
+    def __init__(self, psf_map, config=None, name: str = "classical"):
+        from bmi_sdk.decode import ClassicalConfig, ClassicalDecoder
+
+        self.decoder = ClassicalDecoder.for_psf_map(psf_map, config or ClassicalConfig())
+        self.name = name
+
+    def __call__(self, raw: np.ndarray, geometry, row0: int, col0: int, noise: NoiseProfile):
+        out = self.decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0, noise_profile=noise)
+        return out.aif, out.depth_m, out.depth_sigma_m
 
 
 class NetworkTiles:
-    """A verified ONNX model (``runtime.Model``: manifest and SHA-256 checked) as a benchmark decoder:
-    raw tile in, AiF + depth (+ 1σ) out, one tile per session run.
+    """A learned refinement's stages taken apart, for what measures them one by one (``bmi bench learned``,
+    ``bmi bench aif-step``, ``bmi fit-fusion``): its classical read of a raw tile, its network's own read, their
+    fusion and the AiF's consistency step. Each is the runtime's own function (``runtime.pipeline.infer_raw`` with
+    the stage's channels, ``runtime.learned.fuse_into`` and ``consistent_aif``), so a stage reads a tile exactly as
+    ``bmi infer --decoder learned`` reads a frame; ``bmi eval`` runs the decoder whole (``FrameTiles``).
 
-    An end-to-end model (decoder ``cnn``) reads the demosaiced tile and its field channels; a learned
-    refinement (decoder ``learned``) also the classical decoder's channels (``decode.features``), made with
-    its manifest's knobs over ``psf_map``'s kernels (the nominal camera's, or the built camera's own), and
-    its depth is the network's fused with the classical stage's (``decode.fusion``, with the weights of the
-    model's manifest, as ``bmi infer`` does), and its AiF the network's made consistent with the tile through
-    those kernels at the fused depth (``runtime.learned.consistent_aif``, as ``bmi infer`` does);
-    ``fuse=False`` keeps the network's own depth and AiF (and leaves the manifest's fusion weights unread).
+    ``tile_px``: the side of the tiles it reads (its network runs on tiles ``NETWORK_MARGIN_PX`` larger, as
+    ``open_tiles``'); ``psf_map``: the kernels the classical stage believes in (the nominal camera's, or a built
+    camera's own); ``fuse=False`` leaves the manifest's fusion weights unread (``network_read`` then returns the
+    network's own read).
     """
 
-    def __init__(self, path: str | Path, tile_px: int, threads: int = 2, psf_map=None, name: str | None = None,
-                 fuse: bool = True):
+    def __init__(self, path: str | Path, tile_px: int, threads: int = 2, psf_map=None, fuse: bool = True):
+        from bmi_sdk.decode import ClassicalDecoder
+        from bmi_sdk.model_io import INPUT_CHANNELS
+        from bmi_sdk.runtime.learned import model_classical_config
         from bmi_sdk.runtime.model import Model
 
-        self.model = Model(path, tile_px=tile_px, threads=threads, read_fusion_weights=fuse)
-        self.name = name or self.model.decoder
+        self.model = Model(path, tile_px=tile_px + NETWORK_MARGIN_PX, threads=threads, read_fusion_weights=fuse)
+        if self.model.input_channels <= INPUT_CHANNELS:
+            raise ValueError(f"model {self.model.path.name} is not a learned refinement: it has no classical read to "
+                             "fuse with (bmi train --decoder learned)")
         self.fuse = fuse
-        self.stage = None
-        if self.model.input_channels > INPUT_CHANNELS:  # a refinement: it reads its classical stage's channels
-            from bmi_sdk.decode import ClassicalDecoder
-            from bmi_sdk.runtime.learned import model_classical_config
-
-            self.stage = ClassicalDecoder.for_psf_map(psf_map, model_classical_config(self.model, threads))
-
-    def __call__(self, raw: np.ndarray, geometry, row0: int, col0: int, noise: NoiseProfile):
-        decoded = None if self.stage is None else self.classical_read(raw, geometry, row0, col0, noise)
-        return self.network_read(raw, geometry, row0, col0, decoded)
+        self.stage = ClassicalDecoder.for_psf_map(psf_map, model_classical_config(self.model, threads))
 
     def classical_read(self, raw: np.ndarray, geometry, row0: int, col0: int, noise: NoiseProfile):
-        """A learned refinement's first stage: the classical decode (``DecodeResult``) of a raw tile."""
+        """The first stage: the classical decode (``DecodeResult``) of a raw tile with the model's knobs."""
         return self.stage.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0, noise_profile=noise)
 
-    def network_read(self, raw: np.ndarray, geometry, row0: int, col0: int, decoded=None, fuse: bool | None = None):
-        """(AiF H × W × 3, depth, 1σ or None) of the network on a raw tile; a refinement also reads ``decoded``'s
-        channels and, when ``fuse`` (default: this decoder's), returns its depth fused with ``decoded``'s and its AiF
-        made consistent with the tile at that depth."""
-        seen = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, window_cfa(CFA_PATTERN, row0, col0))
-        x = network_input(seen, geometry, row0, col0)
-        if decoded is not None:
-            from bmi_sdk.decode.features import refinement_features
+    def network_read(self, raw: np.ndarray, geometry, row0: int, col0: int, decoded, fuse: bool | None = None):
+        """(AiF H × W × 3, depth, 1σ) of the network on a raw tile with ``decoded``'s channels (``infer_raw``); when
+        ``fuse`` (default: this object's), its depth fused with ``decoded``'s and its AiF made consistent with the
+        tile at that depth, as ``bmi infer`` returns them."""
+        from bmi_sdk.decode.features import FeatureTiles
+        from bmi_sdk.runtime.pipeline import infer_raw
 
-            x = np.concatenate([x, refinement_features(decoded, self.stage.config.stride_px)[None]], axis=1)
-        aif, depth, *sigma = self.model.run(np.ascontiguousarray(x, np.float32))
-        depth, sigma = depth[0, 0], (sigma[0][0, 0] if sigma else None)
-        aif = aif[0].transpose(1, 2, 0)
-        if decoded is not None and (self.fuse if fuse is None else fuse) and sigma is not None:
+        net = infer_raw(self.model, raw, black_level_dn=BLACK_LEVEL_DN, white_level_dn=WHITE_LEVEL_DN,
+                        cfa=CFA_PATTERN, geometry=geometry, row0=row0, col0=col0,
+                        extra=FeatureTiles(decoded, self.stage.config.stride_px))
+        aif, depth, sigma = net.aif, net.depth_m, net.depth_sigma_m
+        if (self.fuse if fuse is None else fuse) and sigma is not None:
             self.fuse_read(decoded, depth, sigma)
             aif = self.consistent_read(raw, geometry, row0, col0, decoded, aif, depth)
         return aif, depth, sigma
@@ -278,26 +434,6 @@ class NetworkTiles:
                               aif_step=aif_step)
 
 
-class ClassicalTiles:
-    """The classical decoder (``bmi_sdk.decode``) as a benchmark decoder: raw tile in, AiF + depth + 1σ out.
-
-    ``psf_map`` is the kernel source the decoder believes in: the nominal camera's, or (for a
-    "calibrated" row) the perturbed camera's own kernels.
-    """
-
-    name = "classical"
-
-    def __init__(self, psf_map, config=None, name: str = "classical"):
-        from bmi_sdk.decode import ClassicalConfig, ClassicalDecoder
-
-        self.decoder = ClassicalDecoder.for_psf_map(psf_map, config or ClassicalConfig())
-        self.name = name
-
-    def __call__(self, raw: np.ndarray, geometry, row0: int, col0: int, noise: NoiseProfile):
-        out = self.decoder.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0, noise_profile=noise)
-        return out.aif, out.depth_m, out.depth_sigma_m
-
-
 def tile_raw(bench: Benchmark, item: dict, k: int, sigma: float) -> np.ndarray:
     """The raw frame of rendered tile ``k`` (``Benchmark.renders``) at noise σ: the same draw for every decoder."""
     m, t = bench.margin_px, bench.tile_px
@@ -305,44 +441,43 @@ def tile_raw(bench: Benchmark, item: dict, k: int, sigma: float) -> np.ndarray:
     return simulate_raw(item["optical_full"][m:m + t, m:m + t], sigma, rng, item["row0"], item["col0"])
 
 
-def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition: str) -> list[dict]:
-    """Rows {condition, decoder, region, metrics…} for one condition over pre-rendered tiles.
+def score_tiles(model, renders: list[dict], bench: Benchmark, sigma: float, into: dict | None = None) -> dict:
+    """Decode every rendered tile at noise σ and add its scores to ``into`` (region → (per-tile metric dicts,
+    ``eval_strata.StrataSums``)); returns ``into``. Scoring several cameras' tiles into one ``into`` averages their
+    rows over the cameras.
 
-    ``model``: a ``NetworkTiles`` or a ``ClassicalTiles``, called as ``model(raw, geometry, row0, col0, noise)`` with
-    the tile's raw frame and the ``NoiseProfile`` of the noise it was given (decoders that read noise use it, as
-    they would a frame's DNG tag). Decoders that report a depth 1σ
-    (classical, learned) add ``sigma_z_rms`` and ``sigma_z_std`` to their rows: the RMS and the standard
-    deviation of z = (depth error / reported 1σ) over all valid pixels of the region (1 for an honest σ).
-    """
+    ``model`` is called as ``model(raw, geometry, row0, col0, noise)`` (``FrameTiles``, ``ClassicalTiles``) with the
+    tile's raw frame and the ``NoiseProfile`` of the noise it was given (decoders that read noise use it, as they
+    would a frame's DNG tag), and returns (AiF, depth, 1σ or None)."""
+    into = {} if into is None else into
     geometry = lens_geometry(bench.lens)
     t = bench.tile_px
     noise = NoiseProfile.additive(sigma)  # the camera's noise is known (its photon transfer); decoders may use it
-    per_region: dict[str, list] = {}
-    z_sums: dict[str, list] = {}
     for k, item in enumerate(renders):
         raw = tile_raw(bench, item, k, sigma)
         valid = geometry.valid_mask(item["row0"], item["col0"], t, t) & np.isfinite(item["range_m"])
         aif_hwc, depth_m, depth_sigma_m = model(raw, geometry, item["row0"], item["col0"], noise)
         valid &= np.isfinite(depth_m)
-        if depth_sigma_m is not None:
-            z = (depth_m[valid] - item["range_m"][valid]) / depth_sigma_m[valid]
-            z_sums.setdefault(item["region"], []).append((float(np.sum(z)), float(np.sum(z ** 2)), int(z.size)))
-        row = depth_metrics(depth_m, item["range_m"], valid)
-        row.update(image_metrics(aif_hwc, item["rgb"], valid))
-        per_region.setdefault(item["region"], []).append(row)
-    rows = []
-    for region, region_rows in per_region.items():
-        row = {"condition": condition, "decoder": getattr(model, "name", "cnn"), "region": region,
-               **mean_metrics(region_rows)}
-        if getattr(model, "stage", None) is not None:  # a learned refinement: fused with its classical stage?
-            row["fusion"] = model.fuse
-        if region in z_sums:
-            z_sum, z2_sum, count = map(sum, zip(*z_sums[region]))
-            count = max(count, 1)
-            row["sigma_z_rms"] = float(np.sqrt(z2_sum / count))
-            row["sigma_z_std"] = float(np.sqrt(max(z2_sum / count - (z_sum / count) ** 2, 0.0)))
-        rows.append(row)
-    return rows
+        tiles, strata = into.setdefault(item["region"], ([], StrataSums()))
+        tiles.append(depth_metrics(depth_m, item["range_m"], valid) | image_metrics(aif_hwc, item["rgb"], valid))
+        strata.add(depth_m, item["range_m"], valid, depth_sigma_m, item["edge_distance_px"])
+    return into
+
+
+def region_rows(scores: dict, condition: str, decoder: str, bench: Benchmark, extra: dict | None = None) -> list[dict]:
+    """One row per region of ``score_tiles``' ``scores``: {condition, decoder, region, scene_scale, the per-tile
+    metrics averaged over the region's tiles, the ``eval_strata`` breakdown, ``extra``}."""
+    return [{"condition": condition, "decoder": decoder, "region": region, "scene_scale": bench.scene_scale,
+             **mean_metrics(tiles), **strata.summary(), **(extra or {})}
+            for region, (tiles, strata) in scores.items()]
+
+
+def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition: str) -> list[dict]:
+    """Rows {condition, decoder, region, metrics…} for one condition over pre-rendered tiles (``score_tiles``,
+    ``region_rows``). Decoders that report a depth 1σ add the confident coverage and ``sigma_z_rms`` /
+    ``sigma_z_std``: the RMS and the standard deviation of z = (depth error / reported 1σ) over the region's
+    scored pixels (1 for an honest σ)."""
+    return region_rows(score_tiles(model, renders, bench, sigma), condition, getattr(model, "name", "cnn"), bench)
 
 
 def classical_window_px(lens_name: str, base_px: int) -> int:
@@ -352,98 +487,122 @@ def classical_window_px(lens_name: str, base_px: int) -> int:
     return max(base_px, -(-LENS_KERNEL_PX[lens_name] // 4) * 4)
 
 
-def _decoders(decoders, model_path, psf_map, config, threads: int, tile_px: int, learned_path=None,
-              fuse: bool = True) -> list:
-    """The benchmark decoders of one optical system: its ONNX model (``cnn``), the classical decoder over its
-    nominal kernels, and the learned refinement over them (``learned_path``; none for a lens without one;
-    ``fuse``: its depth fused with its classical stage's, ``NetworkTiles``)."""
-    out = []
-    if "cnn" in decoders:
-        if model_path is None:
-            raise ValueError("the cnn decoder needs a model (for fisheye_standard: --fisheye-model)")
-        out.append(NetworkTiles(model_path, tile_px, threads))
-    if "classical" in decoders:
-        out.append(ClassicalTiles(psf_map, config))
-    if "learned" in decoders and learned_path is not None:
-        out.append(NetworkTiles(learned_path, tile_px, threads, psf_map, fuse=fuse))
+def models_by_kind(paths, decoders: tuple[str, ...], option: str) -> dict:
+    """{kind: path} of ONNX models (None, one path or several), each the model of the decoder kind its manifest
+    names (``runtime.decoders.decoder_kind``); refused, naming ``option``, when that decoder is not run or named
+    twice."""
+    from bmi_sdk.runtime.decoders import decoder_kind
+
+    out: dict = {}
+    for path in [] if paths is None else [paths] if isinstance(paths, (str, Path)) else list(paths):
+        kind = decoder_kind(model=path)
+        if kind not in decoders:
+            raise ValueError(f"{option} {path} is a model of the {kind} decoder, and the decoders run are "
+                             f"{', '.join(decoders)}")
+        if kind in out:
+            raise ValueError(f"{option} names two models of the {kind} decoder: {out[kind]} and {path}")
+        out[kind] = Path(path)
     return out
 
 
-def run_benchmark(model_path: str | Path | None, bench: Benchmark = Benchmark(), conditions: list[str] | None = None,
-                  fisheye_model: str | Path | None = None, progress: bool = True,
-                  decoders: tuple[str, ...] = (DEFAULT_DECODER,), classical_config=None,
-                  learned_model: str | Path | None = None, learned_fusion: bool = True) -> list[dict]:
-    """Every requested condition (default: noise sweep, hardware errors (``HARDWARE``, ``EXACT``), + fisheye
-    when its model is given, or always for the classical decoder) for every requested decoder.
+def check_windows(tiles: list[FrameTiles], bench: Benchmark) -> None:
+    """Refuse a benchmark whose tiles hold no evidence window of a decoder: its depth there would be a guess."""
+    for t in tiles:
+        window_px = evidence_window_px(t.decoder)
+        if window_px is not None and bench.tile_px < window_px:
+            raise ValueError(f"benchmark tile_px {bench.tile_px} holds no {window_px}-px evidence window of the "
+                             f"{t.decoder.kind} decoder on lens {bench.lens}: its depth would be a guess")
 
-    The classical decoder reads the nominal camera's kernels (decoder ``classical``); on a hardware
-    condition whose kernels a camera model can represent it also reads the built camera's own kernels
-    (decoder ``classical_calibrated``: decoding with a perfect calibration). The learned refinement
-    (``learned_model``, default the shipped ``learned.onnx``) does the same through its classical stage
-    (``learned`` and ``learned_calibrated``); there is no fisheye refinement, so no fisheye learned row.
-    ``learned_fusion=False`` scores the refinement's network alone, without its fusion with the classical
-    stage (``decode.fusion``); its rows say which (``fusion``).
+
+def run_benchmark(model=None, bench: Benchmark = Benchmark(), conditions: list[str] | None = None,
+                  fisheye_model=None, progress: bool = True, decoders: tuple[str, ...] = (DEFAULT_DECODER,),
+                  classical_config=None, cameras: int | None = None) -> list[dict]:
+    """Every requested condition (default: all of ``known_conditions``) for every requested decoder kind (the
+    registry's, ``runtime.decoders.DECODERS``).
+
+    ``model`` / ``fisheye_model``: None, an ONNX path or several, each the model of the decoder its manifest names
+    on the BMI / fisheye lens (``models_by_kind``); a decoder without one reads its packaged model for the lens
+    (on the fisheye, a decoder with none is left out). ``classical_config``: the ``ClassicalConfig`` of the decoders
+    that take one (default theirs). ``cameras``: how many cameras ``built_camera_sampled`` averages over (default
+    ``sampled_cameras.SAMPLED_CAMERAS``). Rows: module doc; every row carries ``scene_scale``.
     """
-    from bmi_sdk.built_camera import BuiltCamera
-    from bmi_sdk.decode import ClassicalConfig
-    from bmi_sdk.render import PsfMap
     from bmi_sdk.runtime.decoders import DECODERS
 
+    decoders = tuple(decoders)
     unknown_dec = [d for d in decoders if d not in DECODERS]
     if unknown_dec or not decoders:
         raise ValueError(f"unknown decoders {unknown_dec}; known: {tuple(DECODERS)}")
-    noise = noise_conditions()
     known = known_conditions()
-    with_fisheye = fisheye_model is not None or "classical" in decoders
-    conditions = conditions or [c for c in known if c != "fisheye_standard" or with_fisheye]
+    explicit = conditions is not None
+    conditions = list(conditions) if explicit else known
     unknown = [c for c in conditions if c not in known]
     if unknown:
         raise ValueError(f"unknown conditions {unknown}; known: {known}")
-    geometry = lens_geometry(bench.lens)
-    nominal = lens_tensor(bench.lens)
-    config = classical_config or ClassicalConfig()
-    if "learned" in decoders and learned_model is None:
-        from bmi_sdk.runtime.model import LEARNED_MODEL
-
-        learned_model = LEARNED_MODEL
-    models = _decoders(decoders, model_path, PsfMap(nominal, geometry, mode="tensor"), config, bench.threads,
-                       bench.tile_px, learned_model, learned_fusion)
-
-    def calibrated(psf_map):
-        out = [ClassicalTiles(psf_map, config, "classical_calibrated")] if "classical" in decoders else []
-        if "learned" in decoders:
-            out.append(NetworkTiles(learned_model, bench.tile_px, bench.threads, psf_map, "learned_calibrated",
-                                    fuse=learned_fusion))
-        return out
-
+    models = models_by_kind(model, decoders, "model")
+    fisheye_models = models_by_kind(fisheye_model, decoders, "fisheye model")
+    design = BenchmarkCamera(bench.lens)
+    base = open_tiles(decoders, design, models, classical_config, bench)
+    check_windows(base, bench)
+    noise = noise_conditions()
     rows: list[dict] = []
     renders = None
     for name in [c for c in conditions if c in noise]:
-        renders = renders or bench.renders(nominal, progress)
-        for model in models:
-            rows += score(model, renders, bench, noise[name], name)
+        renders = renders or bench.renders(design.psf_tensor(), progress)
+        for tiles in base:
+            rows += score(tiles, renders, bench, noise[name], name)
     for name in [c for c in conditions if c in HARDWARE]:
-        camera = BuiltCamera(bench.lens, HARDWARE[name])
+        camera = BenchmarkCamera(bench.lens, HARDWARE[name])
         renders_p = bench.renders(camera.psf_tensor(), progress, zone_px=camera.render_zone_px("tensor"))
-        for model in models + calibrated(camera.psf_map(mode="tensor")):
-            rows += score(model, renders_p, bench, STANDARD_SIGMA, name)
+        for tiles in base + calibrated_tiles(base, camera, classical_config, bench):
+            rows += score(tiles, renders_p, bench, STANDARD_SIGMA, name)
     for name in [c for c in conditions if c in EXACT]:
-        camera = BuiltCamera(bench.lens, EXACT[name])
-        renders_p = bench.renders(camera.psf_tensor(), progress, psf_mode="exact",
-                                  zone_px=camera.render_zone_px("exact"))
-        for model in models + calibrated(camera.psf_map(mode="exact", centre_calibrated=True)):
-            rows += score(model, renders_p, bench, STANDARD_SIGMA, name)
+        camera = BenchmarkCamera(bench.lens, EXACT[name], kernel_mode="exact", centre_calibrated=True)
+        renders_p = bench.renders(camera.psf_tensor(), progress, psf_mode="exact", zone_px=camera.render_zone_px("exact"))
+        for tiles in base + calibrated_tiles(base, camera, classical_config, bench):
+            rows += score(tiles, renders_p, bench, STANDARD_SIGMA, name)
+    if SAMPLED in conditions:
+        rows += sampled_rows(base, bench, classical_config, cameras, progress)
     if "fisheye_standard" in conditions:
-        fb = Benchmark(lens="fisheye", tiles=bench.tiles, tile_px=bench.tile_px, seed=bench.seed, threads=bench.threads,
-                       scheduler=bench.scheduler, scene_scale=bench.scene_scale)
-        from dataclasses import replace
-
-        fisheye_tensor = lens_tensor("fisheye")
-        fisheye_models = _decoders(decoders, fisheye_model,
-                                   PsfMap(fisheye_tensor, lens_geometry("fisheye"), mode="tensor"),
-                                   replace(config, window_px=classical_window_px("fisheye", config.window_px)),
-                                   bench.threads, bench.tile_px)
-        fisheye_renders = fb.renders(fisheye_tensor, progress)
-        for model in fisheye_models:
-            rows += score(model, fisheye_renders, fb, STANDARD_SIGMA, "fisheye_standard")
+        rows += fisheye_rows(decoders, fisheye_models, bench, classical_config, progress, explicit)
     return rows
+
+
+def sampled_rows(base: list[FrameTiles], bench: Benchmark, classical_config, cameras: int | None,
+                 progress: bool) -> list[dict]:
+    """``built_camera_sampled``: each sampled camera (``nn.sampled_cameras``) rendered with its true errors (exact
+    kernels, optical centre calibrated) and read by ``base`` (the design's kernels) and by the decoders that read
+    their camera opened on its *fitted* errors (``<kind>_calibrated``); rows average over the cameras and carry
+    ``cameras``."""
+    from bmi_sdk.nn.sampled_cameras import SAMPLED_CAMERAS, sampled_cameras
+
+    count = SAMPLED_CAMERAS if cameras is None else cameras
+    scores: dict[str, dict] = {}
+    for sampled in sampled_cameras(count, bench.seed, bench.lens):
+        truth = BenchmarkCamera(bench.lens, sampled.truth, kernel_mode="exact", centre_calibrated=True)
+        fitted = BenchmarkCamera(bench.lens, sampled.fitted, kernel_mode="exact", centre_calibrated=True)
+        renders = bench.renders(truth.psf_tensor(), progress, psf_mode="exact", zone_px=truth.render_zone_px("exact"))
+        for tiles in base + calibrated_tiles(base, fitted, classical_config, bench):
+            score_tiles(tiles, renders, bench, STANDARD_SIGMA, scores.setdefault(tiles.name, {}))
+    return [row for name, by_region in scores.items()
+            for row in region_rows(by_region, SAMPLED, name, bench, {"cameras": count})]
+
+
+def fisheye_rows(decoders: tuple[str, ...], models: dict, bench: Benchmark, classical_config, progress: bool,
+                 required: bool) -> list[dict]:
+    """``fisheye_standard``: the fisheye lens and its plane sensor at σ 0.005, read by every decoder of ``decoders``
+    with a model for that lens (``models`` or its packaged one), the classical ones with a window that holds its
+    kernel (``classical_window_px``). ``required``: refuse, when no decoder can read it, instead of leaving it out."""
+    from bmi_sdk.decode import ClassicalConfig
+
+    fisheye = replace(bench, lens="fisheye")
+    config = classical_config or ClassicalConfig()
+    config = replace(config, window_px=classical_window_px("fisheye", config.window_px))
+    tiles = open_tiles(decoders, BenchmarkCamera("fisheye"), models, config, fisheye, skip_missing=True)
+    if not tiles:
+        if required:
+            raise ValueError(f"fisheye_standard: none of the decoders {', '.join(decoders)} has a model for the "
+                             "fisheye lens (give one with --fisheye-model)")
+        return []
+    check_windows(tiles, fisheye)
+    renders = fisheye.renders(lens_tensor("fisheye"), progress)
+    return [row for t in tiles for row in score(t, renders, fisheye, STANDARD_SIGMA, "fisheye_standard")]

@@ -82,9 +82,6 @@ def collect_reads(model_path: str | Path, scene_scale: float, *, seed: int = FIT
     bench = Benchmark(tiles=tiles, seed=seed, threads=threads, scene_scale=scene_scale)
     geometry, nominal = lens_geometry(bench.lens), lens_tensor(bench.lens)
     decoder = NetworkTiles(model_path, bench.tile_px, threads, PsfMap(nominal, geometry, mode="tensor"), fuse=False)
-    if decoder.stage is None:
-        raise ValueError(f"model {Path(model_path).name} is not a learned refinement: it has no classical read to "
-                         "fuse with (bmi train --decoder learned)")
     noise = NoiseProfile.additive(sigma)
     columns: list[list[np.ndarray]] = [[] for _ in range(6)]
     t = bench.tile_px
