@@ -18,6 +18,7 @@ with advice on captures that would separate them.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import jax.numpy as jnp
@@ -270,10 +271,13 @@ def _degeneracies(corr, sigma, free):
 @in_float64
 def fit_calibration(extraction: Extraction, free: dict | None = None, method: str = "lm", max_outer: int = 4,
                     inner_maxiter: int = 10, lens_name: str = "bmi_monocentric", geometry=BMI_SENSOR,
-                    initial: Perturbation | None = None, channels=None, spread_px: float | None = None) -> FitResult:
+                    initial: Perturbation | None = None, channels=None, spread_px: float | None = None,
+                    on_step: Callable[[str, int, int], None] | None = None) -> FitResult:
     """Fit the hardware errors to ``extraction``'s spots (held-out sources kept for the check).
 
-    jax runs in float64 for the duration of the call only (``model.float64``)."""
+    jax runs in float64 for the duration of the call only (``model.float64``). ``on_step(stage, done, total)``
+    is called after each of its ``max_outer + 2`` steps (initial positions, each relinearisation, the
+    held-out check; a fit that converges early jumps to the last), for a progress display."""
     t_start = time.perf_counter()
     fit_spots = [s for s in extraction.spots if not s.source.held_out]
     held = [s for s in extraction.spots if s.source.held_out]
@@ -293,6 +297,13 @@ def fit_calibration(extraction: Extraction, free: dict | None = None, method: st
     t0 = time.perf_counter()
     g = initial_positions(lens, g, fit_spots, channels[0], k, geometry, spread, free_mask)
     seconds_init = time.perf_counter() - t0
+    steps = max_outer + 2
+
+    def step(stage: str, done: int) -> None:
+        if on_step is not None:
+            on_step(stage, done, steps)
+
+    step("initial positions", 1)
     n_s, n_c = len(fit_spots), len(channels)
     data = jnp.asarray(np.stack([s.data_dn for s in fit_spots]))
     used = jnp.asarray(np.stack([s.used for s in fit_spots]))
@@ -346,10 +357,11 @@ def fit_calibration(extraction: Extraction, free: dict | None = None, method: st
         cov = np.full((x.size, x.size), np.nan)
         cov[np.ix_(cols, cols)] = cov_f
         new_sig = np.sqrt(np.diag(cov)[:9]) * UNITS
-        step = np.abs(g_new - g)
+        moved = np.abs(g_new - g)
         g = g_new
         history.append(g.copy())
-        if outer > 1 and np.all((step / np.where(np.isfinite(new_sig), new_sig, np.inf))[free_mask] < 0.05):
+        step(f"relinearisation {outer} of at most {max_outer}", 1 + outer)
+        if outer > 1 and np.all((moved / np.where(np.isfinite(new_sig), new_sig, np.inf))[free_mask] < 0.05):
             sig_g = new_sig
             break
         sig_g = new_sig
@@ -377,6 +389,7 @@ def fit_calibration(extraction: Extraction, free: dict | None = None, method: st
                              "chi2_reduced_nominal": b["chi2_reduced"], "rms_dn": a["rms_dn"],
                              "rms_dn_nominal": b["rms_dn"], "centroid_residual_px": a["centroid_residual_px"]})
     seconds["held_out"] = time.perf_counter() - t0
+    step("held-out check", steps)
     seconds["total"] = time.perf_counter() - t_start
     sigma_out = np.where(free_mask, sig_g, np.nan)
     return FitResult(estimate=estimate, vector=g, sigma=sigma_out, free=free_mask, correlation=corr,

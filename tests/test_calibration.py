@@ -41,7 +41,18 @@ def single():
     truth = Perturbation(decenter_um=(8.0, 0.0))
     captures = simulate_captures(TARGET, PLAN, truth, seed=11)
     extraction = extract_spots(captures)
-    return truth, captures, extraction, fit_calibration(extraction)
+    result = fit_calibration(extraction, on_step=lambda stage, done, total: STEPS.append((stage, done, total)))
+    return truth, captures, extraction, result
+
+
+STEPS: list[tuple[str, int, int]] = []
+"""The progress steps the ``single`` fixture's fit reported."""
+
+
+def test_the_fit_reports_its_progress_step_by_step(single):
+    assert STEPS[0] == ("initial positions", 1, 6) and STEPS[-1] == ("held-out check", 6, 6)
+    assert STEPS[1] == ("relinearisation 1 of at most 4", 2, 6)
+    assert [done for _, done, _ in STEPS] == sorted({done for _, done, _ in STEPS})  # increasing, no repeats
 
 
 def test_single_injected_term_is_recovered_alone(single):
@@ -65,10 +76,15 @@ def test_fit_runs_in_float64_and_leaves_jax_in_float32(single):
 
 
 def test_near_degenerate_pairs_are_reported(single):
+    from bmi_sdk.cli.calibrate import degeneracy_lines
+
     pairs = {frozenset(d["parameters"]) for d in single[3].degeneracies if len(d["parameters"]) == 2}
     # shift against tilt: a tilt about the lens centre is almost a rotation of the view
     assert frozenset({"psf_shift_px[0]", "tilt_arcmin[1]"}) in pairs
     assert any("monocentric" in d["advice"] for d in single[3].degeneracies)
+    lines = degeneracy_lines(single[3].degeneracies)  # what bmi calibrate prints: one short line each
+    assert len(lines) == len(single[3].degeneracies) and all(len(line) <= 120 for line in lines)
+    assert any(line.startswith("degenerate: psf_shift_px[0] / tilt_arcmin[1] (correlation ") for line in lines)
 
 
 def test_fit_started_far_from_the_truth_converges(single):

@@ -383,3 +383,54 @@ def test_a_camera_that_closes_the_link_is_named_as_the_cause():
             for _ in range(50):  # the host notices the hang-up on its next read
                 cam.capture(timeout_s=2)
     assert "bytes" not in str(err.value)
+
+
+# -- calibrate --------------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("args, expected", [
+    (["--simulate", "decenter_um=1e9,0"], "--simulate decenter_um=1e9,0: |decenter_um| is at most 1000 um"),
+    (["--simulate", "decenter_um=nan,0"], "--simulate decenter_um=nan,0: decenter_um needs 2 finite number(s)"),
+    (["--simulate", "decenter_um=1", "--points", "1e9"], "argument --points: '1e9' is not a whole number"),
+    (["--simulate", "decenter_um=1,0", "--points", "-1"], "argument --points: -1 is outside [4, 21]"),
+    (["--simulate", "decenter_um=1,0", "--held-out", "100"], "argument --held-out: 100 is outside [0, 6]"),
+    (["--simulate", "decenter_um=1,0", "--max-outer", "0"], "argument --max-outer: 0 is outside [1, 20]"),
+    (["--simulate", "decenter_um=1,0", "--seed", "-1"], "argument --seed: -1 is outside"),
+    (["--captures", "no/such/folder"], "--captures no/such/folder: no such folder"),
+])
+def test_calibrate_refuses_out_of_range_options_before_capturing(capsys, tmp_path, args, expected):
+    assert expected in _refusal(capsys, ["calibrate", "--out", str(tmp_path / "c.json"), *args])
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("out, expected", [
+    ("c.txt", "--out {tmp}/c.txt: name it *.json"),
+    ("afile/c.json", "--out {tmp}/afile/c.json: cannot create the folder"),
+])
+def test_calibrate_checks_its_output_before_capturing(capsys, tmp_path, out, expected):
+    (tmp_path / "afile").write_text("a file, not a folder")
+    line = _refusal(capsys, ["calibrate", "--simulate", "decenter_um=1,0", "--out", str(tmp_path / out)])
+    assert expected.format(tmp=tmp_path) in line
+
+
+# -- crlb and lens ----------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("option, value, expected", [
+    ("--depths-m", "1e12", "argument --depths-m: 1e12 is outside [0.1, 100] m (or inf)"),
+    ("--depths-m", "nan", "argument --depths-m: nan is not a finite number"),
+    ("--depths-m", "2,,3", "argument --depths-m: '2,,3' is not a comma list of numbers"),
+    ("--fields-deg", "85", "argument --fields-deg: 85 is outside [0, 80]"),
+    ("--patch-px", "1000000", "argument --patch-px: 1000000 is outside [2, 4096] px"),
+    ("--rms-contrast", "0", "argument --rms-contrast: 0 is outside (0, 1]"),
+    ("--noise-sigma", "inf", "argument --noise-sigma: inf is not a finite number"),
+    ("--inverse-step-per-m", "-1", "argument --inverse-step-per-m: -1 is outside (0, 0.1]"),
+    ("--kernel-px-fisheye", "40", "argument --kernel-px-fisheye: 40 is outside [1, 401] px, odd"),
+    ("--lenses", "zoom", "argument --lenses: a comma list of monocentric, fisheye, got 'zoom'"),
+])
+def test_crlb_refuses_out_of_range_options_naming_them(capsys, option, value, expected):
+    assert expected in _refusal(capsys, ["crlb", f"{option}={value}"])
+
+
+def test_lens_names_its_option(capsys, tmp_path):
+    assert "--lens nan: no lens called 'nan'" in _refusal(capsys, ["lens", "--lens", "nan"])
+    line = _refusal(capsys, ["lens", "--write-sensor-mapping", str(tmp_path / "map.txt")])
+    assert "--write-sensor-mapping" in line and "name it *.json" in line
