@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import argparse
 import logging
-import math
 import sys
 import time
+
+from ._options import number, whole
 
 LENS_PROFILES = {"monocentric": "bmi_monocentric", "fisheye": "fisheye"}
 """--lenses name → the lens profile (bmi_sdk.lenses) it stands for."""
@@ -14,36 +16,36 @@ DEFAULT_DEPTHS_M = (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0)
 DEFAULT_FIELDS_DEG = (0.0, 30.0, 45.0, 60.0)
 
 
-def _number_list(text: str, what: str, allow_inf: bool = False) -> list[float]:
-    values = []
-    for item in text.split(","):
-        item = item.strip()
-        value = math.inf if allow_inf and item.lower() in ("inf", "infinity") else float(item)
-        values.append(value)
-    if not values:
-        raise ValueError(f"{what}: empty list")
-    return values
+MIN_DEPTH_M = 0.1
+"""Nearest range of --depths-m: the lens's front surface is 4 mm from its centre; nearer than 0.1 m no kernel of
+a usable size holds the PSF."""
+MAX_DEPTH_M = 100.0
+"""Farthest finite range of --depths-m (the traced pupil fits lose precision beyond; 'inf' is traced exactly)."""
+MAX_FIELD_DEG = 80.0
+"""Widest --fields-deg: the traced PSF is valid to 80° (docs/reliability.md; NaN from 81°)."""
+
+
+def _number_list(text: str, check) -> list[float]:
+    """A comma list of numbers, each passed through the argparse type ``check``."""
+    items = [item.strip() for item in text.split(",")]
+    if not all(items):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a comma list of numbers")
+    return [check(item) for item in items]
 
 
 def _depths(text: str) -> list[float]:
-    values = _number_list(text, "--depths-m", allow_inf=True)
-    if any(not v > 0 for v in values):
-        raise ValueError(f"--depths-m must be > 0 (or 'inf'), got {text}")
-    return values
+    return _number_list(text, number(MIN_DEPTH_M, MAX_DEPTH_M, unit="m (or inf)", allow_inf=True))
 
 
 def _fields(text: str) -> list[float]:
-    values = _number_list(text, "--fields-deg")
-    if any(not 0 <= v < 90 for v in values):
-        raise ValueError(f"--fields-deg must lie in [0, 90), got {text}")
-    return values
+    return _number_list(text, number(0, MAX_FIELD_DEG, unit="°"))
 
 
 def _lenses(text: str) -> list[str]:
     names = [t.strip() for t in text.split(",") if t.strip()]
     bad = [n for n in names if n not in LENSES]
     if bad or not names:
-        raise ValueError(f"--lenses must be a comma list of {LENSES}, got {text!r}")
+        raise argparse.ArgumentTypeError(f"a comma list of {', '.join(LENSES)}, got {text!r}")
     return names
 
 
@@ -145,21 +147,23 @@ def register(subparsers) -> None:
     p.add_argument("--plot", metavar="PATH.png", help="write the bound against depth (log y) per field and lens")
     p.add_argument("--lenses", type=_lenses, default=list(LENSES), help="comma list of monocentric,fisheye")
     p.add_argument("--depths-m", type=_depths, default=list(DEFAULT_DEPTHS_M),
-                   help="comma list of ranges in metres ('inf' allowed; default 1,1.5,2,3,4,5,6,8,10: ≈ 40 s on 2 cores)")
+                   help="comma list of ranges in metres, 0.1–100 ('inf' allowed; default 1,1.5,2,3,4,5,6,8,10: ≈ 40 s on 2 cores)")
     p.add_argument("--fields-deg", type=_fields, default=list(DEFAULT_FIELDS_DEG),
-                   help="comma list of field angles in degrees (default 0,30,45,60)")
+                   help="comma list of field angles in degrees, 0–80 (default 0,30,45,60)")
     # default: each lens's kernel, holding ≥ 99 % of the energy at 1–10 m over 0–60° (docs/crlb.md)
     for name, profile in LENS_PROFILES.items():
-        p.add_argument(f"--kernel-px-{name}", type=int, default=LENS_KERNEL_PX[profile],
+        p.add_argument(f"--kernel-px-{name}", type=whole(1, 401, unit="px", odd=True), default=LENS_KERNEL_PX[profile],
                        help=f"PSF kernel side in pixels (default {LENS_KERNEL_PX[profile]}, the lens profile's)")
-    p.add_argument("--patch-px", type=int, default=256, help="scene patch side N in pixels (I ∝ N²)")
-    p.add_argument("--spectrum-exponent", type=float, default=0.8, help="α of the 1/f^α scene spectrum")
+    p.add_argument("--patch-px", type=whole(2, 4096, unit="px"), default=256,
+                   help="scene patch side N in pixels, 2–4096 (I ∝ N²)")
+    p.add_argument("--spectrum-exponent", type=number(0, 4), default=0.8, help="α of the 1/f^α scene spectrum, 0–4")
     p.add_argument("--spectrum-kind", choices=("amplitude", "power"), default="amplitude",
                    help="whether 1/f^α is the amplitude |S| (default) or the power |S|²")
-    p.add_argument("--rms-contrast", type=float, default=0.2, help="scene standard deviation on [0, 1] (I ∝ c²)")
-    p.add_argument("--noise-sigma", type=float, default=None,
+    p.add_argument("--rms-contrast", type=number(0, 1, lo_open=True), default=0.2,
+                   help="scene standard deviation on [0, 1], > 0 (I ∝ c²)")
+    p.add_argument("--noise-sigma", type=number(0, 1, lo_open=True), default=None,
                    help="noise standard deviation on [0, 1] (default 8-bit quantisation (1/255)/√12)")
-    p.add_argument("--inverse-step-per-m", type=float, default=0.01,
-                   help="central-difference step in 1/d (m⁻¹) for ∂PSF/∂d")
+    p.add_argument("--inverse-step-per-m", type=number(0, 0.1, lo_open=True, unit="m⁻¹"), default=0.01,
+                   help="central-difference step in 1/d (m⁻¹) for ∂PSF/∂d, (0, 0.1]")
     p.add_argument("--no-throughput", action="store_true", help="T(θ) = 1 instead of cos θ")
     p.set_defaults(handler=_run)

@@ -18,17 +18,32 @@ def _print_table(report: dict) -> None:
               f"{r['w060_waves']:8.3f} {r['rms_waves']:7.3f} {r['two_term_rms_error_waves']:10.4f}")
 
 
+def _lens(name: str):
+    """The lens ``--lens`` names; a name or file that is none, one line naming the option."""
+    from bmi_sdk.optics import get_lens
+
+    from ._options import OptionError
+
+    try:
+        return get_lens(name)
+    except (ValueError, OSError) as exc:  # PrescriptionError is a ValueError
+        raise OptionError(f"--lens {name}: {exc}", "--lens") from None
+
+
 def _run(args) -> int:
-    from bmi_sdk.optics import get_lens, lens_report
+    from bmi_sdk.optics import lens_report
 
     if args.write_sensor_mapping:
         from bmi_sdk.io_atomic import write_json
         from bmi_sdk.optics.report import sensor_mapping
 
-        write_json(args.write_sensor_mapping, sensor_mapping(get_lens(args.lens)))
+        from ._options import check_output_file
+
+        check_output_file("--write-sensor-mapping", args.write_sensor_mapping, (".json",))
+        write_json(args.write_sensor_mapping, sensor_mapping(_lens(args.lens)))
         print(f"wrote {args.write_sensor_mapping}")
         return 0
-    report = lens_report(get_lens(args.lens))
+    report = lens_report(_lens(args.lens))
     if args.json:
         print(json.dumps(report, indent=2))
     else:
