@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -80,7 +80,18 @@ class Decoder(Protocol):
     def head(self) -> dict: ...
 
 
-DECODERS: dict[str, type] = {}
+class DecoderClass(Protocol):
+    """A decoder class as the registry holds it: its class attributes and its constructor."""
+
+    kind: str
+    title: str
+    model_kind: str | None
+    takes_config: bool
+
+    def __call__(self, camera: BuiltCamera, model, config, options: DecoderOptions) -> Decoder: ...
+
+
+DECODERS: dict[str, DecoderClass] = {}
 """kind → decoder class (``register``), in the order ``--decoder`` lists them."""
 
 DEFAULT_DECODER = "learned"
@@ -89,8 +100,8 @@ on every nominal row, better under noise and with a calibration, and reports an 
 (docs/results.md, "Decoders")."""
 
 
-def register(cls: type) -> type:
-    """Add a decoder class to ``DECODERS`` under its ``kind``."""
+def register(cls: Any) -> Any:
+    """Add a decoder class to ``DECODERS`` under its ``kind`` (a class decorator)."""
     if cls.kind in DECODERS:
         raise ValueError(f"decoder {cls.kind!r} is registered twice")
     DECODERS[cls.kind] = cls
@@ -151,7 +162,8 @@ def load_model(model, camera: BuiltCamera, model_kind: str, decoder: str, option
             others = ", ".join(f"--decoder {k}" for k in DECODERS if k != decoder)
             raise ModelError(f"{exc}; decode this frame with {others}") from None
     if not isinstance(model, Model):
-        model = Model(model, tile_px=options.tile_px, threads=options.threads, providers=options.providers)
+        providers = list(options.providers) if isinstance(options.providers, tuple) else options.providers
+        model = Model(model, tile_px=options.tile_px, threads=options.threads, providers=providers)
     if model.decoder != model_kind:
         raise ValueError(f"model {model.path.name} is a {model.decoder} model; the {decoder} decoder runs a "
                          f"{model_kind} model")
@@ -169,14 +181,14 @@ class LearnedDecoder:
 
     kind = "learned"
     title = "learned refinement"
-    model_kind = "learned"
+    model_kind: str | None = "learned"
     takes_config = False
 
     def __init__(self, camera: BuiltCamera, model, config, options: DecoderOptions):
         from .learned import learned_decoder
 
         self.camera, self.options = camera, options
-        self.model = load_model(model, camera, self.model_kind, self.kind, options)
+        self.model = load_model(model, camera, self.kind, self.kind, options)
         self.stage = learned_decoder(self.model, camera, options.threads)
 
     def decode(self, frame, progress: bool = False) -> DecodedFrame:
@@ -196,12 +208,12 @@ class NetworkDecoder:
 
     kind = "cnn"
     title = "end-to-end network"
-    model_kind = "cnn"
+    model_kind: str | None = "cnn"
     takes_config = False
 
     def __init__(self, camera: BuiltCamera, model, config, options: DecoderOptions):
         self.camera, self.options = camera, options
-        self.model = load_model(model, camera, self.model_kind, self.kind, options)
+        self.model = load_model(model, camera, self.kind, self.kind, options)
 
     def decode(self, frame, progress: bool = False) -> DecodedFrame:
         from .pipeline import infer_frame
@@ -220,7 +232,7 @@ class ClassicalDecoderKind:
 
     kind = "classical"
     title = "classical decoder"
-    model_kind = None
+    model_kind: str | None = None
     takes_config = True
 
     def __init__(self, camera: BuiltCamera, model, config, options: DecoderOptions):
@@ -252,7 +264,7 @@ class EvidenceDecoder:
 
     kind = "evidence"
     title = "evidence network"
-    model_kind = "evidence"
+    model_kind: str | None = "evidence"
     takes_config = False
 
     def __init__(self, camera: BuiltCamera, model, config, options: DecoderOptions):
@@ -262,7 +274,7 @@ class EvidenceDecoder:
         self.camera, self.options = camera, options
         if model is None:
             try:
-                model = select_model(lens=camera.lens_name, decoder=self.model_kind)
+                model = select_model(lens=camera.lens_name, decoder=self.kind)
             except ModelError as exc:
                 others = ", ".join(f"--decoder {k}" for k in DECODERS if k != self.kind)
                 raise ModelError(f"{exc}; decode this frame with {others}") from None

@@ -33,6 +33,7 @@ from .classical import classical_decoder, decode_frame
 from .decoders import DecodedFrame
 from .model import Model
 from .pipeline import infer_raw
+from ..model_manifest import ModelError
 
 
 def model_classical_config(model: Model, threads: int | None = None) -> ClassicalConfig:
@@ -40,9 +41,6 @@ def model_classical_config(model: Model, threads: int | None = None) -> Classica
     if model.decoder != "learned":
         raise ValueError(f"model {model.path.name} is a {model.decoder} model, not a learned refinement")
     knobs = dict(model.manifest["classical_config"])
-    # a manifest that names none of these knobs: its model reads channels of estimated noise and untapered windows
-    knobs.setdefault("noise_model", "estimate")
-    knobs.setdefault("window_model", "untapered")
     knobs.setdefault("aif_model_error", 0.0)
     knobs.setdefault("pool_sigma_px", 0.0)  # and each window read alone
     knobs["slopes"] = tuple(knobs.get("slopes", (2.0,)))
@@ -94,6 +92,9 @@ def refine_decoded(model: Model, decoder: ClassicalDecoder, decoded: DecodeResul
     network_depth_m = net.depth_m.copy() if keep_network_read else None
     t0 = time.perf_counter()
     weights = model.fusion_weights
+    if weights is None or net.depth_sigma_m is None:
+        raise ModelError(f"model {model.path.name} was loaded without its fusion weights or returned no depth 1σ: "
+                         "the learned decoder fuses both")
     noise_sigma = decoded.stats.get("noise_sigma")
     classical_share = fuse_into(decoded, decoder.config.stride_px, net.depth_m, net.depth_sigma_m, weights,
                                 noise_sigma, decoder.threads)
