@@ -27,13 +27,13 @@ from ..decode.classical import DecodeResult, log_depth_variation_px
 from ..decode.features import FeatureTiles, extra_channels
 from ..decode.fusion import INVERSE_VARIANCE, FusionWeights, fuse_log_depth
 from ..model_io import INPUT_CHANNELS
+from ..model_manifest import ModelError
 from ..parallel import map_threads
 from ..sensor import NoiseProfile
 from .classical import classical_decoder, decode_frame
 from .decoders import DecodedFrame
 from .model import Model
 from .pipeline import infer_raw
-from ..model_manifest import ModelError
 
 
 def model_classical_config(model: Model, threads: int | None = None) -> ClassicalConfig:
