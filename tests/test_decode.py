@@ -198,16 +198,19 @@ def test_plane_nll_equals_the_brute_force_profile_over_beta():
 
 def test_a_candidates_nll_on_a_shared_beta_grid_does_not_depend_on_the_other_candidates_scored():
     """The fine pass scores a few candidates on the coarse pass's β grid (``grid_model``): each candidate's NLL
-    is then exactly what it was when scored beside the coarse set, so the two passes' NLLs form one curve."""
+    is then what it was when scored beside the coarse set, to the float32 product's rounding (BLAS splits a
+    product of another width differently on some processors), so the two passes' NLLs form one curve; a grid
+    placed by other candidates moves them by tenths of a nat."""
     model, power, taper_energy, noise_var = _hann_bank_spectra((5, 9, 13, 17, 19), true_index=2, windows=6, n=16,
                                                                seed=5)
     coarse = model[[0, 2, 4]]
     together = plane_nll(power, model, noise_var, taper_energy, grid_model=coarse)
     alone = [plane_nll(power, model[[d]], noise_var, taper_energy, grid_model=coarse)[:, 0] for d in range(5)]
-    assert np.array_equal(np.stack(alone, axis=1), together)
-    assert np.array_equal(together[:, [0, 2, 4]], plane_nll(power, coarse, noise_var, taper_energy))
-    # without the shared grid a candidate scored alone sits on a grid of its own: not the same number
-    assert not np.array_equal(plane_nll(power, model[[1]], noise_var, taper_energy)[:, 0], together[:, 1])
+    np.testing.assert_allclose(np.stack(alone, axis=1), together, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(together[:, [0, 2, 4]], plane_nll(power, coarse, noise_var, taper_energy), rtol=0,
+                               atol=1e-4)
+    # without the shared grid a candidate scored alone sits on a grid of its own: another number
+    assert np.abs(plane_nll(power, model[[1]], noise_var, taper_energy)[:, 0] - together[:, 1]).max() > 1e-3
 
 
 def test_plane_nll_with_per_window_noise_equals_the_brute_force_with_each_windows_own_noise():
