@@ -200,7 +200,7 @@ def steps_for(seconds: float, train_dirs, batch_size: int, crop: int, width: int
         opt.step()
     if device.startswith("cuda"):
         torch.cuda.synchronize()
-    return max(10, int(seconds / ((time.time() - t0) / 10)))
+    return max(50, int(seconds / ((time.time() - t0) / 10)))
 
 
 def main(argv=None) -> None:
