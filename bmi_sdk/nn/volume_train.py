@@ -92,10 +92,16 @@ def evaluate(net: VolumeNet, pairs: VolumePairs, device: str) -> dict:
             "z_std": float(z.std()), "windows": int(z.numel())}
 
 
+SCALARS = ("log_anchor", "log_sigma_scale", "log_sigma_floor")
+"""The network's three scalars: the anchor's temperature and the σ scale and floor."""
+
+
 def train(train_dirs, val_dirs, steps: int, batch_size: int = 16, crop: int = 16, lr: float = 2e-3,
-          width: int = 8, seed: int = 0, device: str = "cpu", log_every: int = 100, init: str | None = None
-          ) -> tuple[VolumeNet, dict]:
-    """Train a ``VolumeNet`` (optionally from ``init``'s state dict); returns it and its held-out metrics."""
+          width: int = 8, seed: int = 0, device: str = "cpu", log_every: int = 100, init: str | None = None,
+          scalars_only: bool = False) -> tuple[VolumeNet, dict]:
+    """Train a ``VolumeNet`` (optionally from ``init``'s state dict); returns it and its held-out metrics.
+    ``scalars_only``: fit only ``SCALARS`` (the residual stays zero): the pooled evidence's own read, with its
+    posterior's temperature and σ fitted, which few pairs determine well."""
     torch.manual_seed(seed)
     pairs = VolumePairs(train_dirs)
     val = VolumePairs(val_dirs)
@@ -103,7 +109,8 @@ def train(train_dirs, val_dirs, steps: int, batch_size: int = 16, crop: int = 16
     net = VolumeNet(VolumeNetConfig(candidates=len(pairs.inv_depth_per_m), width=width)).to(device)
     if init:
         net.load_state_dict(torch.load(init, map_location=device))
-    opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
+    params = [p for name, p in net.named_parameters() if not scalars_only or name in SCALARS]
+    opt = torch.optim.AdamW(params, lr=lr, weight_decay=0.0 if scalars_only else 1e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps, pct_start=0.1)
     rng = np.random.default_rng(seed)
     log = {"before": evaluate(net, val, device), "steps": []}
@@ -219,17 +226,18 @@ def main(argv=None) -> None:
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--init", default=None)
+    ap.add_argument("--scalars-only", action="store_true", help="fit only the temperature and σ scale and floor")
     a = ap.parse_args(argv)
     if (a.steps is None) == (a.seconds is None):
         ap.error("give one of --steps and --seconds")
     steps = a.steps or steps_for(a.seconds, a.train, a.batch, a.crop, a.width, a.device)
     net, log = train(a.train, a.val, steps, a.batch, a.crop, a.lr, a.width, device=a.device, init=a.init,
-                     log_every=max(1, steps // 20))
+                     log_every=max(1, steps // 20), scalars_only=a.scalars_only)
     out = Path(a.out)
     pairs = VolumePairs(a.val)
     torch.save(net.state_dict(), out.with_suffix(".pt"))
     export(net, pairs.inv_depth_per_m, out)
-    log.update({"steps_run": steps, "batch": a.batch, "crop": a.crop, "width": a.width, "lr": a.lr,
+    log.update({"steps_run": steps, "scalars_only": a.scalars_only, "batch": a.batch, "crop": a.crop, "width": a.width, "lr": a.lr,
                 "train": [str(p) for p in a.train], "val": [str(p) for p in a.val],
                 "log_sigma_scale": float(net.log_sigma_scale.detach()),
                 "log_sigma_floor": float(net.log_sigma_floor.detach()),
