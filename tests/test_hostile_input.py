@@ -434,3 +434,10 @@ def test_lens_names_its_option(capsys, tmp_path):
     assert "--lens nan: no lens called 'nan'" in _refusal(capsys, ["lens", "--lens", "nan"])
     line = _refusal(capsys, ["lens", "--write-sensor-mapping", str(tmp_path / "map.txt")])
     assert "--write-sensor-mapping" in line and "name it *.json" in line
+
+
+def test_options_that_would_be_ignored_or_name_a_missing_file_are_refused(capsys, tmp_path):
+    line = _refusal(capsys, ["simulate", "--procedural", "0", "--rgb", "x.png", "--out", str(tmp_path / "s.dng")])
+    assert "--procedural renders its own scene" in line
+    line = _refusal(capsys, ["firmware-sim", "serve", "--token-file", str(tmp_path / "none")])
+    assert f"--token-file {tmp_path / 'none'}: cannot read it (No such file or directory)" in line

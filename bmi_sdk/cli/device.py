@@ -187,7 +187,10 @@ def _read_token(path: str) -> bytes:
 
     from bmi_sdk.protocol.wire import MAX_TOKEN_BYTES
 
-    token = Path(path).read_bytes().strip()
+    try:
+        token = Path(path).read_bytes().strip()
+    except OSError as exc:
+        raise OptionError(f"--token-file {path}: cannot read it ({exc.strerror or exc})", "--token-file") from None
     if not token:
         raise ValueError(f"--token-file {path} is empty: an empty token protects nothing")
     if len(token) > MAX_TOKEN_BYTES:

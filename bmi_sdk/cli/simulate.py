@@ -155,6 +155,10 @@ def _scene(args, geometry, tensor):
     if args.procedural is not None:
         from bmi_sdk.scenes import generate_scene
 
+        if args.rgb is not None or args.depth is not None:
+            raise OptionError("--procedural renders its own scene: give it, or --rgb and --depth, not both",
+                              "--procedural")
+
         if args.full_frame:
             height, width, option, value = geometry.height_px, geometry.width_px, "--full-frame", \
                 f"({geometry.width_px}×{geometry.height_px} px)"
