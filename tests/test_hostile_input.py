@@ -441,3 +441,11 @@ def test_options_that_would_be_ignored_or_name_a_missing_file_are_refused(capsys
     assert "--procedural renders its own scene" in line
     line = _refusal(capsys, ["firmware-sim", "serve", "--token-file", str(tmp_path / "none")])
     assert f"--token-file {tmp_path / 'none'}: cannot read it (No such file or directory)" in line
+
+
+def test_a_replay_folder_shorter_than_count_is_copied_whole_and_reported(capsys, tmp_path):
+    folder = _replay_folder(tmp_path / "rec", 2)
+    code = main(["acquire", "--device", f"replay://{folder}", "--count", "3", "--out", str(tmp_path / "out")])
+    captured = capsys.readouterr()
+    assert code == 1 and "wrote 2 DNG files" in captured.out
+    assert "played 2 of the 3 frames asked for" in captured.err and "no frame for" not in captured.err
