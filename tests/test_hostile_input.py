@@ -277,7 +277,6 @@ def test_a_junk_file_in_a_replay_folder_is_skipped_and_reported(capsys, tmp_path
 
 def test_a_replay_folder_with_no_readable_frame_is_refused_naming_a_file(tmp_path):
     from devices import DeviceNotFoundError, open_camera
-
     from devices.replay import UnreadableFrameWarning
 
     (tmp_path / "a.dng").write_bytes(b"")
