@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml constraints.txt
 
 install: $(STAMP)
 
-# A 2048×1536 window of the embedded scene by default; `make demo DEMO_ARGS=--full-frame` for the whole sensor
+# A 1536×1024 window of the embedded scene by default; `make demo DEMO_ARGS=--full-frame` for the whole sensor
 # (bmi demo --help).
 demo: $(STAMP)
 	$(VENV)/bin/bmi demo $(DEMO_ARGS)

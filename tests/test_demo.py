@@ -40,7 +40,7 @@ def test_the_demo_runs_the_default_decoder_and_reports_its_true_peak_memory(tmp_
     # it says where its numbers come from: which decoder, which scene, against what
     assert f"({DEFAULT_DECODER} decoder" in stdout and "procedural scene seed 7" in stdout
     assert "against the scene's own all-in-focus RGB and range" in stdout
-    assert "window 128×128 px of the 6000×4500 sensor, on the optical axis" in stdout
+    assert "window 128×128 px of the 6000×4500 sensor, near the optical axis" in stdout
 
     for name in ("frame.dng", "frame.json", "psf_gallery.png", "aif.png", "depth.npy", "points.ply"):
         assert (out / name).is_file(), name

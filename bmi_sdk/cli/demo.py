@@ -8,8 +8,8 @@ with the default decoder (``runtime.decoders.DEFAULT_DECODER``, or ``--decoder``
 (AiF image, range map, point cloud, ``report.json``); the error of that decode against the scene's own
 ground truth over the same window.
 
-The window is ``--size`` (default 2048×1536, 3.1 MP, on the optical axis): ~220 CPU-seconds with a cold
-PSF cache, ~110 MB of files. ``--full-frame`` captures the whole 6000×4500 sensor (27 MP): its exact-mode
+The window is ``--size`` (default 1536×1024, 1.6 MP, holding the optical axis): ~140 CPU-seconds with a
+cold PSF cache, ~56 MB of files. ``--full-frame`` captures the whole 6000×4500 sensor (27 MP): its exact-mode
 render (~95 s), the first tracing of a full frame's kernels (~190 s) and the decode (~55 s) take ~6 min on
 an idle 2-core machine (docs/benchmarks.md), and its files ~1 GB, so it is an option, not the default.
 """
@@ -28,15 +28,16 @@ import numpy as np
 
 from ._options import whole
 
-DEFAULT_SIZE_PX = (2048, 1536)
-"""The captured window (width, height), on the optical axis (``centred_roi``): 3.1 MP, about 1/9 of the sensor."""
+DEFAULT_SIZE_PX = (1536, 1024)
+"""The captured window (width, height), holding the optical axis (``centred_roi``): 1.6 MP, 1/17 of the sensor;
+~140 CPU-seconds with a cold PSF cache, so under 5 min on 2 cores even with half of them taken by other work."""
 
 MIN_SIZE_PX = 128
 """The smallest window side the demo takes: room for every decoder's evidence windows (the tests' fast demo)."""
 
 DEFAULT_PLY_STEP_PX = 4
-"""One point per 4×4 pixels: a 2048×1536 window gives ~0.2 M points (4 MB), a full frame ~1.7 M (~32 MB), both
-of which a point-cloud viewer opens at once (every pixel of a full frame: 27 M points, ~400 MB)."""
+"""One point per 4×4 pixels: the default window gives ~0.1 M points (2 MB), a full frame ~1.7 M (~32 MB), both of
+which a point-cloud viewer opens at once (every pixel of a full frame: 27 M points, ~400 MB)."""
 
 CAPTURE_TIMEOUT_S = 1800.0
 """How long the camera may stay silent: the render heartbeats every second, so this only catches a hang."""
@@ -105,8 +106,8 @@ def parse_size(text: str) -> tuple[int, int]:
 
 def centred_roi(width_px: int, height_px: int):
     """The ``devices.Roi`` of that size nearest the sensor's optical axis whose offsets fall on the simulator's
-    render blocks (``firmware_sim.optical.BLOCK_PX``, 512 px): the default 2048×1536 window then needs 12 blocks
-    rendered instead of 20, and sits within 72 px of centred."""
+    render blocks (``firmware_sim.optical.BLOCK_PX``, 512 px): the default 1536×1024 window then needs 6 blocks
+    rendered instead of 12, and still holds the optical axis (~200 px from its centre)."""
     from bmi_sdk.geometry import BMI_SENSOR
     from devices import Roi
     from firmware_sim.optical import BLOCK_PX
@@ -199,7 +200,7 @@ def _run(args) -> int:
         print("full frame: 6000×4500 px; ~6 min on an idle 2-core machine with a cold PSF cache, ~1 GB of files",
               flush=True)
     else:
-        print(f"window {width_px}×{height_px} px of the 6000×4500 sensor, on the optical axis "
+        print(f"window {width_px}×{height_px} px of the 6000×4500 sensor, near the optical axis "
               "(--size WxH for another, --full-frame for the whole sensor)", flush=True)
 
     lens = get_lens("bmi_monocentric")
@@ -267,7 +268,7 @@ def register(subparsers) -> None:
                    "run replaces the demo's files there")
     p.add_argument("--seed", type=whole(0), default=7, help="procedural scene seed (default 7)")
     p.add_argument("--size", type=parse_size, default=DEFAULT_SIZE_PX, metavar="WxH",
-                   help=f"captured window, on the optical axis (default {DEFAULT_SIZE_PX[0]}x{DEFAULT_SIZE_PX[1]})")
+                   help=f"captured window, near the optical axis (default {DEFAULT_SIZE_PX[0]}x{DEFAULT_SIZE_PX[1]})")
     p.add_argument("--full-frame", action="store_true",
                    help="capture the whole 6000×4500 sensor (~6 min on 2 idle cores, ~1 GB of files)")
     p.add_argument("--decoder", choices=tuple(DECODERS), default=None,
