@@ -54,12 +54,28 @@ def test_posterior_matches_a_brute_force_sum():
     rng = np.random.default_rng(1)
     logits = rng.normal(0, 3, (7, 4, 5))
     x = np.linspace(1.4, 0.1, 7)
-    mean, std = posterior(logits, x, axis=0)
+    read, std = posterior(logits, x, axis=0, reach=2)
     p = np.exp(logits) / np.exp(logits).sum(axis=0)
     brute_mean = np.einsum("dij,d->ij", p, x)
     brute_var = np.einsum("dij,dij->ij", p, (x[:, None, None] - brute_mean) ** 2)
-    np.testing.assert_allclose(mean, brute_mean, rtol=1e-12)
     np.testing.assert_allclose(std, np.sqrt(brute_var), rtol=1e-10)
+    for i in range(4):
+        for j in range(5):
+            k = int(np.argmax(logits[:, i, j]))
+            near = slice(max(0, k - 2), k + 3)
+            want = (p[near, i, j] * x[near]).sum() / p[near, i, j].sum()
+            assert read[i, j] == pytest.approx(want, rel=1e-12)
+    # every candidate within reach: the read is the whole posterior's mean
+    np.testing.assert_allclose(posterior(logits, x, axis=0, reach=7)[0], brute_mean, rtol=1e-12)
+
+
+def test_a_far_second_mode_widens_the_spread_but_does_not_pull_the_read():
+    x = np.linspace(1.4, 0.1, 27)
+    logits = np.full(27, -50.0)
+    logits[3], logits[20] = 0.0, -0.5   # two surfaces, the nearer a little more probable
+    read, std = posterior(logits, x)
+    assert read == pytest.approx(x[3], abs=1e-6)
+    assert std > 0.3 * abs(x[20] - x[3])
 
 
 def test_guided_upsample_on_a_flat_image_is_the_decoders_bilinear_interpolation():

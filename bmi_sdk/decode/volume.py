@@ -12,7 +12,7 @@ This module holds what both training and inference need around the network:
 
 * ``volume_inputs``: a decode's volume (pooled and own curves, clipped), and the guide (window colour);
 * ``grid_targets``: a scene's 1/d at each window's cell, the training target;
-* ``posterior``: the mean and spread of 1/d under softmax(logits);
+* ``posterior``: the read (mean about the mode) and spread of 1/d under softmax(logits);
 * ``guided_upsample``: window-grid 1/d and its variance to every pixel, each pixel taking the windows
   whose cell colour matches its own (joint bilateral upsampling, Kopf et al., SIGGRAPH 2007), with the
   mixture's variance, so a pixel between two surfaces reports the gap between them.
@@ -80,8 +80,15 @@ def grid_targets(range_m: np.ndarray, stride_px: int, grid_shape: tuple[int, int
     return out
 
 
-def posterior(logits: np.ndarray, inv_depth_per_m: np.ndarray, axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(mean, std) of 1/d under softmax(``logits``) along ``axis`` (the candidates, 1/d ``inv_depth_per_m``)."""
+MODE_REACH = 2
+"""Candidates either side of the posterior's mode that its read averages over (``posterior``)."""
+
+
+def posterior(logits: np.ndarray, inv_depth_per_m: np.ndarray, axis: int = 0,
+              reach: int = MODE_REACH) -> tuple[np.ndarray, np.ndarray]:
+    """(read, spread) of 1/d under softmax(``logits``) along ``axis`` (the candidates, 1/d ``inv_depth_per_m``):
+    the posterior mean over the ``reach`` candidates either side of the most probable one (a second, far mode
+    would pull the whole mean between two surfaces, where neither is), and the whole posterior's std."""
     z = logits - logits.max(axis=axis, keepdims=True)
     p = np.exp(z)
     p /= p.sum(axis=axis, keepdims=True)
@@ -90,7 +97,10 @@ def posterior(logits: np.ndarray, inv_depth_per_m: np.ndarray, axis: int = 0) ->
     x = np.asarray(inv_depth_per_m, np.float64).reshape(shape)
     mean = (p * x).sum(axis=axis)
     var = (p * (x - np.expand_dims(mean, axis)) ** 2).sum(axis=axis)
-    return mean, np.sqrt(var)
+    index = np.arange(logits.shape[axis]).reshape(shape)
+    near = np.abs(index - np.expand_dims(np.argmax(logits, axis=axis), axis)) <= reach
+    local = np.where(near, p, 0.0)
+    return (local * x).sum(axis=axis) / local.sum(axis=axis), np.sqrt(var)
 
 
 def pixel_log_colour(rgb: np.ndarray, floor: float = 1e-3) -> np.ndarray:

@@ -13,8 +13,9 @@ Its last convolution starts at zero and ``a`` at 1: an untrained network returns
 posterior, and training can only move it where the data says the evidence misleads (depth edges, weak
 texture, model error of a built camera).
 
-Depth is the posterior mean of 1/d, its 1σ ``reported_sigma``: the posterior spread times a scale, in
-quadrature with a floor (both fitted with the Gaussian likelihood): flat evidence gives a flat posterior and a
+Depth is the posterior mean of 1/d about its mode (``MODE_REACH`` candidates either side: a far second mode
+does not pull the read between two surfaces), its 1σ ``reported_sigma``: the whole posterior's spread times a
+scale, in quadrature with a floor (both fitted with the Gaussian likelihood): flat or two-peaked evidence gives a
 wide σ.
 
 The grid's rows and columns must be multiples of 4 (the runtime pads them; ``PAD_MULTIPLE``).
@@ -29,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from bmi_sdk.decode.volume import VOLUME_SCALE_NATS
+from bmi_sdk.decode.volume import MODE_REACH, VOLUME_SCALE_NATS
 
 PAD_MULTIPLE = 4
 """The grid's rows and columns are padded to a multiple of this (two ½ levels)."""
@@ -116,13 +117,19 @@ class VolumeNet(nn.Module):
         return -torch.exp(self.log_anchor) * volume[:, 0] + residual
 
 
-def posterior_torch(logits: torch.Tensor, inv_depth_per_m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(mean, std) of 1/d under softmax over dim 1 of (N, D, R, C) logits (``decode.volume.posterior``)."""
+def posterior_torch(logits: torch.Tensor, inv_depth_per_m: torch.Tensor,
+                    reach: int = MODE_REACH) -> tuple[torch.Tensor, torch.Tensor]:
+    """(read, spread) of 1/d under softmax over dim 1 of (N, D, R, C) logits (``decode.volume.posterior``): the
+    mean over the ``reach`` candidates either side of the most probable one, and the whole posterior's std."""
     p = torch.softmax(logits, dim=1)
     x = inv_depth_per_m.view(1, -1, 1, 1)
     mean = (p * x).sum(dim=1)
     var = (p * (x - mean.unsqueeze(1)) ** 2).sum(dim=1)
-    return mean, torch.sqrt(var + 1e-12)
+    index = torch.arange(logits.shape[1], device=logits.device).view(1, -1, 1, 1)
+    near = ((index - torch.argmax(logits, dim=1, keepdim=True)).abs() <= reach).to(p.dtype)
+    local = p * near
+    read = (local * x).sum(dim=1) / local.sum(dim=1)
+    return read, torch.sqrt(var + 1e-12)
 
 
 def reported_sigma(net: VolumeNet, posterior_std: torch.Tensor) -> torch.Tensor:
