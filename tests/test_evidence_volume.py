@@ -167,3 +167,23 @@ def test_export_round_trips_through_onnxruntime(tmp_path):
         logits = net(torch.as_tensor(vol[None]), torch.as_tensor(guide[None]))[0].numpy()
     np.testing.assert_allclose(out[2][0], logits, atol=1e-4)
     assert not np.allclose(logits, -vol[0], atol=1e-3)
+
+
+def test_the_networks_reach_across_the_grid_is_within_the_runtimes_band_halo():
+    """One window's volume changes the logits no further than ``HALO_ROWS`` windows away, so reading a frame's grid
+    in bands (``runtime.evidence``) gives what reading it whole would."""
+    from bmi_sdk.nn.volume_net import VolumeNet, VolumeNetConfig
+    from bmi_sdk.runtime.evidence import HALO_ROWS
+
+    torch.manual_seed(1)
+    net = VolumeNet(VolumeNetConfig(candidates=5, width=4)).eval()
+    with torch.no_grad():
+        net.head.weight.normal_(0, 0.3)
+        vol = torch.zeros(1, 2, 5, 96, 8)
+        guide = torch.zeros(1, 4, 96, 8)
+        guide[:, 3] = 1.0
+        base = net(vol, guide)
+        vol[0, :, :, 48, 4] = 20.0
+        moved = (net(vol, guide) - base).abs().amax(dim=(0, 1, 3))
+    rows = torch.nonzero(moved > 1e-6).flatten()
+    assert len(rows) > 1 and int((rows - 48).abs().max()) <= HALO_ROWS

@@ -99,7 +99,8 @@ SCALARS = ("log_anchor", "log_sigma_scale", "log_sigma_floor")
 def train(train_dirs, val_dirs, steps: int, batch_size: int = 16, crop: int = 16, lr: float = 2e-3,
           width: int = 8, seed: int = 0, device: str = "cpu", log_every: int = 100, init: str | None = None,
           scalars_only: bool = False) -> tuple[VolumeNet, dict]:
-    """Train a ``VolumeNet`` (optionally from ``init``'s state dict); returns it and its held-out metrics.
+    """Train a ``VolumeNet`` (optionally from ``init``'s state dict), then fit its σ's scale on the held-out pairs
+    (``calibrate_sigma``); returns it and its held-out metrics.
     ``scalars_only``: fit only ``SCALARS`` (the residual stays zero): the pooled evidence's own read, with its
     posterior's temperature and σ fitted, which few pairs determine well."""
     torch.manual_seed(seed)
@@ -127,6 +128,8 @@ def train(train_dirs, val_dirs, steps: int, batch_size: int = 16, crop: int = 16
             row = {"step": step + 1, "s": round(time.time() - t0, 1), **{k: float(v.detach()) for k, v in terms.items()}}
             log["steps"].append(row)
             print(json.dumps(row), flush=True)
+    log["after_training"] = evaluate(net, val, device)
+    log["sigma_factor"] = calibrate_sigma(net, val, device)
     log["after"] = evaluate(net, val, device)
     return net, log
 
@@ -182,11 +185,24 @@ def write_evidence_manifest(onnx_path: str | Path, inv_depth_per_m, training: di
     tensor = lens_tensor(lens)
     config = {k: v for k, v in ClassicalConfig().to_dict().items() if k != "threads"}
     return write_manifest(onnx_path, preset=f"evidence-w{training.get('width', 8)}", decoder="evidence",
-                          receptive_field_px=16 * 31 + 64, lens=lens,
+                          receptive_field_px=16 * (2 * 28 + 1) + 64, lens=lens,
                           psf_tensor_key=tensor.spec.cache_key(tensor.lens), training=training, metrics=metrics,
                           input_name=EVIDENCE_INPUT_NAME, output_names=EVIDENCE_OUTPUT_NAMES, input_channels=2,
                           size_multiple=4, candidates_inv_depth_per_m=[float(x) for x in inv_depth_per_m],
                           classical_config=config, upsample_colour_sigma=UPSAMPLE_COLOUR_SIGMA)
+
+
+def calibrate_sigma(net: VolumeNet, pairs: VolumePairs, device: str = "cpu") -> float:
+    """Scale the network's reported σ (its σ scale and floor alike) so that error / σ has unit standard deviation
+    over ``pairs``' valid windows (held-out pairs: one scale fitted on data the weights never saw); returns the
+    factor applied."""
+    factor = evaluate(net, pairs, device)["z_std"]
+    if not (factor > 0 and np.isfinite(factor)):
+        raise ValueError(f"cannot calibrate σ: error/σ has standard deviation {factor} on the held-out pairs")
+    with torch.no_grad():
+        net.log_sigma_scale += float(np.log(factor))
+        net.log_sigma_floor += float(np.log(factor))
+    return float(factor)
 
 
 def steps_for(seconds: float, train_dirs, batch_size: int, crop: int, width: int, device: str) -> int:

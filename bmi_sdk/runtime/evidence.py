@@ -8,7 +8,7 @@ Steps for one frame (docs/decoder.md):
 2. the network (``evidence.onnx``, ``nn.volume_net``) turns the volume into logits over the candidates; 1/d is
    the posterior mean, its 1σ the posterior spread, scaled and floored as fitted on held-out pairs. The grid is
    padded to a multiple of 4 windows and read in bands of ``BAND_ROWS`` grid rows (with a halo of
-   ``HALO_ROWS``), so memory stays bounded on a full frame;
+   ``HALO_ROWS``, the network's reach), so memory stays bounded on a full frame;
 3. 1/d and its variance go to every pixel by colour-guided upsampling (``decode.volume.guided_upsample``) over
    the demosaiced frame: a pixel between windows takes those of its own colour, and its σ includes the
    spread of the windows it mixes;
@@ -40,8 +40,9 @@ PAD_MULTIPLE = 4
 """The network halves the grid twice: its rows and columns are padded to a multiple of this."""
 BAND_ROWS = 64
 """Grid rows the network reads at once (a full frame has ~280): bounds onnxruntime's arena."""
-HALO_ROWS = 8
-"""Grid rows read above and below a band and dropped: the network's reach across rows is ±7 windows."""
+HALO_ROWS = 28
+"""Grid rows read above and below a band and dropped: the network's reach across rows (``tests/
+test_evidence_volume.py`` measures it), so a band reads what the whole grid would."""
 
 
 class EvidenceNetwork:
@@ -52,6 +53,7 @@ class EvidenceNetwork:
 
         from .model import choose_providers, session_options
 
+        t0 = time.perf_counter()
         self.path = Path(path)
         self.manifest = verify_model(self.path)
         if self.manifest.get("decoder") != "evidence":
@@ -63,10 +65,14 @@ class EvidenceNetwork:
         self.session = ort.InferenceSession(str(self.path), sess_options=session_options(threads),
                                             providers=choose_providers(providers))
         self.provider = self.session.get_providers()[0]
+        self.load_s = time.perf_counter() - t0
+        self.warmup_s = 0.0  # the grid's shape changes with the frame: there is no one shape to warm up
 
     def describe(self) -> dict:
-        return {"file": self.path.name, "sha256": self.manifest["sha256"], "provider": self.provider,
-                "lens": self.manifest["lens"]}
+        return {"path": str(self.path), "sha256": self.manifest["sha256"], "decoder": "evidence",
+                "preset": self.manifest["preset"], "lens": self.manifest["lens"],
+                "psf_tensor_key": self.manifest["psf_tensor_key"], "execution_provider": self.provider,
+                "load_s": self.load_s, "warmup_s": self.warmup_s}
 
     def read(self, volume: np.ndarray, guide: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(1/d, 1σ of 1/d), each R × C, of a (2, D, R, C) volume and (4, R, C) guide (``volume_inputs``)."""
