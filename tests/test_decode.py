@@ -658,7 +658,7 @@ def test_a_refused_run_leaves_no_output_folder(tmp_path, bmi):
         "--out", tmp_path / "f.dng")
     run = bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--decoder", "classical", "--candidates", 2,
               check=False)
-    assert run.returncode == 1 and "at least 3 candidates" in run.stderr
+    assert run.returncode == 2 and "--candidates: 2 is outside [3, 1000]" in run.stderr
     assert not (tmp_path / "o").exists()
 
 

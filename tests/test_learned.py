@@ -425,11 +425,13 @@ def test_eval_refuses_options_its_decoders_would_ignore_and_no_tiles(capsys):
 
 
 def test_the_classical_options_defaults_are_the_decoders():
-    """``bmi infer``'s classical options default to ``ClassicalConfig``'s knobs (the CLI keeps them as literals so
-    that it starts without importing the decoder): a default changed in one place only fails here."""
-    from bmi_sdk.cli.infer import CLASSICAL_KNOBS
+    """``bmi infer``'s classical options default to ``ClassicalConfig``'s own knobs (read from the dataclass, not
+    kept as literals), and every option names a field of it."""
+    from bmi_sdk.cli.infer import CLASSICAL_FLAGS, classical_defaults
 
-    assert CLASSICAL_KNOBS == {knob: getattr(ClassicalConfig(), knob) for knob in CLASSICAL_KNOBS}
+    defaults = classical_defaults()
+    assert set(defaults) == set(CLASSICAL_FLAGS)
+    assert defaults == {knob: getattr(ClassicalConfig(), knob) for knob in CLASSICAL_FLAGS}
 
 
 def test_each_training_pair_draws_its_own_camera_within_the_papers_ranges():

@@ -80,7 +80,7 @@ def test_inference_tile_too_large_is_refused_before_allocating(monkeypatch):
     from bmi_sdk.runtime.model import DEFAULT_MODEL
 
     monkeypatch.delenv("BMI_MAX_MEMORY_MB", raising=False)
-    with pytest.raises(MemoryBudgetError, match=r"100000×100000 px inference tile needs about \d+\.\d GiB"):
+    with pytest.raises(MemoryBudgetError, match=r"--tile-px 100000 needs about \d+\.\d GiB"):
         Model(DEFAULT_MODEL, tile_px=100000)
 
 
