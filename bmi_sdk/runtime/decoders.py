@@ -153,14 +153,10 @@ def open_decoder(camera: BuiltCamera, kind: str | None = None, model=None, confi
 def load_model(model, camera: BuiltCamera, model_kind: str, decoder: str, options: DecoderOptions):
     """``model`` as a loaded ``Model`` of ``model_kind``: itself, the file it names, or (None) the packaged model of
     that kind for the camera's lens (``model.select_model``)."""
-    from .model import Model, select_model
+    from .model import Model
 
     if model is None:
-        try:
-            model = select_model(lens=camera.lens_name, decoder=model_kind)
-        except ModelError as exc:
-            others = ", ".join(f"--decoder {k}" for k in DECODERS if k != decoder)
-            raise ModelError(f"{exc}; decode this frame with {others}") from None
+        model = packaged_model(camera, model_kind, decoder)
     if not isinstance(model, Model):
         providers = list(options.providers) if isinstance(options.providers, tuple) else options.providers
         model = Model(model, tile_px=options.tile_px, threads=options.threads, providers=providers)
@@ -168,6 +164,18 @@ def load_model(model, camera: BuiltCamera, model_kind: str, decoder: str, option
         raise ValueError(f"model {model.path.name} is a {model.decoder} model; the {decoder} decoder runs a "
                          f"{model_kind} model")
     return model
+
+
+def packaged_model(camera: BuiltCamera, model_kind: str, decoder: str):
+    """The packaged model of ``model_kind`` for the camera's lens (``model.select_model``), or a ``ModelError``
+    that names the other decoders when none ships."""
+    from .model import select_model
+
+    try:
+        return select_model(lens=camera.lens_name, decoder=model_kind)
+    except ModelError as exc:
+        others = ", ".join(f"--decoder {k}" for k in DECODERS if k != decoder)
+        raise ModelError(f"{exc}; decode this frame with {others}") from None
 
 
 def camera_head(camera: BuiltCamera) -> dict:
@@ -269,15 +277,10 @@ class EvidenceDecoder:
 
     def __init__(self, camera: BuiltCamera, model, config, options: DecoderOptions):
         from .evidence import EvidenceNetwork, evidence_stage
-        from .model import select_model
 
         self.camera, self.options = camera, options
         if model is None:
-            try:
-                model = select_model(lens=camera.lens_name, decoder=self.kind)
-            except ModelError as exc:
-                others = ", ".join(f"--decoder {k}" for k in DECODERS if k != self.kind)
-                raise ModelError(f"{exc}; decode this frame with {others}") from None
+            model = packaged_model(camera, self.kind, self.kind)
         self.model = EvidenceNetwork(getattr(model, "path", model), threads=options.threads,
                                      providers=options.providers)
         self.stage = evidence_stage(self.model, camera, options.threads)
