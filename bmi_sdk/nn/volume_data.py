@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from bmi_sdk.io_atomic import write_json
+from bmi_sdk.lenses import DEFAULT_LENS
 from bmi_sdk.nn.data import CacheSpec, render_sample, simulate_raw
 from bmi_sdk.parallel import map_jobs
 from bmi_sdk.sensor import BLACK_LEVEL_DN, CFA_PATTERN, WHITE_LEVEL_DN, NoiseProfile
@@ -39,11 +40,11 @@ SHARD_PAIRS = 4
 class VolumeSpec:
     """What a set of training pairs holds (module doc)."""
 
-    lens: str = "bmi_monocentric"
+    lens: str = DEFAULT_LENS
     pairs: int = 256
-    crop_px: int = 384
+    crop_px: int = 256
     seed: int = 0
-    scene_scale_max: float = 32.0
+    scene_scale_max: float = 16.0
     sigma_min: float = 0.002
     sigma_max: float = 0.05
     camera_errors: float = 0.0

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from bmi_sdk.lenses import DEFAULT_LENS
 from bmi_sdk.nn.volume_data import VolumePairs
 from bmi_sdk.nn.volume_net import VolumeDecoderGraph, VolumeNet, VolumeNetConfig, posterior_torch, reported_sigma
 
@@ -175,7 +176,7 @@ evidence`` measures it)."""
 
 
 def write_evidence_manifest(onnx_path: str | Path, inv_depth_per_m, training: dict, metrics: dict,
-                            lens: str = "bmi_monocentric") -> Path:
+                            lens: str = DEFAULT_LENS) -> Path:
     """The manifest of an exported evidence network: the evidence contract (``model_manifest``), the classical
     knobs its volume is made with (the defaults the training pairs used), its candidates and its training."""
     from bmi_sdk.decode import ClassicalConfig
