@@ -187,3 +187,27 @@ def test_the_networks_reach_across_the_grid_is_within_the_runtimes_band_halo():
         moved = (net(vol, guide) - base).abs().amax(dim=(0, 1, 3))
     rows = torch.nonzero(moved > 1e-6).flatten()
     assert len(rows) > 1 and int((rows - 48).abs().max()) <= HALO_ROWS
+
+
+def test_training_pairs_are_made_once_resume_and_refuse_another_spec(tmp_path):
+    """One pair through the real chain (render, raw frame, classical decode): its volume, guide and cell targets on
+    the decoder's window grid, the same shard kept on a second build, and another spec refused in that folder."""
+    from bmi_sdk.nn.volume_data import VolumePairs, VolumeSpec, build_pairs
+
+    spec = VolumeSpec(pairs=1, crop_px=128, seed=5, scene_scale_max=2.0)
+    build_pairs(tmp_path, spec, progress=False)
+    shard = tmp_path / "shard_00000.npz"
+    stamp = shard.stat().st_mtime_ns
+    build_pairs(tmp_path, spec, progress=False)
+    assert shard.stat().st_mtime_ns == stamp
+    with pytest.raises(ValueError, match="another spec"):
+        build_pairs(tmp_path, VolumeSpec(pairs=1, crop_px=128, seed=6, scene_scale_max=2.0), progress=False)
+    pairs = VolumePairs([tmp_path])
+    a = pairs.arrays
+    d = len(pairs.inv_depth_per_m)
+    assert a["volume"].shape == (1, 2, d, 9, 9) and a["guide"].shape == (1, 4, 9, 9) and a["target"].shape == (1, 9, 9)
+    ok = np.isfinite(a["target"][0])
+    assert ok.mean() > 0.5 and np.all((a["target"][0][ok] > 0.09) & (a["target"][0][ok] < 1.5))
+    assert np.all(a["volume"][0][:, :, a["guide"][0, 3] > 0].min(axis=1) == 0)  # each valid curve's minimum is 0
+    batch = pairs.batch(np.random.default_rng(0), 3, crop=8)
+    assert batch["volume"].shape == (3, 2, d, 8, 8) and batch["target"].shape == (3, 8, 8)
