@@ -211,3 +211,19 @@ def test_training_pairs_are_made_once_resume_and_refuse_another_spec(tmp_path):
     assert np.all(a["volume"][0][:, :, a["guide"][0, 3] > 0].min(axis=1) == 0)  # each valid curve's minimum is 0
     batch = pairs.batch(np.random.default_rng(0), 3, crop=8)
     assert batch["volume"].shape == (3, 2, d, 8, 8) and batch["target"].shape == (3, 8, 8)
+
+
+def test_cells_past_the_frames_last_pixel_are_empty_not_out_of_bounds():
+    """A frame whose size is no multiple of the stride (a full frame's 4500 rows over 16) has grid cells past its
+    last pixel: they hold no pixel, and guided upsampling still reads every pixel."""
+    from bmi_sdk.decode.classical import ClassicalConfig, window_grid_shape
+
+    height, width, stride = 100, 104, 16
+    rows, cols = window_grid_shape(ClassicalConfig(), height, width)
+    log_rgb = np.zeros((height, width, 3), np.float32)
+    cells = cell_colour(log_rgb, stride, (rows, cols))
+    assert cells.shape == (rows, cols, 3) and np.all(cells == 0)
+    assert np.isnan(grid_targets(np.full((height, width), 2.0), stride, (rows, cols))[-1]).all()
+    inv = np.full((rows, cols), 0.5, np.float32)
+    got, _ = guided_upsample(inv, np.full_like(inv, 1e-4), log_rgb, stride, 0.3)
+    np.testing.assert_allclose(got, 0.5, rtol=1e-6)

@@ -58,9 +58,10 @@ def volume_inputs(grid_pooled: np.ndarray, grid_curves: np.ndarray, grid_colour:
 
 
 def cell_bounds(k: int, stride_px: int, size_px: int) -> tuple[int, int]:
-    """Pixel range [lo, hi) of window k's cell along one axis: the stride around its centre k·stride − ½."""
+    """Pixel range [lo, hi) of window k's cell along one axis: the stride around its centre k·stride − ½, clipped
+    to the frame (the grid reaches a stride past the last pixel, so the last cell may be empty: lo = hi)."""
     half = stride_px // 2
-    return max(0, k * stride_px - half), min(size_px, k * stride_px + half)
+    return min(size_px, max(0, k * stride_px - half)), min(size_px, k * stride_px + half)
 
 
 def grid_targets(range_m: np.ndarray, stride_px: int, grid_shape: tuple[int, int]) -> np.ndarray:
