@@ -415,7 +415,7 @@ class ClassicalDecoder:
 
     # -- all-in-focus -----------------------------------------------------------------------------
     def restore_aif(self, raw: np.ndarray, black_level_dn: float, white_level_dn: float, geometry: SensorGeometry,
-                    depth_m: np.ndarray, prior_aif: np.ndarray, noise: NoiseProfile, row0: int = 0, col0: int = 0,
+                    depth_m: np.ndarray, prior_aif: np.ndarray | None, noise: NoiseProfile, row0: int = 0, col0: int = 0,
                     cfa: str = "RGGB", out: np.ndarray | None = None, aif_step: int | None = None) -> np.ndarray:
         """Another decoder's AiF (``prior_aif``, H × W × 3 linear RGB, relative illumination undone) made consistent
         with an H × W raw window through this decoder's kernels at ``depth_m`` (H × W, NaN where invalid): the
@@ -423,11 +423,14 @@ class ClassicalDecoder:
         ``noise``: the frame's raw noise as the decoder used it (``DecodeResult.stats["noise_profile"]``).
         0 where ``depth_m`` is invalid. H × W × 3 float32, written into ``out`` when given (an array of that shape
         and type whose values are no longer needed, not ``prior_aif``: blocks read their neighbours' prior).
-        ``aif_step``: blur and deconvolve on every n-th candidate (default: the config's ``aif_step``)."""
-        if prior_aif.shape != raw.shape + (3,) or depth_m.shape != raw.shape:
-            raise ValueError(f"restore_aif needs an H × W × 3 prior AiF and an H × W depth over the {raw.shape} raw "
-                             f"window, got {prior_aif.shape} and {depth_m.shape}")
-        if out is not None and (out.shape != prior_aif.shape or out.dtype != np.float32 or out is prior_aif):
+        ``aif_step``: blur and deconvolve on every n-th candidate (default: the config's ``aif_step``).
+        ``prior_aif`` None: the plain Wiener AiF at ``depth_m`` (step 6 at another decoder's depth map)."""
+        if prior_aif is not None and prior_aif.shape != raw.shape + (3,):
+            raise ValueError(f"restore_aif needs an H × W × 3 prior AiF over the {raw.shape} raw window, got "
+                             f"{prior_aif.shape}")
+        if depth_m.shape != raw.shape:
+            raise ValueError(f"restore_aif needs an H × W depth over the {raw.shape} raw window, got {depth_m.shape}")
+        if out is not None and (out.shape != raw.shape + (3,) or out.dtype != np.float32 or out is prior_aif):
             raise ValueError("restore_aif writes into an H × W × 3 float32 array other than the prior AiF")
         valid = np.isfinite(depth_m) & (depth_m > 0)
         inv_px = np.full(depth_m.shape, np.nan, np.float32)  # in float32 throughout: a full frame's is 108 MB

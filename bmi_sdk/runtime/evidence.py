@@ -13,7 +13,7 @@ Steps for one frame (docs/decoder.md):
    the demosaiced frame: a pixel between windows takes those of its own colour, and its σ includes the
    spread of the windows it mixes;
 4. the AiF is the Wiener deconvolution of the frame with the kernels at that depth
-   (``ClassicalDecoder.restore_aif`` with a zero prior).
+   (``ClassicalDecoder.restore_aif`` without a prior).
 
 No step is retrained for a calibrated camera: its kernels change the volume, and the network reads the volume.
 """
@@ -134,8 +134,8 @@ def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, ca
     timings["upsample_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     noise = NoiseProfile(**result.stats["noise_profile"])  # the noise the stage decoded with
-    aif = stage.restore_aif(frame.data, frame.black_level_dn, frame.white_level_dn, frame.geometry, depth,
-                            np.zeros(depth.shape + (3,), np.float32), noise, row0, col0, frame.cfa)
+    aif = stage.restore_aif(frame.data, frame.black_level_dn, frame.white_level_dn, frame.geometry, depth, None,
+                            noise, row0, col0, frame.cfa)
     timings["aif_s"] = time.perf_counter() - t0
     stats = dict(result.stats, camera_sha256=camera.sha256(), calibration_id=camera.calibration_id)
     confident = valid & (sigma <= 0.1 * np.where(valid, depth, 1.0))
