@@ -32,7 +32,7 @@ def _row(depth: np.ndarray, sigma: np.ndarray, truth: np.ndarray, ok: np.ndarray
 
 def run(full: bool = False) -> str:
     from ..decode import ClassicalDecoder
-    from ..decode.volume import guided_upsample, pixel_log_colour, volume_inputs
+    from ..decode.volume import guided_upsample, pixel_log_colour
     from ..lenses import lens_geometry, lens_tensor
     from ..model_io import raw_to_rgb
     from ..nn.evaluate import Benchmark, tile_raw
@@ -45,9 +45,7 @@ def run(full: bool = False) -> str:
     bench = Benchmark(tiles=12 if full else 4, scene_scale=4.0)
     tensor, geometry = lens_tensor(bench.lens), lens_geometry(bench.lens)
     network = EvidenceNetwork(select_model(bench.lens, "evidence"), threads=2)
-    from ..decode import ClassicalConfig
-
-    config = ClassicalConfig(**{**network.classical_config, "slopes": tuple(network.classical_config["slopes"])})
+    config = network.stage_config()
     stage = ClassicalDecoder.for_psf_map(PsfMap(tensor, geometry, mode="tensor"), config)
     rows: dict[str, list] = {}
     seconds: dict[str, float] = {}
@@ -58,9 +56,7 @@ def run(full: bool = False) -> str:
                               noise_profile=NoiseProfile.additive(sigma_noise), aif=False)
         truth = item["range_m"]
         rows.setdefault("classical", []).append(_row(result.depth_m, result.depth_sigma_m, truth, result.valid))
-        volume, guide, grid_valid = volume_inputs(result.grid_pooled, result.grid_curves, result.grid_colour)
-        inv_grid, sig_grid = network.read(volume, guide)
-        inv_grid = np.where(grid_valid, inv_grid, np.nan)
+        inv_grid, sig_grid = network.read_decode(result)
         log_rgb = pixel_log_colour(raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN))
         pixels += raw.size
         for c in COLOUR_SIGMAS:

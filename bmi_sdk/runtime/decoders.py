@@ -150,31 +150,32 @@ def open_decoder(camera: BuiltCamera, kind: str | None = None, model=None, confi
     return cls(camera, model, config, options)
 
 
-def load_model(model, camera: BuiltCamera, model_kind: str, decoder: str, options: DecoderOptions):
-    """``model`` as a loaded ``Model`` of ``model_kind``: itself, the file it names, or (None) the packaged model of
-    that kind for the camera's lens (``model.select_model``)."""
+def load_model(model, camera: BuiltCamera, kind: str, options: DecoderOptions):
+    """``model`` as a loaded ``Model`` for the ``kind`` decoder (a decoder with a network runs models whose manifest
+    names its own kind): itself, the file it names, or (None) the packaged model of that kind for the camera's lens
+    (``packaged_model``)."""
     from .model import Model
 
     if model is None:
-        model = packaged_model(camera, model_kind, decoder)
+        model = packaged_model(camera, kind)
     if not isinstance(model, Model):
         providers = list(options.providers) if isinstance(options.providers, tuple) else options.providers
         model = Model(model, tile_px=options.tile_px, threads=options.threads, providers=providers)
-    if model.decoder != model_kind:
-        raise ValueError(f"model {model.path.name} is a {model.decoder} model; the {decoder} decoder runs a "
-                         f"{model_kind} model")
+    if model.decoder != kind:
+        raise ValueError(f"model {model.path.name} is a {model.decoder} model; the {kind} decoder runs a "
+                         f"{kind} model")
     return model
 
 
-def packaged_model(camera: BuiltCamera, model_kind: str, decoder: str):
-    """The packaged model of ``model_kind`` for the camera's lens (``model.select_model``), or a ``ModelError``
-    that names the other decoders when none ships."""
+def packaged_model(camera: BuiltCamera, kind: str):
+    """The packaged model of the ``kind`` decoder for the camera's lens (``model.select_model``), or a
+    ``ModelError`` that names the other decoders when none ships."""
     from .model import select_model
 
     try:
-        return select_model(lens=camera.lens_name, decoder=model_kind)
+        return select_model(lens=camera.lens_name, decoder=kind)
     except ModelError as exc:
-        others = ", ".join(f"--decoder {k}" for k in DECODERS if k != decoder)
+        others = ", ".join(f"--decoder {k}" for k in DECODERS if k != kind)
         raise ModelError(f"{exc}; decode this frame with {others}") from None
 
 
@@ -196,7 +197,7 @@ class LearnedDecoder:
         from .learned import learned_decoder
 
         self.camera, self.options = camera, options
-        self.model = load_model(model, camera, self.kind, self.kind, options)
+        self.model = load_model(model, camera, self.kind, options)
         self.stage = learned_decoder(self.model, camera, options.threads)
 
     def decode(self, frame, progress: bool = False) -> DecodedFrame:
@@ -221,7 +222,7 @@ class NetworkDecoder:
 
     def __init__(self, camera: BuiltCamera, model, config, options: DecoderOptions):
         self.camera, self.options = camera, options
-        self.model = load_model(model, camera, self.kind, self.kind, options)
+        self.model = load_model(model, camera, self.kind, options)
 
     def decode(self, frame, progress: bool = False) -> DecodedFrame:
         from .pipeline import infer_frame
@@ -280,7 +281,7 @@ class EvidenceDecoder:
 
         self.camera, self.options = camera, options
         if model is None:
-            model = packaged_model(camera, self.kind, self.kind)
+            model = packaged_model(camera, self.kind)
         self.model = EvidenceNetwork(getattr(model, "path", model), threads=options.threads,
                                      providers=options.providers)
         self.stage = evidence_stage(self.model, camera, options.threads)

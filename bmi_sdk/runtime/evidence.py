@@ -68,6 +68,21 @@ class EvidenceNetwork:
         self.load_s = time.perf_counter() - t0
         self.warmup_s = 0.0  # the grid's shape changes with the frame: there is no one shape to warm up
 
+    def stage_config(self, threads: int | None = None) -> ClassicalConfig:
+        """The classical decoder's knobs that make this network's volume (its manifest's), on ``threads`` threads."""
+        knobs = self.classical_config
+        return ClassicalConfig(**{**knobs, "slopes": tuple(knobs.get("slopes", (2.0,))), "threads": threads})
+
+    def read_decode(self, result) -> tuple[np.ndarray, np.ndarray]:
+        """(1/d, 1σ of 1/d) on the window grid of a classical decode of its knobs (NaN 1/d where a window has no
+        decode): its volume (``volume_inputs``) read by the network (``read``)."""
+        if result.grid_pooled is None or result.grid_curves is None or result.grid_colour is None:
+            raise ModelError(f"evidence network {self.path.name}: its classical_config decodes without pooling "
+                             "(pool_sigma_px = 0), so there is no volume to read")
+        volume, guide, grid_valid = volume_inputs(result.grid_pooled, result.grid_curves, result.grid_colour)
+        inv_grid, sig_grid = self.read(volume, guide)
+        return np.where(grid_valid, inv_grid, np.nan), sig_grid
+
     def describe(self) -> dict:
         return {"path": str(self.path), "sha256": self.manifest["sha256"], "decoder": "evidence",
                 "preset": self.manifest["preset"], "lens": self.manifest["lens"],
@@ -95,9 +110,7 @@ class EvidenceNetwork:
 def evidence_stage(network: EvidenceNetwork, camera: BuiltCamera, threads: int | None = None) -> ClassicalDecoder:
     """The classical decoder whose volume ``network`` reads: the camera's kernels, the manifest's knobs, and the
     candidates the network was trained on (refused, naming both, when the camera's kernels give others)."""
-    config = ClassicalConfig(**{**network.classical_config,
-                                "slopes": tuple(network.classical_config.get("slopes", (2.0,))), "threads": threads})
-    stage = ClassicalDecoder.for_psf_map(camera.psf_map(disk_cache=True), config)
+    stage = ClassicalDecoder.for_psf_map(camera.psf_map(disk_cache=True), network.stage_config(threads))
     got = stage.candidates.inv_depth_per_m
     if got.shape != network.inv_depth_per_m.shape or not np.allclose(got, network.inv_depth_per_m, rtol=1e-5):
         raise ModelError(f"evidence network {network.path.name} reads {len(network.inv_depth_per_m)} depth "
@@ -117,12 +130,7 @@ def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, ca
                           col0=col0, cfa=frame.cfa, progress=progress, noise_profile=frame.noise_profile, aif=False)
     timings["evidence_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    if result.grid_pooled is None or result.grid_curves is None or result.grid_colour is None:
-        raise ModelError(f"evidence network {network.path.name}: its classical_config decodes without pooling "
-                         "(pool_sigma_px = 0), so there is no volume to read")
-    volume, guide, grid_valid = volume_inputs(result.grid_pooled, result.grid_curves, result.grid_colour)
-    inv_grid, sig_grid = network.read(volume, guide)
-    inv_grid = np.where(grid_valid, inv_grid, np.nan)
+    inv_grid, sig_grid = network.read_decode(result)
     timings["network_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     rgb = raw_to_rgb(frame.data, frame.black_level_dn, frame.white_level_dn, frame.cfa)
