@@ -53,6 +53,10 @@ class VolumeSpec:
     def __post_init__(self):
         if not 0 < self.sigma_min <= self.sigma_max:
             raise ValueError(f"pairs need 0 < sigma_min <= sigma_max, got {self.sigma_min}, {self.sigma_max}")
+        if self.pairs < 1:
+            raise ValueError(f"pairs must be >= 1, got {self.pairs}")
+        if not 1.0 <= self.scene_scale_max < float("inf"):
+            raise ValueError(f"scene_scale_max must be a finite number >= 1, got {self.scene_scale_max}")
         if self.crop_px % 16 or self.crop_px < 128:
             raise ValueError(f"crop_px must be a multiple of 16 of at least 128, got {self.crop_px}")
         if not 0.0 <= self.built_share <= 1.0:
@@ -207,8 +211,13 @@ def main(argv=None) -> None:
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--deadline-s", type=float, default=None)
     a = ap.parse_args(argv)
-    spec = VolumeSpec(pairs=a.pairs, crop_px=a.crop_px, seed=a.seed, scene_scale_max=a.scene_scale_max,
-                      camera_errors=a.camera_errors)
+    if a.workers < 1:
+        ap.error(f"--workers must be >= 1, got {a.workers}")
+    try:
+        spec = VolumeSpec(pairs=a.pairs, crop_px=a.crop_px, seed=a.seed, scene_scale_max=a.scene_scale_max,
+                          camera_errors=a.camera_errors)
+    except ValueError as exc:
+        ap.error(str(exc))
     build_pairs(a.out, spec, workers=a.workers, deadline_s=a.deadline_s)
 
 
