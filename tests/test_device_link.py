@@ -126,14 +126,17 @@ def test_idle_timeout_must_be_positive():
 
 def test_a_port_out_of_range_or_in_use_gets_a_message_naming_it(capsys):
     """`bmi firmware-sim serve --port 70000` (or -1) died with socket's OverflowError traceback; a port in use
-    read "[Errno 98] Address already in use". Both now say which port, and the CLI exits 1 with one line."""
+    read "[Errno 98] Address already in use". Both now say which port: the CLI refuses an out-of-range --port as
+    argparse does (exit 2) and a port in use with one line (exit 1)."""
     from bmi_sdk.cli import main
 
     for port in (-1, 65536, 70000):
         with pytest.raises(ValueError, match="0–65535"):
             FirmwareServer(FirmwareDevice(), port=port)
-        assert main(["firmware-sim", "serve", "--port", str(port), "--duration-s", "0.1"]) == 1
-        assert "0–65535" in capsys.readouterr().err
+        with pytest.raises(SystemExit) as exit_info:
+            main(["firmware-sim", "serve", "--port", str(port), "--duration-s", "0.1"])
+        assert exit_info.value.code == 2
+        assert f"argument --port: {port} is outside [0, 65535]" in capsys.readouterr().err
     with FirmwareServer(FirmwareDevice()) as server:
         with pytest.raises(OSError, match=f"port {server.port} on 127.0.0.1 is in use"):
             FirmwareServer(FirmwareDevice(), port=server.port)

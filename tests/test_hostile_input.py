@@ -162,6 +162,18 @@ def test_a_fisheye_camera_names_the_lens_profile_its_shipped_model_was_trained_f
     assert scene.metadata()["lens"] == "fisheye"
 
 
+def test_the_classical_decoder_widens_a_window_too_narrow_for_the_fisheye_kernel_and_says_so():
+    from bmi_sdk.built_camera import BuiltCamera
+    from bmi_sdk.decode import ClassicalConfig
+    from bmi_sdk.runtime.classical import WindowFitWarning, classical_decoder, window_holding
+
+    assert window_holding(161, 64) == 164 and window_holding(41, 64) == 64 and window_holding(41, 40) == 44
+    with pytest.warns(WindowFitWarning, match="--window-px 64 holds no 161-px kernel of the fisheye lens; "
+                                              "reading with 164-px windows"):
+        decoder = classical_decoder(BuiltCamera(lens_name="fisheye"), ClassicalConfig())
+    assert decoder.config.window_px == 164 and decoder.zones.window_px == 164
+
+
 @pytest.mark.slow  # a fisheye render on a cold PSF cache: minutes on 2 cores
 def test_a_simulated_fisheye_frame_decodes_end_to_end_through_the_cli(tmp_path):
     import json
@@ -172,6 +184,8 @@ def test_a_simulated_fisheye_frame_decodes_end_to_end_through_the_cli(tmp_path):
     assert main(["infer", str(dng), "--decoder", "cnn", "--out", str(tmp_path / "out")]) == 0
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["model"]["lens"] == "fisheye" and np.isfinite(np.load(tmp_path / "out" / "depth.npy")).any()
+    assert main(["infer", str(dng), "--decoder", "classical", "--out", str(tmp_path / "classical")]) == 0
+    assert np.isfinite(np.load(tmp_path / "classical" / "depth.npy")).any()
 
 
 # -- the Python API ------------------------------------------------------------------------------------------------
@@ -226,6 +240,9 @@ def _replay_folder(folder, count: int):
     ("--roi", "1,2", "--roi takes X,Y,WIDTH,HEIGHT"),
     ("--roi", "0,0,7000,48", "--roi 0,0,7000,48: roi Roi(x_px=0, y_px=0, width_px=7000, height_px=48) does not fit"),
     ("--timeout-s", "-1", "argument --timeout-s: -1 is outside (0, 86400] s"),
+    ("--device", "bogus://", "--device bogus://: a camera URI is sim://, tcp://HOST:PORT or replay://DIR"),
+    ("--device", "tcp://127.0.0.1:99999", "--device tcp://127.0.0.1:99999: "),
+    ("--scene", "nosuch", "--scene nosuch: sim://sim0: unknown scene 'nosuch'"),
 ])
 def test_acquire_refuses_out_of_range_options_naming_them(capsys, tmp_path, option, value, expected):
     assert expected in _refusal(capsys, ["acquire", "--out", str(tmp_path / "o"), f"{option}={value}"])
@@ -303,6 +320,8 @@ def test_acquire_from_sim_without_a_scene_says_it_captures_the_chart(capsys, tmp
 # -- firmware-sim serve ----------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("option, value, expected", [
+    ("--port", "-5", "argument --port: -5 is outside [0, 65535]"),
+    ("--port", "70000", "argument --port: 70000 is outside [0, 65535]"),
     ("--duration-s", "-1", "argument --duration-s: -1 is outside [0, inf) s"),
     ("--duration-s", "inf", "argument --duration-s: inf is not a finite number"),
     ("--idle-timeout-s", "0", "argument --idle-timeout-s: 0 is outside (0, 86400] s"),
@@ -409,6 +428,15 @@ def test_calibrate_checks_its_output_before_capturing(capsys, tmp_path, out, exp
     (tmp_path / "afile").write_text("a file, not a folder")
     line = _refusal(capsys, ["calibrate", "--simulate", "decenter_um=1,0", "--out", str(tmp_path / out)])
     assert expected.format(tmp=tmp_path) in line
+
+
+@pytest.mark.parametrize("value, expected", [
+    ("-1", "argument --depth-m: -1 is outside (0, inf) m (or inf)"),
+    ("nan", "argument --depth-m: nan is not a finite number"),
+])
+def test_psf_export_refuses_a_depth_that_is_not_a_positive_range(capsys, tmp_path, value, expected):
+    assert expected in _refusal(capsys, ["psf", "export", f"--depth-m={value}", "--out", str(tmp_path / "k.npz")])
+    assert not list(tmp_path.iterdir())
 
 
 # -- crlb and lens ----------------------------------------------------------------------------------------------------

@@ -29,7 +29,7 @@ def register(subparsers) -> None:
     fw = subparsers.add_parser("firmware-sim", help="the simulated camera firmware")
     fw_sub = fw.add_subparsers(dest="fw_command", metavar="COMMAND")
     serve = fw_sub.add_parser("serve", help="serve a simulated camera on TCP (loopback only)")
-    serve.add_argument("--port", type=int, default=0, help="TCP port (0: pick a free one and print it)")
+    serve.add_argument("--port", type=whole(0, 65535), default=0, help="TCP port (0: pick a free one and print it)")
     serve.add_argument("--host", default="127.0.0.1", help="loopback address to bind (127.0.0.1, ::1)")
     serve.add_argument("--scene", default="chart", help="what the camera sees (flat, dark, chart, image:PATH…)")
     serve.add_argument("--seed", type=SEED, default=0, help="noise seed (0 … 2³²−1)")
@@ -94,6 +94,26 @@ def _apply_settings(cam, args) -> None:
             raise OptionError(f"--roi {args.roi}: {exc}", "--roi") from None
 
 
+def _open_device(open_camera, uri: str, args):
+    """The camera of ``--device`` (with ``--scene``). A value no camera could have is refused naming its option:
+    an unknown URI scheme or a malformed URI names ``--device``, a scene the simulator does not know names
+    ``--scene``. A camera that does not answer (``DeviceNotFoundError``) or is busy is the device's state, not
+    the option's, and reaches the user as its own one-line error."""
+    from urllib.parse import urlsplit
+
+    from devices import ConfigurationError
+
+    if urlsplit(args.device).scheme not in ("sim", "tcp", "replay"):
+        raise OptionError(f"--device {args.device}: a camera URI is sim://, tcp://HOST:PORT or replay://DIR",
+                          "--device")
+    try:
+        return open_camera(uri)
+    except (ConfigurationError, ValueError) as exc:
+        if args.scene and "scene" in str(exc):
+            raise OptionError(f"--scene {args.scene}: {exc}", "--scene") from None
+        raise OptionError(f"--device {args.device}: {exc}", "--device") from None
+
+
 def _acquire(args) -> int:
     import errno
     from pathlib import Path
@@ -120,7 +140,7 @@ def _acquire(args) -> int:
     run_stamp = _run_stamp()
     written = bad = patterns = 0
     disk_full = None
-    with open_camera(uri) as cam:
+    with _open_device(open_camera, uri, args) as cam:
         _apply_settings(cam, args)
         _check_disk(out, args.count, cam.settings.roi)
         cam.start("oldest_first", buffers=4)

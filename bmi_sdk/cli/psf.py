@@ -3,18 +3,10 @@ ahead of its first frame."""
 
 from __future__ import annotations
 
-import math
 import time
 from pathlib import Path
 
 from ._options import number, whole
-
-
-def _depth(text: str) -> float:
-    value = math.inf if text.lower() in ("inf", "infinity") else float(text)
-    if not value > 0:
-        raise ValueError(f"depth must be > 0 m or 'inf', got {text}")
-    return value
 
 
 def kernel_png(kernel):
@@ -136,7 +128,7 @@ def register(subparsers) -> None:
                                    "columns radial (+col away from the optical centre).")
     e.add_argument("--wavelength-nm", type=number(365, 1014, unit="nm"), required=True,
                    help="365–1014 nm (where the glass catalogue's dispersion formulas hold)")
-    e.add_argument("--depth-m", type=_depth, required=True, help="range from the lens centre in metres, or 'inf'")
+    e.add_argument("--depth-m", type=number(0, lo_open=True, unit="m (or inf)", allow_inf=True), required=True, help="range from the lens centre in metres, or 'inf'")
     e.add_argument("--field-deg", type=number(0, 80, unit="°"), required=True,
                    help="0–80° (beyond, the traced PSF is not valid)")
     e.add_argument("--out", required=True,
