@@ -480,13 +480,6 @@ def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition:
     return region_rows(score_tiles(model, renders, bench, sigma), condition, getattr(model, "name", "cnn"), bench)
 
 
-def classical_window_px(lens_name: str, base_px: int) -> int:
-    """The evidence window for a lens: ``base_px``, or the smallest multiple of 4 that holds its kernel."""
-    from bmi_sdk.lenses import LENS_KERNEL_PX
-
-    return max(base_px, -(-LENS_KERNEL_PX[lens_name] // 4) * 4)
-
-
 def models_by_kind(paths, decoders: tuple[str, ...], option: str) -> dict:
     """{kind: path} of ONNX models (None, one path or several), each the model of the decoder kind its manifest
     names (``runtime.decoders.decoder_kind``); refused, naming ``option``, when that decoder is not run or named
@@ -591,12 +584,14 @@ def fisheye_rows(decoders: tuple[str, ...], models: dict, bench: Benchmark, clas
                  required: bool) -> list[dict]:
     """``fisheye_standard``: the fisheye lens and its plane sensor at σ 0.005, read by every decoder of ``decoders``
     with a model for that lens (``models`` or its packaged one), the classical ones with a window that holds its
-    kernel (``classical_window_px``). ``required``: refuse, when no decoder can read it, instead of leaving it out."""
+    kernel (``runtime.classical.window_holding``). ``required``: refuse, when no decoder can read it, instead of leaving it out."""
     from bmi_sdk.decode import ClassicalConfig
+    from bmi_sdk.lenses import LENS_KERNEL_PX
+    from bmi_sdk.runtime.classical import window_holding
 
     fisheye = replace(bench, lens="fisheye")
     config = classical_config or ClassicalConfig()
-    config = replace(config, window_px=classical_window_px("fisheye", config.window_px))
+    config = replace(config, window_px=window_holding(LENS_KERNEL_PX["fisheye"], config.window_px))
     tiles = open_tiles(decoders, BenchmarkCamera("fisheye"), models, config, fisheye, skip_missing=True)
     if not tiles:
         if required:

@@ -9,6 +9,7 @@ is trained, so a calibration reaches the decoder as soon as its file is read.
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass, replace
 
 from ..built_camera import BuiltCamera
@@ -77,12 +78,31 @@ def _flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
+class WindowFitWarning(UserWarning):
+    """The evidence window asked for is smaller than the lens's kernel, so the decoder reads with the smallest
+    window that holds it (``window_holding``)."""
+
+
+def window_holding(kernel_px: int, window_px: int) -> int:
+    """``window_px``, or the smallest multiple of 4 that holds a ``kernel_px`` kernel when that is larger: a window
+    narrower than the kernel cannot be fitted at all (``decode.ClassicalDecoder``)."""
+    return max(window_px, -(-kernel_px // 4) * 4)
+
+
 def classical_decoder(camera: BuiltCamera, config: ClassicalConfig = ClassicalConfig()) -> ClassicalDecoder:
     """A decoder over ``camera``'s kernels at ``config.candidates`` depths spaced in 1/d (a calibrated camera's exact
     kernels kept in the disk cache: its next frame or run reads them); refused first when its arrays would not fit
-    in memory (``check_classical_memory``)."""
+    in memory (``check_classical_memory``). A window narrower than the lens's kernel (the default 64 px against the
+    fisheye's 161-px kernels) is widened to hold it, with a ``WindowFitWarning``."""
     check_classical_memory(config)
-    return ClassicalDecoder.for_psf_map(camera.psf_map(disk_cache=True), config)
+    psf_map = camera.psf_map(disk_cache=True)
+    fitted = window_holding(psf_map.kernel_px, config.window_px)
+    if fitted != config.window_px:
+        warnings.warn(f"--window-px {config.window_px} holds no {psf_map.kernel_px}-px kernel of the "
+                      f"{camera.lens_name} lens; reading with {fitted}-px windows", WindowFitWarning, stacklevel=3)
+        config = replace(config, window_px=fitted)
+        check_classical_memory(config)
+    return ClassicalDecoder.for_psf_map(psf_map, config)
 
 
 @dataclass(frozen=True)
