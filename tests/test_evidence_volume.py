@@ -169,6 +169,31 @@ def test_export_round_trips_through_onnxruntime(tmp_path):
     assert not np.allclose(logits, -vol[0], atol=1e-3)
 
 
+def test_a_zero_residual_is_left_out_of_the_exported_graph_with_the_same_logits(tmp_path):
+    """A network whose residual is exactly zero (only its scalars fitted) exports as the anchor alone: no
+    convolution in the graph, and the logits the whole hourglass gives."""
+    import onnx
+
+    from bmi_sdk.nn.volume_net import VolumeNet, VolumeNetConfig
+    from bmi_sdk.nn.volume_train import export
+
+    ort = pytest.importorskip("onnxruntime")
+    torch.manual_seed(2)
+    net = VolumeNet(VolumeNetConfig(candidates=7, width=4))
+    with torch.no_grad():
+        net.log_anchor.fill_(-1.3)
+    assert net.residual_is_zero()
+    rng = np.random.default_rng(6)
+    vol, guide, _ = volume_inputs(_curves(rng, 12, 20, 7) * 3, _curves(rng, 12, 20, 7), rng.normal(0, 1, (12, 20, 3)))
+    with torch.no_grad():
+        whole = net(torch.as_tensor(vol[None]), torch.as_tensor(guide[None]))[0].numpy()
+    path = export(net, np.linspace(1.4, 0.1, 7), tmp_path / "ev.onnx")
+    assert not [n for n in onnx.load(str(path)).graph.node if n.op_type == "Conv"]
+    out = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"volume": vol[None]})
+    np.testing.assert_allclose(out[2][0], whole, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(whole, -np.exp(-1.3) * vol[0], rtol=1e-5, atol=1e-5)
+
+
 def test_the_networks_reach_across_the_grid_is_within_the_runtimes_band_halo():
     """One window's volume changes the logits no further than ``HALO_ROWS`` windows away, so reading a frame's grid
     in bands (``runtime.evidence``) gives what reading it whole would."""

@@ -125,7 +125,7 @@ def cell_colour(log_rgb: np.ndarray, stride_px: int, grid_shape: tuple[int, int]
 
 
 def guided_upsample(inv_grid: np.ndarray, var_grid: np.ndarray, log_rgb: np.ndarray, stride_px: int,
-                    colour_sigma: float, band_rows: int = 512) -> tuple[np.ndarray, np.ndarray]:
+                    colour_sigma: float, band_cells: int = 32, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """(1/d, variance of 1/d) at every pixel of an H × W frame from its window grid (R × C, NaN where no read).
 
     Each pixel reads the 2 × 2 windows around it, weighted by the bilinear weight times
@@ -133,50 +133,68 @@ def guided_upsample(inv_grid: np.ndarray, var_grid: np.ndarray, log_rgb: np.ndar
     the mean log colour of window w's cell: across a colour edge the pixel follows the windows of its own
     side. Its variance is the mixture's: Σ w (var_w + (1/d_w − 1/d_p)²), so a pixel whose windows disagree
     reports that. Where every colour weight vanishes (a colour none of its windows has) the bilinear weights
-    stand. NaN where none of the 2 × 2 windows has a read. Processed in bands of ``band_rows`` rows.
+    stand. NaN where none of the 2 × 2 windows has a read.
+
+    Window k's centre lies at pixel k·stride − ½, so every pixel of the stride × stride block k reads windows
+    k and k + 1 on each axis with the same bilinear weights: the frame is read as blocks (broadcasting, no
+    gathers), ``band_cells`` block rows at a time, on ``threads`` threads (numpy releases the GIL). float32.
     """
     if not colour_sigma > 0:
         raise ValueError(f"guided upsampling needs colour_sigma > 0, got {colour_sigma}")
     height, width = log_rgb.shape[:2]
     rows, cols = inv_grid.shape
-    cells = cell_colour(log_rgb, stride_px, (rows, cols))
+    s = int(stride_px)
+    block_rows, block_cols = -(-height // s), -(-width // s)
+    if rows < block_rows + 1 or cols < block_cols + 1:
+        raise ValueError(f"a {rows}×{cols} window grid at stride {s} px does not cover a {height}×{width} frame")
+    cells = cell_colour(log_rgb, s, (rows, cols))
     ok_grid = np.isfinite(inv_grid) & np.isfinite(var_grid)
     inv_g = np.where(ok_grid, inv_grid, 0.0).astype(np.float32)
     var_g = np.where(ok_grid, var_grid, 0.0).astype(np.float32)
     out_inv = np.full((height, width), np.nan, np.float32)
     out_var = np.full((height, width), np.nan, np.float32)
-    # window k's centre is at pixel k·stride − ½: pixel x lies between windows floor(u) and floor(u) + 1
-    u_col = (np.arange(width) + 0.5) / stride_px
-    k_col = np.clip(np.floor(u_col).astype(int), 0, cols - 1)
-    f_col = np.clip(u_col - k_col, 0.0, 1.0).astype(np.float32)
-    k_col1 = np.minimum(k_col + 1, cols - 1)
+    # the bilinear weight of window k + 1 for offset j inside a block: (j + ½) / stride
+    far = ((np.arange(s) + 0.5) / s).astype(np.float32)
+    near = np.float32(1.0) - far
     inv_two_c2 = np.float32(0.5 / colour_sigma ** 2)
-    for top in range(0, height, band_rows):
-        bottom = min(height, top + band_rows)
-        u_row = (np.arange(top, bottom) + 0.5) / stride_px
-        k_row = np.clip(np.floor(u_row).astype(int), 0, rows - 1)
-        f_row = np.clip(u_row - k_row, 0.0, 1.0).astype(np.float32)
-        k_row1 = np.minimum(k_row + 1, rows - 1)
-        g = log_rgb[top:bottom]
+
+    def band(b0: int) -> None:
+        b1 = min(block_rows, b0 + band_cells)
+        top, bottom = b0 * s, min(height, b1 * s)
+        g = np.zeros(((b1 - b0) * s, block_cols * s, 3), np.float32)
+        g[:bottom - top, :width] = log_rgb[top:bottom]
+        g = g.reshape(b1 - b0, s, block_cols, s, 3)
         weights, values, variances = [], [], []
-        for kr, wr in ((k_row, 1.0 - f_row), (k_row1, f_row)):
-            for kc, wc in ((k_col, 1.0 - f_col), (k_col1, f_col)):
-                ok = ok_grid[kr][:, kc]
-                spatial = np.where(ok, wr[:, None] * wc[None, :], 0.0).astype(np.float32)
-                diff = g - cells[kr][:, kc]
-                colour = np.exp(-(diff * diff).sum(axis=-1) * inv_two_c2)
+        for dr, wr in ((0, near), (1, far)):
+            for dc, wc in ((0, near), (1, far)):
+                sl = (slice(b0 + dr, b1 + dr), slice(dc, block_cols + dc))
+                ok = ok_grid[sl][:, None, :, None]
+                spatial = np.where(ok, wr[None, :, None, None] * wc[None, None, None, :], np.float32(0.0))
+                diff = g - cells[sl][:, None, :, None, :]
+                colour = np.exp(-np.einsum("...c,...c->...", diff, diff) * inv_two_c2)
                 weights.append((spatial, spatial * colour))
-                values.append(inv_g[kr][:, kc])
-                variances.append(var_g[kr][:, kc])
+                values.append(inv_g[sl][:, None, :, None])
+                variances.append(var_g[sl][:, None, :, None])
         spatial_sum = sum(w[0] for w in weights)
         guided_sum = sum(w[1] for w in weights)
-        use_guided = guided_sum > 1e-6 * np.maximum(spatial_sum, 1e-30)
-        norm = np.where(use_guided, guided_sum, spatial_sum)
+        use_guided = guided_sum > np.float32(1e-6) * np.maximum(spatial_sum, np.float32(1e-30))
         any_read = spatial_sum > 0
-        safe = np.where(any_read, norm, 1.0)
+        norm = np.where(use_guided, guided_sum, spatial_sum)
+        safe = np.where(any_read, norm, np.float32(1.0))
         ws = [np.where(use_guided, w[1], w[0]) / safe for w in weights]
         mean = sum(w * v for w, v in zip(ws, values))
-        var = sum(w * (s + (v - mean) ** 2) for w, v, s in zip(ws, values, variances))
-        out_inv[top:bottom] = np.where(any_read, mean, np.nan)
-        out_var[top:bottom] = np.where(any_read, var, np.nan)
+        var = sum(w * (v_s + (v - mean) ** 2) for w, v, v_s in zip(ws, values, variances))
+        shape = ((b1 - b0) * s, block_cols * s)
+        out_inv[top:bottom] = np.where(any_read, mean, np.nan).reshape(shape)[:bottom - top, :width]
+        out_var[top:bottom] = np.where(any_read, var, np.nan).reshape(shape)[:bottom - top, :width]
+
+    starts = range(0, block_rows, band_cells)
+    if threads > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(threads) as pool:
+            list(pool.map(band, starts))
+    else:
+        for b0 in starts:
+            band(b0)
     return out_inv, out_var

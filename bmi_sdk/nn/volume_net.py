@@ -103,6 +103,15 @@ class VolumeNet(nn.Module):
         self.log_sigma_scale = nn.Parameter(torch.zeros(()))   # posterior spread → reported 1σ of 1/d
         self.log_sigma_floor = nn.Parameter(torch.tensor(math.log(0.01)))  # m⁻¹: the kernels' and grid's own error
 
+    def residual_is_zero(self) -> bool:
+        """Whether the residual is exactly zero for any input: its last convolution's weights and bias all zero
+        (an untrained network, or one whose scalars alone were fitted)."""
+        return not (bool(self.head.weight.detach().any()) or bool(self.head.bias.detach().any()))
+
+    def anchor(self, volume: torch.Tensor) -> torch.Tensor:
+        """(N, D, R, C) logits without the residual: −a · pooled ΔNLL."""
+        return -torch.exp(self.log_anchor) * volume[:, 0]
+
     def forward(self, volume: torch.Tensor, guide: torch.Tensor) -> torch.Tensor:
         """(N, D, R, C) logits over the candidates (module doc)."""
         x = volume / VOLUME_SCALE_NATS
@@ -113,8 +122,7 @@ class VolumeNet(nn.Module):
         f2 = self.enc2(F.relu(self.down2(f1) + self.guide2(g2)))
         u1 = self.dec1(F.relu(self.up1(_up2(f2)) + f1))
         u0 = self.dec0(F.relu(self.up0(_up2(u1)) + f0))
-        residual = self.head(u0)[:, 0]
-        return -torch.exp(self.log_anchor) * volume[:, 0] + residual
+        return self.anchor(volume) + self.head(u0)[:, 0]
 
 
 def posterior_torch(logits: torch.Tensor, inv_depth_per_m: torch.Tensor,
@@ -145,8 +153,11 @@ class VolumeDecoderGraph(nn.Module):
         super().__init__()
         self.net = net
         self.register_buffer("inv_depth_per_m", torch.as_tensor(inv_depth_per_m, dtype=torch.float32))
+        # a residual that is exactly zero is left out: the graph holds the anchor alone (the same logits without
+        # the hourglass's 3-D convolutions) and reads no guide
+        self.anchor_only = net.residual_is_zero()
 
     def forward(self, volume, guide):
-        logits = self.net(volume, guide)
+        logits = self.net.anchor(volume) if self.anchor_only else self.net(volume, guide)
         mean, std = posterior_torch(logits, self.inv_depth_per_m)
         return mean, reported_sigma(self.net, std), logits

@@ -65,6 +65,8 @@ class EvidenceNetwork:
         self.session = ort.InferenceSession(str(self.path), sess_options=session_options(threads),
                                             providers=choose_providers(providers))
         self.provider = self.session.get_providers()[0]
+        # a network whose residual is zero reads no guide, and its exported graph has no such input
+        self.input_names = {i.name for i in self.session.get_inputs()}
         self.load_s = time.perf_counter() - t0
         self.warmup_s = 0.0  # the grid's shape changes with the frame: there is no one shape to warm up
 
@@ -101,7 +103,8 @@ class EvidenceNetwork:
             pad_c = -cols % PAD_MULTIPLE
             vol = np.pad(volume[:, :, lo:hi], ((0, 0), (0, 0), (0, pad_r), (0, pad_c)))[None]
             gd = np.pad(guide[:, lo:hi], ((0, 0), (0, pad_r), (0, pad_c)))[None]
-            out = self.session.run(["inv_depth", "sigma_inv"], {"volume": vol, "guide": gd})
+            feeds = {name: value for name, value in (("volume", vol), ("guide", gd)) if name in self.input_names}
+            out = self.session.run(["inv_depth", "sigma_inv"], feeds)
             inv[top:bottom] = out[0][0, top - lo:bottom - lo, :cols]
             sig[top:bottom] = out[1][0, top - lo:bottom - lo, :cols]
         return inv, sig
@@ -134,11 +137,11 @@ def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, ca
     timings["network_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     rgb = raw_to_rgb(frame.data, frame.black_level_dn, frame.white_level_dn, frame.cfa)
-    inv_px, var_px = guided_upsample(inv_grid, sig_grid.astype(np.float64) ** 2, pixel_log_colour(rgb),
-                                     stage.config.stride_px, network.colour_sigma)
+    inv_px, var_px = guided_upsample(inv_grid, sig_grid.astype(np.float32) ** 2, pixel_log_colour(rgb),
+                                     stage.config.stride_px, network.colour_sigma, threads=stage.threads)
     valid = result.valid & np.isfinite(inv_px) & (inv_px > 0)
-    depth = np.where(valid, 1.0 / np.where(valid, inv_px, 1.0), np.nan).astype(np.float32)
-    sigma = np.where(valid, np.sqrt(np.maximum(var_px, 0.0)) * depth.astype(np.float64) ** 2, np.nan)
+    depth = np.where(valid, np.float32(1.0) / np.where(valid, inv_px, np.float32(1.0)), np.float32(np.nan))
+    sigma = np.where(valid, np.sqrt(np.maximum(var_px, np.float32(0.0))) * depth * depth, np.float32(np.nan))
     timings["upsample_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     noise = NoiseProfile(**result.stats["noise_profile"])  # the noise the stage decoded with
@@ -151,6 +154,6 @@ def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, ca
               "confident_coverage": float(confident.sum() / max(valid.sum(), 1)),
               "blocks_run": stats["blocks_run"], "blocks_skipped": stats["blocks_skipped"],
               "decoder_stats": stats, "timings_s": {**stats["timings_s"], **timings}}
-    return DecodedFrame(aif, depth, valid, sigma.astype(np.float32), report,
+    return DecodedFrame(aif, depth, valid, sigma, report,
                         {"classical": result, "grid_inv_depth": inv_grid, "grid_sigma_inv": sig_grid})
 
