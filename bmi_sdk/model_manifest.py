@@ -124,13 +124,20 @@ EVIDENCE_INPUT_NAME = "volume"
 EVIDENCE_OUTPUT_NAMES = ("inv_depth", "sigma_inv", "logits")
 
 
+EVIDENCE_SIGMA_SOURCES = ("network", "classical")
+"""Where an evidence network's reported 1σ of each window's 1/d comes from (manifest ``sigma_source``, default
+``network``): the network's ``sigma_inv`` output, or the classical stage's fitted σ model (``decode.classical``:
+the own curve's curvature, the neighbouring windows' spread and a floor)."""
+
+
 def _evidence_inputs(manifest: dict) -> bool:
     """An evidence network (``runtime.evidence``): the classical volume's 2 curves in, the candidates it was
     trained on, the classical knobs that made its volume and the colour scale of its upsampling."""
     cands = manifest.get("candidates_inv_depth_per_m")
     return manifest["input_channels"] == 2 and isinstance(cands, list) and len(cands) >= 3 \
         and isinstance(manifest.get("classical_config"), dict) \
-        and isinstance(manifest.get("upsample_colour_sigma"), (int, float))
+        and isinstance(manifest.get("upsample_colour_sigma"), (int, float)) \
+        and manifest.get("sigma_source", "network") in EVIDENCE_SIGMA_SOURCES
 
 
 MODEL_CONTRACTS = {
@@ -141,7 +148,8 @@ MODEL_CONTRACTS = {
                 f"{[*OUTPUT_NAMES, SIGMA_OUTPUT_NAME]}"),
     "evidence": (EVIDENCE_INPUT_NAME, [*EVIDENCE_OUTPUT_NAMES], _evidence_inputs,
                  f"{EVIDENCE_INPUT_NAME!r} × 2 curves over its candidates_inv_depth_per_m, a classical_config, an "
-                 f"upsample_colour_sigma, outputs {list(EVIDENCE_OUTPUT_NAMES)}"),
+                 f"upsample_colour_sigma, a sigma_source of {list(EVIDENCE_SIGMA_SOURCES)} (default network), outputs "
+                 f"{list(EVIDENCE_OUTPUT_NAMES)}"),
 }
 """A manifest's ``decoder`` (the model's kind) → (its input's name, its outputs, the check of its inputs, the
 contract in words)."""

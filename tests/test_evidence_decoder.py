@@ -36,3 +36,35 @@ def test_infer_evidence_reads_a_textured_plane(tmp_path, bmi):
     assert report["decoder"] == "evidence" and 0.0 <= report["confident_coverage"] <= 1.0
     assert set(report["timings_s"]) >= {"evidence_s", "network_s", "upsample_s", "aif_s"}
     assert np.isfinite(np.load(tmp_path / "o" / "aif.npy")).all()
+
+
+def test_the_reported_sigma_is_the_classical_stages_when_the_manifest_says_so(tmp_path):
+    """A manifest's ``sigma_source`` picks the window 1σ: "classical" reports the classical stage's fitted σ model
+    (``DecodeResult.grid_sigma_inv``) beside the network's 1/d, "network" the network's own; any other is refused."""
+    import shutil
+    from types import SimpleNamespace
+
+    from bmi_sdk.model_manifest import ModelError
+    from bmi_sdk.runtime.evidence import EvidenceNetwork
+
+    manifest = json.loads(EVIDENCE_MODEL.with_suffix(".manifest.json").read_text())
+    rng = np.random.default_rng(7)
+    rows, cols, d = 6, 10, len(manifest["candidates_inv_depth_per_m"])
+    own = rng.uniform(0, 30, (rows, cols, d)).astype(np.float32)
+    own -= own.min(axis=-1, keepdims=True)
+    result = SimpleNamespace(grid_pooled=2 * own, grid_curves=own, grid_colour=rng.normal(0, 0.3, (rows, cols, 3)),
+                             grid_sigma_inv=rng.uniform(0.01, 0.2, (rows, cols)))
+    reads = {}
+    for source in ("classical", "network", "guess"):
+        path = tmp_path / source / EVIDENCE_MODEL.name
+        path.parent.mkdir()
+        shutil.copy(EVIDENCE_MODEL, path)
+        path.with_suffix(".manifest.json").write_text(json.dumps(dict(manifest, sigma_source=source)))
+        if source == "guess":
+            with pytest.raises(ModelError, match="sigma_source"):
+                EvidenceNetwork(path)
+            continue
+        reads[source] = EvidenceNetwork(path).read_decode(result)
+    np.testing.assert_array_equal(reads["classical"][0], reads["network"][0])
+    np.testing.assert_allclose(reads["classical"][1], result.grid_sigma_inv, rtol=1e-6)
+    assert not np.allclose(reads["network"][1], result.grid_sigma_inv, rtol=0.1)

@@ -177,9 +177,10 @@ evidence`` measures it)."""
 
 
 def write_evidence_manifest(onnx_path: str | Path, inv_depth_per_m, training: dict, metrics: dict,
-                            lens: str = DEFAULT_LENS) -> Path:
+                            lens: str = DEFAULT_LENS, sigma_source: str = "network") -> Path:
     """The manifest of an exported evidence network: the evidence contract (``model_manifest``), the classical
-    knobs its volume is made with (the defaults the training pairs used), its candidates and its training."""
+    knobs its volume is made with (the defaults the training pairs used), its candidates, its training and where
+    its reported 1σ comes from (``model_manifest.EVIDENCE_SIGMA_SOURCES``)."""
     from bmi_sdk.decode import ClassicalConfig
     from bmi_sdk.lenses import lens_tensor
     from bmi_sdk.model_manifest import EVIDENCE_INPUT_NAME, EVIDENCE_OUTPUT_NAMES, write_manifest
@@ -191,7 +192,8 @@ def write_evidence_manifest(onnx_path: str | Path, inv_depth_per_m, training: di
                           psf_tensor_key=tensor.spec.cache_key(tensor.lens), training=training, metrics=metrics,
                           input_name=EVIDENCE_INPUT_NAME, output_names=EVIDENCE_OUTPUT_NAMES, input_channels=2,
                           size_multiple=4, candidates_inv_depth_per_m=[float(x) for x in inv_depth_per_m],
-                          classical_config=config, upsample_colour_sigma=UPSAMPLE_COLOUR_SIGMA)
+                          classical_config=config, upsample_colour_sigma=UPSAMPLE_COLOUR_SIGMA,
+                          sigma_source=sigma_source)
 
 
 def calibrate_sigma(net: VolumeNet, pairs: VolumePairs, device: str = "cpu") -> float:
@@ -232,6 +234,8 @@ def main(argv=None) -> None:
     """``python -m bmi_sdk.nn.volume_train --train DIR [DIR …] --val DIR --out NET.onnx (--steps N | --seconds S)``"""
     import argparse
 
+    from bmi_sdk.model_manifest import EVIDENCE_SIGMA_SOURCES
+
     ap = argparse.ArgumentParser(description="train and export the evidence decoder's network")
     ap.add_argument("--train", nargs="+", required=True)
     ap.add_argument("--val", nargs="+", required=True)
@@ -245,6 +249,9 @@ def main(argv=None) -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--init", default=None)
     ap.add_argument("--scalars-only", action="store_true", help="fit only the temperature and σ scale and floor")
+    ap.add_argument("--sigma-source", choices=EVIDENCE_SIGMA_SOURCES, default="network",
+                    help="the 1σ the runtime reports: the network's, or the classical stage's σ model "
+                         "(model_manifest.EVIDENCE_SIGMA_SOURCES)")
     a = ap.parse_args(argv)
     if (a.steps is None) == (a.seconds is None):
         ap.error("give one of --steps and --seconds")
@@ -262,7 +269,7 @@ def main(argv=None) -> None:
                 "log_anchor": float(net.log_anchor.detach())})
     out.with_suffix(".log.json").write_text(json.dumps(log, indent=1))
     write_evidence_manifest(out, pairs.inv_depth_per_m, {k: v for k, v in log.items() if k not in ("before", "after")},
-                            {"val_before": log["before"], "val_after": log["after"]})
+                            {"val_before": log["before"], "val_after": log["after"]}, sigma_source=a.sigma_source)
     print(json.dumps({"before": log["before"], "after": log["after"]}))
 
 

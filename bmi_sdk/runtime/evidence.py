@@ -62,6 +62,7 @@ class EvidenceNetwork:
         self.inv_depth_per_m = np.asarray(self.manifest["candidates_inv_depth_per_m"], np.float64)
         self.classical_config = dict(self.manifest["classical_config"])
         self.colour_sigma = float(self.manifest["upsample_colour_sigma"])
+        self.sigma_source = self.manifest.get("sigma_source", "network")
         self.session = ort.InferenceSession(str(self.path), sess_options=session_options(threads),
                                             providers=choose_providers(providers))
         self.provider = self.session.get_providers()[0]
@@ -77,12 +78,15 @@ class EvidenceNetwork:
 
     def read_decode(self, result) -> tuple[np.ndarray, np.ndarray]:
         """(1/d, 1σ of 1/d) on the window grid of a classical decode of its knobs (NaN 1/d where a window has no
-        decode): its volume (``volume_inputs``) read by the network (``read``)."""
+        decode): its volume (``volume_inputs``) read by the network (``read``); the 1σ is the network's, or with
+        the manifest's ``sigma_source`` "classical" the classical stage's own (``DecodeResult.grid_sigma_inv``)."""
         if result.grid_pooled is None or result.grid_curves is None or result.grid_colour is None:
             raise ModelError(f"evidence network {self.path.name}: its classical_config decodes without pooling "
                              "(pool_sigma_px = 0), so there is no volume to read")
         volume, guide, grid_valid = volume_inputs(result.grid_pooled, result.grid_curves, result.grid_colour)
         inv_grid, sig_grid = self.read(volume, guide)
+        if self.sigma_source == "classical":
+            sig_grid = result.grid_sigma_inv.astype(np.float32)
         return np.where(grid_valid, inv_grid, np.nan), sig_grid
 
     def describe(self) -> dict:
