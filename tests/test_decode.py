@@ -601,7 +601,7 @@ def test_infer_classical_writes_depth_sigma_confidence_and_ply_sigma(tmp_path, b
 
 def test_simulate_calibrate_infer_loop_uses_the_calibrated_kernels(tmp_path, bmi):
     """A built camera (decenter 8 µm) → calibrated from its own point-source captures → its frames decoded
-    with the calibrated kernels, by the classical and the default (learned) decoder, whose AiF then goes through
+    with the calibrated kernels, by the classical and the learned decoder, whose AiF then goes through
     those kernels too; the report carries the fitted errors and the camera's hash."""
     from calibration import CapturePlan, PointSource, Target, extract_spots, fit_calibration, simulate_captures
     from calibration.io import write_calibration
@@ -631,8 +631,9 @@ def test_simulate_calibrate_infer_loop_uses_the_calibrated_kernels(tmp_path, bmi
     sidecar = json.loads((tmp_path / "f.json").read_text())
     assert sidecar["source"]["injected_perturbation"]["decenter_um"] == [8.0, 0.0]
     assert np.isfinite(np.load(tmp_path / "o" / "depth.npy")).any()
-    # the default (learned) decoder on the calibrated camera: its AiF goes through the camera's kernels
-    bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "l", "--calibration", tmp_path / "calib.json", "--quiet")
+    # the learned decoder on the calibrated camera: its AiF goes through the camera's kernels
+    bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "l", "--decoder", "learned", "--calibration",
+        tmp_path / "calib.json", "--quiet")
     report = json.loads((tmp_path / "l" / "report.json").read_text())
     assert report["decoder"] == "learned" and report["calibration_id"] == calib.id
     assert report["aif_consistency_step"] is True

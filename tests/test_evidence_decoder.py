@@ -68,3 +68,50 @@ def test_the_reported_sigma_is_the_classical_stages_when_the_manifest_says_so(tm
     np.testing.assert_array_equal(reads["classical"][0], reads["network"][0])
     np.testing.assert_allclose(reads["classical"][1], result.grid_sigma_inv, rtol=1e-6)
     assert not np.allclose(reads["network"][1], result.grid_sigma_inv, rtol=0.1)
+
+
+def test_a_built_camera_calibrated_from_its_own_captures_reads_as_well_as_the_design_camera(tmp_path, bmi):
+    """simulate → calibrate → infer with the default decoder. A camera built with its lens decentred 15 µm takes
+    point-source captures; the calibration fitted from them (not the true error) goes to `bmi infer`. A textured
+    plane at 2 m and 50° of field reads far off without the calibration, and with it within 1.25× of what the
+    design camera reads of the same plane (issue 35's built-camera target)."""
+    from bmi_sdk.optics.perturb import Perturbation
+    from bmi_sdk.scenes.procedural import pink_noise
+    from calibration import CapturePlan, PointSource, Target, extract_spots, fit_calibration, simulate_captures
+    from calibration.io import write_calibration
+
+    diag = np.degrees(np.arctan2(2250, 3000))
+    sources = [(0.0, 0.0, 4.0), (55.0, diag, 10.0), (55.0, 180 - diag, 2.5), (55.0, 180 + diag, 4.0),
+               (44.0, 0.0, 2.5), (32.0, 90.0, 10.0), (44.0, 180.0, 4.0)]
+    target = Target(tuple(PointSource(t, a, d) for t, a, d in sources))
+    captures = simulate_captures(target, CapturePlan(kernel_px=21, roi_margin_px=10),
+                                 Perturbation(decenter_um=(15.0, 0.0)), seed=11)
+    extraction = extract_spots(captures)
+    fit = fit_calibration(extraction)
+    assert abs(fit.estimate.decenter_um[0] - 15.0) < 1.0  # fitted, not given
+    write_calibration(tmp_path / "calib.json", fit, captures, extraction, tensor_fields_deg=(0.0,),
+                      tensor_depths_m=(4.0,))
+    size, range_m = 128, 2.0
+    rng = np.random.default_rng(3)
+    texture = np.stack([pink_noise((size, size), rng) for _ in range(3)], axis=-1)
+    rgb = np.clip(0.3 * np.exp(0.8 * (texture - texture.mean()) / texture.std()), 0.0, 1.0).astype(np.float32)
+    np.save(tmp_path / "rgb.npy", rgb)
+    np.save(tmp_path / "depth.npy", np.full((size, size), range_m, np.float32))
+    scene = ("--rgb", tmp_path / "rgb.npy", "--depth", tmp_path / "depth.npy", "--field-deg", 50, "--azimuth-deg", 30,
+             "--noise", 0.005)
+    bmi("simulate", *scene, "--out", tmp_path / "design.dng")
+    bmi("simulate", *scene, "--perturb", "decenter_um=15,0", "--out", tmp_path / "built.dng")
+
+    def absrel(frame, out, *extra):
+        bmi("infer", tmp_path / frame, "--out", tmp_path / out, "--quiet", *extra)
+        depth = np.load(tmp_path / out / "depth.npy")
+        ok = np.isfinite(depth)
+        assert ok.mean() > 0.9
+        return float(np.mean(np.abs(depth[ok] - range_m) / range_m))
+
+    design = absrel("design.dng", "design")
+    uncalibrated = absrel("built.dng", "nocal")
+    calibrated = absrel("built.dng", "cal", "--calibration", tmp_path / "calib.json")
+    assert design < 0.05
+    assert calibrated < 0.25 * uncalibrated
+    assert calibrated <= 1.25 * design

@@ -360,26 +360,29 @@ def test_a_job_without_a_decoder_runs_the_kind_of_model_it_is_given(identity_mod
         decoder_kind("nope")
 
 
-def test_the_shipped_refinement_is_the_default_decoder(tmp_path, bmi):
-    """`bmi infer` with no decoder named decodes with the packaged learned.onnx: verified, its classical knobs
-    give the channels its graph reads, and it writes depth with a positive 1σ inside the image circle."""
+def test_the_shipped_networks_decode_with_the_classical_knobs_their_manifests_name(tmp_path, bmi):
+    """`bmi infer` with no decoder named decodes with the packaged evidence network, `--decoder learned` with the
+    packaged learned.onnx: each verified, each classical stage run with the knobs its manifest was trained with
+    (the frame's noise profile and the tapered window model, not the classical decoder's defaults by chance),
+    each writing depth with a positive 1σ inside the image circle."""
+    from bmi_sdk.runtime.evidence import EVIDENCE_MODEL
     from bmi_sdk.runtime.model import LEARNED_MODEL
 
-    manifest = verify_model(LEARNED_MODEL)
-    assert manifest["decoder"] == "learned" and manifest["calibration_id"] is None
     bmi("simulate", "--procedural", 5, "--size", 96, "--field-deg", 20, "--psf-mode", "tensor", "--noise", 0.005,
         "--out", tmp_path / "f.dng")
-    bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--quiet")
-    report = json.loads((tmp_path / "o" / "report.json").read_text())
-    assert report["decoder"] == "learned" and report["model"]["sha256"] == manifest["sha256"]
-    depth, sigma = np.load(tmp_path / "o" / "depth.npy"), np.load(tmp_path / "o" / "depth_sigma.npy")
-    ok = np.isfinite(depth)
-    assert ok.mean() > 0.9 and np.all((depth[ok] > 0.1) & (depth[ok] < 100)) and np.all(sigma[ok] > 0)
-    # its classical stage decodes with the knobs its manifest was trained with (the frame's noise profile and the
-    # tapered window model), not the classical decoder's defaults by chance
-    knobs = manifest["classical_config"]
-    assert report["decoder_stats"]["noise_source"] == {"profile": "profile", "estimate": "estimated"}[knobs["noise_model"]]
-    assert report["decoder_stats"]["config"]["window_model"] == knobs["window_model"] == "tapered"
+    for decoder, model, extra in (("evidence", EVIDENCE_MODEL, ()), ("learned", LEARNED_MODEL, ("--decoder", "learned"))):
+        manifest = verify_model(model)
+        assert manifest["decoder"] == decoder and manifest["calibration_id"] is None
+        bmi("infer", tmp_path / "f.dng", "--out", tmp_path / decoder, "--quiet", *extra)
+        report = json.loads((tmp_path / decoder / "report.json").read_text())
+        assert report["decoder"] == decoder and report["model"]["sha256"] == manifest["sha256"]
+        depth, sigma = np.load(tmp_path / decoder / "depth.npy"), np.load(tmp_path / decoder / "depth_sigma.npy")
+        ok = np.isfinite(depth)
+        assert ok.mean() > 0.9 and np.all((depth[ok] > 0.1) & (depth[ok] < 100)) and np.all(sigma[ok] > 0)
+        knobs = manifest["classical_config"]
+        noise_source = {"profile": "profile", "estimate": "estimated"}[knobs["noise_model"]]
+        assert report["decoder_stats"]["noise_source"] == noise_source
+        assert report["decoder_stats"]["config"]["window_model"] == knobs["window_model"] == "tapered"
 
 
 def test_classical_knobs_with_another_decoder_are_refused_not_ignored(tmp_path):
