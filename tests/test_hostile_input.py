@@ -174,6 +174,16 @@ def test_the_classical_decoder_widens_a_window_too_narrow_for_the_fisheye_kernel
     assert decoder.config.window_px == 164 and decoder.zones.window_px == 164
 
 
+def test_a_decoder_without_a_model_for_the_lens_names_only_the_decoders_that_read_it():
+    from bmi_sdk.built_camera import BuiltCamera
+    from bmi_sdk.model_manifest import ModelError
+    from bmi_sdk.runtime import open_decoder
+
+    with pytest.raises(ModelError, match="no evidence model .* for lens 'fisheye'; decode this frame with "
+                                         "--decoder cnn, --decoder classical$"):
+        open_decoder(BuiltCamera(lens_name="fisheye"), "evidence")
+
+
 @pytest.mark.slow  # a fisheye render on a cold PSF cache: minutes on 2 cores
 def test_a_simulated_fisheye_frame_decodes_end_to_end_through_the_cli(tmp_path):
     import json

@@ -178,8 +178,21 @@ def packaged_model(camera: BuiltCamera, kind: str):
     try:
         return select_model(lens=camera.lens_name, decoder=kind)
     except ModelError as exc:
-        others = ", ".join(f"--decoder {k}" for k in DECODERS if k != kind)
+        others = ", ".join(f"--decoder {k}" for k in DECODERS if k != kind and _reads_lens(k, camera.lens_name))
         raise ModelError(f"{exc}; decode this frame with {others}") from None
+
+
+def _reads_lens(kind: str, lens_name: str) -> bool:
+    """Whether the ``kind`` decoder can read a frame of ``lens_name`` as shipped: it needs no model, or one ships."""
+    from .model import select_model
+
+    if DECODERS[kind].model_kind is None:
+        return True
+    try:
+        select_model(lens=lens_name, decoder=DECODERS[kind].model_kind)
+    except ModelError:
+        return False
+    return True
 
 
 def camera_head(camera: BuiltCamera) -> dict:
