@@ -186,10 +186,11 @@ def _reads_lens(kind: str, lens_name: str) -> bool:
     """Whether the ``kind`` decoder can read a frame of ``lens_name`` as shipped: it needs no model, or one ships."""
     from .model import select_model
 
-    if DECODERS[kind].model_kind is None:
+    model_kind = DECODERS[kind].model_kind
+    if model_kind is None:
         return True
     try:
-        select_model(lens=lens_name, decoder=DECODERS[kind].model_kind)
+        select_model(lens=lens_name, decoder=model_kind)
     except ModelError:
         return False
     return True
