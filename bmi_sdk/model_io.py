@@ -78,7 +78,9 @@ def raw_to_rgb(raw: np.ndarray, black_level: float, white_level: float, cfa: str
             raise ValueError("raw values must fit in 16 bits")
         raw = raw.astype(np.uint16)
     rgb = cv2.cvtColor(raw, _BAYER_CODES[cfa]).astype(np.float32)
-    return np.clip((rgb - np.float32(black_level)) / np.float32(white_level - black_level), 0.0, 1.0)
+    np.subtract(rgb, np.float32(black_level), out=rgb)  # in place: a full frame's RGB is 324 MB a copy
+    np.divide(rgb, np.float32(white_level - black_level), out=rgb)
+    return np.clip(rgb, 0.0, 1.0, out=rgb)
 
 
 def field_channels(geometry: SensorGeometry, row0: int, col0: int, height: int, width: int) -> np.ndarray:

@@ -106,22 +106,34 @@ def posterior(logits: np.ndarray, inv_depth_per_m: np.ndarray, axis: int = 0,
 
 def pixel_log_colour(rgb: np.ndarray, floor: float = 1e-3) -> np.ndarray:
     """H × W × 3 float32 log colour of a linear RGB image, floored (the guide of ``guided_upsample``)."""
-    return np.log(np.maximum(np.asarray(rgb, np.float32), np.float32(floor)))
+    out = np.maximum(np.asarray(rgb, np.float32), np.float32(floor))
+    return np.log(out, out=out)
 
 
-def cell_colour(log_rgb: np.ndarray, stride_px: int, grid_shape: tuple[int, int]) -> np.ndarray:
-    """(R, C, 3) mean log colour of each window's cell (``cell_bounds``) of an H × W × 3 log-colour image."""
-    import cv2
+def cell_colour(log_rgb: np.ndarray, stride_px: int, grid_shape: tuple[int, int],
+                band_cells: int = 64) -> np.ndarray:
+    """(R, C, 3) mean log colour of each window's cell (``cell_bounds``) of an H × W × 3 log-colour image.
 
+    Cell k spans pixels [k·stride − stride/2, k·stride + stride/2) clipped to the frame: in the frame shifted
+    by stride/2 down and right it is the stride × stride block k, so ``band_cells`` rows of cells at a time are
+    copied into a zero-padded band and summed block by block (float32); each sum is divided by the cell's
+    clipped area (an empty cell reads 0)."""
+    rows, cols = grid_shape
+    s, half = int(stride_px), int(stride_px) // 2
     height, width = log_rgb.shape[:2]
-    integral = cv2.integral(np.ascontiguousarray(log_rgb, np.float64))  # (H+1, W+1, 3)
-    rows = np.array([cell_bounds(r, stride_px, height) for r in range(grid_shape[0])])
-    cols = np.array([cell_bounds(c, stride_px, width) for c in range(grid_shape[1])])
-    r0, r1 = rows[:, 0][:, None], rows[:, 1][:, None]
-    c0, c1 = cols[:, 0][None, :], cols[:, 1][None, :]
-    total = integral[r1, c1] - integral[r0, c1] - integral[r1, c0] + integral[r0, c0]
-    area = np.maximum((r1 - r0) * (c1 - c0), 1)[..., None]
-    return (total / area).astype(np.float32)
+    col_hi = max(0, min(width, cols * s - half))  # the pixels some cell holds
+    sums = np.empty((rows, cols, 3), np.float32)
+    for r0 in range(0, rows, band_cells):
+        r1 = min(rows, r0 + band_cells)
+        first = r0 * s - half  # the pixel row of the band's first row
+        top, bottom = max(0, first), max(0, min(height, r1 * s - half))
+        band = np.zeros(((r1 - r0) * s, cols * s, 3), np.float32)
+        if bottom > top:
+            band[top - first:bottom - first, half:half + col_hi] = log_rgb[top:bottom, :col_hi]
+        sums[r0:r1] = band.reshape(r1 - r0, s, cols, s, 3).sum(axis=(1, 3))
+    extent = lambda count, size: np.diff(np.array([cell_bounds(k, s, size) for k in range(count)]), axis=1)[:, 0]  # noqa: E731
+    area = np.maximum(extent(rows, height)[:, None] * extent(cols, width)[None, :], 1)[..., None]
+    return sums / area.astype(np.float32)
 
 
 def guided_upsample(inv_grid: np.ndarray, var_grid: np.ndarray, log_rgb: np.ndarray, stride_px: int,
