@@ -94,14 +94,14 @@ def _apply_settings(cam, args) -> None:
             raise OptionError(f"--roi {args.roi}: {exc}", "--roi") from None
 
 
-def _open_device(open_camera, uri: str, args):
+def _open_device(uri: str, args):
     """The camera of ``--device`` (with ``--scene``). A value no camera could have is refused naming its option:
     an unknown URI scheme or a malformed URI names ``--device``, a scene the simulator does not know names
     ``--scene``. A camera that does not answer (``DeviceNotFoundError``) or is busy is the device's state, not
     the option's, and reaches the user as its own one-line error."""
     from urllib.parse import urlsplit
 
-    from devices import ConfigurationError
+    from devices import ConfigurationError, open_camera
 
     if urlsplit(args.device).scheme not in ("sim", "tcp", "replay"):
         raise OptionError(f"--device {args.device}: a camera URI is sim://, tcp://HOST:PORT or replay://DIR",
@@ -121,7 +121,7 @@ def _acquire(args) -> int:
 
     from tqdm import tqdm
 
-    from devices import GrabTimeoutError, ReplayCamera, open_camera
+    from devices import GrabTimeoutError, ReplayCamera
 
     from ._options import check_writable_folder
 
@@ -140,7 +140,7 @@ def _acquire(args) -> int:
     run_stamp = _run_stamp()
     written = bad = patterns = 0
     disk_full = None
-    with _open_device(open_camera, uri, args) as cam:
+    with _open_device(uri, args) as cam:
         _apply_settings(cam, args)
         _check_disk(out, args.count, cam.settings.roi)
         cam.start("oldest_first", buffers=4)

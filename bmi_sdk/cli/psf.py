@@ -128,7 +128,8 @@ def register(subparsers) -> None:
                                    "columns radial (+col away from the optical centre).")
     e.add_argument("--wavelength-nm", type=number(365, 1014, unit="nm"), required=True,
                    help="365–1014 nm (where the glass catalogue's dispersion formulas hold)")
-    e.add_argument("--depth-m", type=number(0, lo_open=True, unit="m (or inf)", allow_inf=True), required=True, help="range from the lens centre in metres, or 'inf'")
+    e.add_argument("--depth-m", type=number(0, lo_open=True, unit="m (or inf)", allow_inf=True), required=True,
+                   help="range from the lens centre in metres, or 'inf'")
     e.add_argument("--field-deg", type=number(0, 80, unit="°"), required=True,
                    help="0–80° (beyond, the traced PSF is not valid)")
     e.add_argument("--out", required=True,

@@ -584,15 +584,10 @@ def fisheye_rows(decoders: tuple[str, ...], models: dict, bench: Benchmark, clas
                  required: bool) -> list[dict]:
     """``fisheye_standard``: the fisheye lens and its plane sensor at σ 0.005, read by every decoder of ``decoders``
     with a model for that lens (``models`` or its packaged one), the classical ones with a window that holds its
-    kernel (``runtime.classical.window_holding``). ``required``: refuse, when no decoder can read it, instead of leaving it out."""
-    from bmi_sdk.decode import ClassicalConfig
-    from bmi_sdk.lenses import LENS_KERNEL_PX
-    from bmi_sdk.runtime.classical import window_holding
-
+    kernel (``runtime.classical.classical_decoder`` widens a narrower one). ``required``: refuse, when no decoder
+    can read it, instead of leaving it out."""
     fisheye = replace(bench, lens="fisheye")
-    config = classical_config or ClassicalConfig()
-    config = replace(config, window_px=window_holding(LENS_KERNEL_PX["fisheye"], config.window_px))
-    tiles = open_tiles(decoders, BenchmarkCamera("fisheye"), models, config, fisheye, skip_missing=True)
+    tiles = open_tiles(decoders, BenchmarkCamera("fisheye"), models, classical_config, fisheye, skip_missing=True)
     if not tiles:
         if required:
             raise ValueError(f"fisheye_standard: none of the decoders {', '.join(decoders)} has a model for the "
