@@ -11,16 +11,22 @@ from bmi_sdk.runtime.evidence import EVIDENCE_MODEL
 pytestmark = pytest.mark.skipif(not EVIDENCE_MODEL.exists(), reason="no packaged evidence network")
 
 
-def test_infer_evidence_reads_a_textured_plane(tmp_path, bmi):
+def _textured_plane(folder, size: int, range_m: float) -> tuple:
+    """rgb.npy (1/f texture, seed 3) and depth.npy (a plane at ``range_m``) of ``size``² px in ``folder``: the
+    scene options of ``bmi simulate``."""
     from bmi_sdk.scenes.procedural import pink_noise
 
-    size, range_m = 192, 2.0
     rng = np.random.default_rng(3)
     texture = np.stack([pink_noise((size, size), rng) for _ in range(3)], axis=-1)
     rgb = np.clip(0.3 * np.exp(0.8 * (texture - texture.mean()) / texture.std()), 0.0, 1.0).astype(np.float32)
-    np.save(tmp_path / "rgb.npy", rgb)
-    np.save(tmp_path / "depth.npy", np.full((size, size), range_m, np.float32))
-    bmi("simulate", "--rgb", tmp_path / "rgb.npy", "--depth", tmp_path / "depth.npy", "--field-deg", 20,
+    np.save(folder / "rgb.npy", rgb)
+    np.save(folder / "depth.npy", np.full((size, size), range_m, np.float32))
+    return "--rgb", folder / "rgb.npy", "--depth", folder / "depth.npy"
+
+
+def test_infer_evidence_reads_a_textured_plane(tmp_path, bmi):
+    range_m = 2.0
+    bmi("simulate", *_textured_plane(tmp_path, 192, range_m), "--field-deg", 20,
         "--psf-mode", "tensor", "--noise", 0.005, "--out", tmp_path / "f.dng")
     out = bmi("infer", tmp_path / "f.dng", "--out", tmp_path / "o", "--decoder", "evidence", "--quiet").stdout
     assert "evidence" in out
@@ -76,7 +82,6 @@ def test_a_built_camera_calibrated_from_its_own_captures_reads_as_well_as_the_de
     plane at 2 m and 50° of field reads far off without the calibration, and with it within 1.25× of what the
     design camera reads of the same plane (issue 35's built-camera target)."""
     from bmi_sdk.optics.perturb import Perturbation
-    from bmi_sdk.scenes.procedural import pink_noise
     from calibration import CapturePlan, PointSource, Target, extract_spots, fit_calibration, simulate_captures
     from calibration.io import write_calibration
 
@@ -91,14 +96,8 @@ def test_a_built_camera_calibrated_from_its_own_captures_reads_as_well_as_the_de
     assert abs(fit.estimate.decenter_um[0] - 15.0) < 1.0  # fitted, not given
     write_calibration(tmp_path / "calib.json", fit, captures, extraction, tensor_fields_deg=(0.0,),
                       tensor_depths_m=(4.0,))
-    size, range_m = 128, 2.0
-    rng = np.random.default_rng(3)
-    texture = np.stack([pink_noise((size, size), rng) for _ in range(3)], axis=-1)
-    rgb = np.clip(0.3 * np.exp(0.8 * (texture - texture.mean()) / texture.std()), 0.0, 1.0).astype(np.float32)
-    np.save(tmp_path / "rgb.npy", rgb)
-    np.save(tmp_path / "depth.npy", np.full((size, size), range_m, np.float32))
-    scene = ("--rgb", tmp_path / "rgb.npy", "--depth", tmp_path / "depth.npy", "--field-deg", 50, "--azimuth-deg", 30,
-             "--noise", 0.005)
+    range_m = 2.0
+    scene = (*_textured_plane(tmp_path, 128, range_m), "--field-deg", 50, "--azimuth-deg", 30, "--noise", 0.005)
     bmi("simulate", *scene, "--out", tmp_path / "design.dng")
     bmi("simulate", *scene, "--perturb", "decenter_um=15,0", "--out", tmp_path / "built.dng")
 
