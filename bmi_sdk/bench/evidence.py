@@ -1,11 +1,12 @@
-"""``bmi bench evidence``: the evidence decoder's read against the classical decoder's, and its upsampling knob.
+"""``bmi bench evidence``: the evidence decoder's read against the classical decoder's, and its read's knobs.
 
 On ``bmi eval``'s benchmark tiles at the paper's scene scale (4; ``--full``: 12 tiles per region instead of 4),
 σ 0.005, design camera, tensor kernels (rendered and decoded with the same): the classical stage runs once per
-tile; the network then reads its volume, and the window grid goes to the pixels by colour-guided upsampling
-at each colour scale of ``COLOUR_SIGMAS`` (∞: plain bilinear weights). Rows: AbsRel, δ1, the std of
-error / σ (1: honest σ), the confident coverage (share of valid pixels with σ ≤ 10 % of depth) and the
-upsampling's time per megapixel; the classical decoder's own read beside them.
+tile; the network then reads its volume. Two sweeps of what follows, each from the shipped knobs: the support
+read (``decode.support``: off, its radius, its spread scale τ; ∞: no purity weight) and the colour-guided
+upsampling's colour scale (``COLOUR_SIGMAS``; ∞: plain bilinear weights). Rows: AbsRel, δ1, the std of
+error / σ (1: honest σ), the confident coverage (share of valid pixels with σ ≤ 10 % of depth) and the time
+of the support read and the upsampling per megapixel; the classical decoder's own read beside them.
 """
 
 from __future__ import annotations
@@ -17,7 +18,9 @@ import numpy as np
 
 from . import markdown_table, register_target
 
-COLOUR_SIGMAS = (0.1, 0.2, 0.3, 0.5, 1.0, math.inf)
+COLOUR_SIGMAS = (0.1, 0.3, 1.0, math.inf)
+SUPPORT_RADII = (1, 2, 3, 4)
+SPREAD_SCALES = (0.02, 0.05, 0.2, math.inf)
 
 
 def _row(depth: np.ndarray, sigma: np.ndarray, truth: np.ndarray, ok: np.ndarray) -> list[float]:
@@ -30,8 +33,24 @@ def _row(depth: np.ndarray, sigma: np.ndarray, truth: np.ndarray, ok: np.ndarray
     return [m["absrel"], m["delta1"], float(np.std(z)) if z.size else math.nan, confident]
 
 
+def _variants(shipped, colour_sigma: float) -> list[tuple[str, object, float]]:
+    """(row name, support knobs or None, colour scale) of each read the bench measures: one knob moved at a time
+    from the shipped ``shipped`` support and ``colour_sigma``."""
+    from dataclasses import replace
+
+    rows = [("support off", None, colour_sigma)]
+    rows += [(f"support radius {r}" + (" (shipped)" if r == shipped.radius_windows else ""),
+              replace(shipped, radius_windows=r), colour_sigma) for r in SUPPORT_RADII]
+    rows += [(f"support τ {t:g}", replace(shipped, spread_scale=t if math.isfinite(t) else 1e12), colour_sigma)
+             for t in SPREAD_SCALES if t != shipped.spread_scale]
+    rows += [(f"colour σ {c:g}", shipped, c if math.isfinite(c) else 1e6) for c in COLOUR_SIGMAS
+             if c != colour_sigma]
+    return rows
+
+
 def run(full: bool = False) -> str:
     from ..decode import ClassicalDecoder
+    from ..decode.support import SupportConfig, cell_colours, support_read
     from ..decode.volume import guided_upsample, pixel_log_colour
     from ..lenses import lens_geometry, lens_tensor
     from ..model_io import raw_to_rgb
@@ -47,6 +66,7 @@ def run(full: bool = False) -> str:
     network = EvidenceNetwork(select_model(bench.lens, "evidence"), threads=2)
     config = network.stage_config()
     stage = ClassicalDecoder.for_psf_map(PsfMap(tensor, geometry, mode="tensor"), config)
+    variants = _variants(network.support or SupportConfig(), network.colour_sigma)
     rows: dict[str, list] = {}
     seconds: dict[str, float] = {}
     pixels = 0
@@ -57,13 +77,17 @@ def run(full: bool = False) -> str:
         truth = item["range_m"]
         rows.setdefault("classical", []).append(_row(result.depth_m, result.depth_sigma_m, truth, result.valid))
         inv_grid, sig_grid = network.read_decode(result)
-        log_rgb = pixel_log_colour(raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN))
+        rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
+        log_rgb = pixel_log_colour(rgb)
         pixels += raw.size
-        for c in COLOUR_SIGMAS:
-            name = f"evidence, colour σ {c:g}"
+        for name, support, colour_sigma in variants:
+            name = f"evidence, {name}"
             t0 = time.perf_counter()
-            inv_px, var_px = guided_upsample(inv_grid, sig_grid.astype(np.float64) ** 2, log_rgb,
-                                             config.stride_px, c if math.isfinite(c) else 1e6)
+            inv, var = inv_grid, sig_grid.astype(np.float32) ** 2
+            if support is not None:
+                cells, cell_ok = cell_colours(rgb, config.stride_px, inv.shape, support.dark_floor)
+                inv, var = support_read(inv, var, cells, cell_ok, support, config.window_px, config.stride_px)
+            inv_px, var_px = guided_upsample(inv, var, log_rgb, config.stride_px, colour_sigma)
             seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
             depth = np.where(inv_px > 0, 1.0 / np.where(inv_px > 0, inv_px, 1.0), np.nan)
             rows.setdefault(name, []).append(_row(depth, np.sqrt(var_px) * depth ** 2, truth, result.valid))
@@ -72,11 +96,13 @@ def run(full: bool = False) -> str:
         mean = np.nanmean(np.array(values, np.float64), axis=0)
         per_mpx = seconds[name] / (pixels / 1e6) if name in seconds else math.nan
         table.append([name, *[float(v) for v in mean], per_mpx])
-    header = ["decoder", "AbsRel", "δ1", "std(error/σ)", "confident coverage", "upsampling s/Mpx"]
+    header = ["decoder", "AbsRel", "δ1", "std(error/σ)", "confident coverage", "read s/Mpx"]
+    shipped = network.support.to_dict() if network.support else "none"
     return (f"### Evidence decoder against the classical read (scene scale 4, σ {sigma_noise}, "
-            f"{2 * bench.tiles} tiles of {bench.tile_px} px)\n\n" + markdown_table(header, table))
+            f"{2 * bench.tiles} tiles of {bench.tile_px} px; shipped support {shipped}, colour σ "
+            f"{network.colour_sigma:g})\n\n" + markdown_table(header, table))
 
 
 def register(subparsers) -> None:
-    register_target(subparsers, "evidence", "evidence decoder: error against the classical read and its "
-                    "upsampling's colour scale", __doc__, "evidence", run)
+    register_target(subparsers, "evidence", "evidence decoder: error against the classical read, and of "
+                    "its support read's and upsampling's knobs", __doc__, "evidence", run)

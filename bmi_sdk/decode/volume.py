@@ -110,9 +110,10 @@ def pixel_log_colour(rgb: np.ndarray, floor: float = 1e-3) -> np.ndarray:
     return np.log(out, out=out)
 
 
-def cell_colour(log_rgb: np.ndarray, stride_px: int, grid_shape: tuple[int, int],
+def cell_colour(image: np.ndarray, stride_px: int, grid_shape: tuple[int, int],
                 band_cells: int = 64) -> np.ndarray:
-    """(R, C, 3) mean log colour of each window's cell (``cell_bounds``) of an H × W × 3 log-colour image.
+    """(R, C, 3) mean colour of each window's cell (``cell_bounds``) of an H × W × 3 image (log colour for the
+    guided upsampling; linear colour for ``support.cell_colours``).
 
     Cell k spans pixels [k·stride − stride/2, k·stride + stride/2) clipped to the frame: in the frame shifted
     by stride/2 down and right it is the stride × stride block k, so ``band_cells`` rows of cells at a time are
@@ -120,7 +121,7 @@ def cell_colour(log_rgb: np.ndarray, stride_px: int, grid_shape: tuple[int, int]
     clipped area (an empty cell reads 0)."""
     rows, cols = grid_shape
     s, half = int(stride_px), int(stride_px) // 2
-    height, width = log_rgb.shape[:2]
+    height, width = image.shape[:2]
     col_hi = max(0, min(width, cols * s - half))  # the pixels some cell holds
     sums = np.empty((rows, cols, 3), np.float32)
     for r0 in range(0, rows, band_cells):
@@ -129,11 +130,19 @@ def cell_colour(log_rgb: np.ndarray, stride_px: int, grid_shape: tuple[int, int]
         top, bottom = max(0, first), max(0, min(height, r1 * s - half))
         band = np.zeros(((r1 - r0) * s, cols * s, 3), np.float32)
         if bottom > top:
-            band[top - first:bottom - first, half:half + col_hi] = log_rgb[top:bottom, :col_hi]
+            band[top - first:bottom - first, half:half + col_hi] = image[top:bottom, :col_hi]
         sums[r0:r1] = band.reshape(r1 - r0, s, cols, s, 3).sum(axis=(1, 3))
-    extent = lambda count, size: np.diff(np.array([cell_bounds(k, s, size) for k in range(count)]), axis=1)[:, 0]  # noqa: E731
-    area = np.maximum(extent(rows, height)[:, None] * extent(cols, width)[None, :], 1)[..., None]
+    area = np.maximum(cell_area_px(s, grid_shape, height, width), 1)[..., None]
     return sums / area.astype(np.float32)
+
+
+def cell_area_px(stride_px: int, grid_shape: tuple[int, int], height: int, width: int) -> np.ndarray:
+    """(R, C) pixel count of each window's cell (``cell_bounds``) in an H × W frame: 0 for the empty cells of a
+    grid that reaches a stride past the frame."""
+    def extent(count: int, size: int) -> np.ndarray:
+        return np.array([hi - lo for lo, hi in (cell_bounds(k, stride_px, size) for k in range(count))])
+
+    return extent(grid_shape[0], height)[:, None] * extent(grid_shape[1], width)[None, :]
 
 
 def guided_upsample(inv_grid: np.ndarray, var_grid: np.ndarray, log_rgb: np.ndarray, stride_px: int,

@@ -180,8 +180,10 @@ def write_evidence_manifest(onnx_path: str | Path, inv_depth_per_m, training: di
                             lens: str = DEFAULT_LENS, sigma_source: str = "network") -> Path:
     """The manifest of an exported evidence network: the evidence contract (``model_manifest``), the classical
     knobs its volume is made with (the defaults the training pairs used), its candidates, its training and where
-    its reported 1σ comes from (``model_manifest.EVIDENCE_SIGMA_SOURCES``)."""
+    its reported 1σ comes from (``model_manifest.EVIDENCE_SIGMA_SOURCES``), and the support read's knobs
+    (``decode.support``, the defaults)."""
     from bmi_sdk.decode import ClassicalConfig
+    from bmi_sdk.decode.support import SupportConfig
     from bmi_sdk.lenses import lens_tensor
     from bmi_sdk.model_manifest import EVIDENCE_INPUT_NAME, EVIDENCE_OUTPUT_NAMES, write_manifest
 
@@ -193,7 +195,7 @@ def write_evidence_manifest(onnx_path: str | Path, inv_depth_per_m, training: di
                           input_name=EVIDENCE_INPUT_NAME, output_names=EVIDENCE_OUTPUT_NAMES, input_channels=2,
                           size_multiple=4, candidates_inv_depth_per_m=[float(x) for x in inv_depth_per_m],
                           classical_config=config, upsample_colour_sigma=UPSAMPLE_COLOUR_SIGMA,
-                          sigma_source=sigma_source)
+                          sigma_source=sigma_source, support=SupportConfig().to_dict())
 
 
 def calibrate_sigma(net: VolumeNet, pairs: VolumePairs, device: str = "cpu") -> float:

@@ -9,10 +9,13 @@ Steps for one frame (docs/decoder.md):
    the posterior mean, its 1σ the posterior spread, scaled and floored as fitted on held-out pairs. The grid is
    padded to a multiple of 4 windows and read in bands of ``BAND_ROWS`` grid rows (with a halo of
    ``HALO_ROWS``, the network's reach), so memory stays bounded on a full frame;
-3. 1/d and its variance go to every pixel by colour-guided upsampling (``decode.volume.guided_upsample``) over
+3. each window's read becomes the mixture of its like-coloured neighbours whose support holds one colour
+   (``decode.support.support_read``, the manifest's ``support``): a window straddling an occlusion takes the
+   read of the windows that see one surface of its colour;
+4. 1/d and its variance go to every pixel by colour-guided upsampling (``decode.volume.guided_upsample``) over
    the demosaiced frame: a pixel between windows takes those of its own colour, and its σ includes the
    spread of the windows it mixes;
-4. the AiF is the Wiener deconvolution of the frame with the kernels at that depth
+5. the AiF is the Wiener deconvolution of the frame with the kernels at that depth
    (``ClassicalDecoder.restore_aif`` without a prior).
 
 No step is retrained for a calibrated camera: its kernels change the volume, and the network reads the volume.
@@ -28,6 +31,7 @@ import numpy as np
 
 from ..built_camera import BuiltCamera
 from ..decode import ClassicalConfig, ClassicalDecoder
+from ..decode.support import SupportConfig, cell_colours, support_read
 from ..decode.volume import guided_upsample, pixel_log_colour, volume_inputs
 from ..model_io import raw_to_rgb
 from ..model_manifest import ModelError, verify_model
@@ -63,6 +67,7 @@ class EvidenceNetwork:
         self.classical_config = dict(self.manifest["classical_config"])
         self.colour_sigma = float(self.manifest["upsample_colour_sigma"])
         self.sigma_source = self.manifest.get("sigma_source", "network")
+        self.support = self._support(self.manifest.get("support"))
         self.session = ort.InferenceSession(str(self.path), sess_options=session_options(threads),
                                             providers=choose_providers(providers))
         self.provider = self.session.get_providers()[0]
@@ -70,6 +75,15 @@ class EvidenceNetwork:
         self.input_names = {i.name for i in self.session.get_inputs()}
         self.load_s = time.perf_counter() - t0
         self.warmup_s = 0.0  # the grid's shape changes with the frame: there is no one shape to warm up
+
+    def _support(self, knobs) -> SupportConfig | None:
+        """The manifest's ``support`` knobs (``decode.support``); None (each window keeps its own read) without."""
+        if knobs is None:
+            return None
+        try:
+            return SupportConfig(**knobs)
+        except (TypeError, ValueError) as e:
+            raise ModelError(f"manifest of {self.path.name}: its support knobs {knobs!r} are not valid: {e}") from None
 
     def stage_config(self, threads: int | None = None) -> ClassicalConfig:
         """The classical decoder's knobs that make this network's volume (its manifest's), on ``threads`` threads."""
@@ -141,12 +155,22 @@ def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, ca
     timings["network_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     rgb = raw_to_rgb(frame.data, frame.black_level_dn, frame.white_level_dn, frame.cfa)
-    inv_px, var_px = guided_upsample(inv_grid, sig_grid.astype(np.float32) ** 2, pixel_log_colour(rgb),
-                                     stage.config.stride_px, network.colour_sigma, threads=stage.threads)
+    stride_px = stage.config.stride_px
+    var_grid = sig_grid.astype(np.float32) ** 2
+    if network.support is not None:
+        t1 = time.perf_counter()
+        cells, cell_ok = cell_colours(rgb, stride_px, inv_grid.shape, network.support.dark_floor)
+        inv_grid, var_grid = support_read(inv_grid, var_grid, cells, cell_ok, network.support,
+                                          stage.config.window_px, stride_px)
+        timings["support_s"] = time.perf_counter() - t1
+    log_rgb = pixel_log_colour(rgb)
+    del rgb
+    inv_px, var_px = guided_upsample(inv_grid, var_grid, log_rgb, stride_px, network.colour_sigma,
+                                     threads=stage.threads)
     valid = result.valid & np.isfinite(inv_px) & (inv_px > 0)
     depth = np.where(valid, np.float32(1.0) / np.where(valid, inv_px, np.float32(1.0)), np.float32(np.nan))
     sigma = np.where(valid, np.sqrt(np.maximum(var_px, np.float32(0.0))) * depth * depth, np.float32(np.nan))
-    timings["upsample_s"] = time.perf_counter() - t0
+    timings["upsample_s"] = time.perf_counter() - t0 - timings.get("support_s", 0.0)
     t0 = time.perf_counter()
     noise = NoiseProfile(**result.stats["noise_profile"])  # the noise the stage decoded with
     aif = stage.restore_aif(frame.data, frame.black_level_dn, frame.white_level_dn, frame.geometry, depth, None,
@@ -157,7 +181,8 @@ def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, ca
     report = {"valid_fraction": float(valid.mean()),
               "confident_coverage": float(confident.sum() / max(valid.sum(), 1)),
               "blocks_run": stats["blocks_run"], "blocks_skipped": stats["blocks_skipped"],
+              "support": None if network.support is None else network.support.to_dict(),
               "decoder_stats": stats, "timings_s": {**stats["timings_s"], **timings}}
     return DecodedFrame(aif, depth, valid, sigma, report,
-                        {"classical": result, "grid_inv_depth": inv_grid, "grid_sigma_inv": sig_grid})
+                        {"classical": result, "grid_inv_depth": inv_grid, "grid_sigma_inv": np.sqrt(var_grid)})
 

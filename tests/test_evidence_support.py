@@ -1,0 +1,174 @@
+"""The support read (``decode.support``): each window's read taken from its like-coloured neighbours whose support
+holds one colour. Checked against the taper's own weights, hand-computed spreads, the identity on a uniform
+surface, an occlusion band put right, extreme colours, and a rendered near object over a far wall."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from bmi_sdk.decode.support import SupportConfig, cell_colours, colour_spread, support_read, taper_weights
+from bmi_sdk.model_manifest import ModelError
+from bmi_sdk.runtime.evidence import EVIDENCE_MODEL, EvidenceNetwork
+
+
+def test_the_taper_at_the_cell_centres_is_the_hann_window():
+    np.testing.assert_allclose(taper_weights(64, 16), [0.5, 1.0, 0.5], atol=1e-12)
+    np.testing.assert_allclose(taper_weights(96, 16), np.cos(np.pi * np.arange(-2, 3) * 16 / 96) ** 2)
+    assert taper_weights(16, 16).tolist() == [1.0]
+
+
+def test_the_colour_spread_of_a_window_across_a_step_is_the_tapered_variance():
+    """Cells of colour a left of column 6 and b from it: the window at column 6 covers columns 5, 6, 7 with taper
+    weights ½, 1, ½, so a quarter of its weight is on a: variance ¼ · ¾ · (a − b)² per channel. A window wholly on
+    one side has none; cells that hold no pixels take no part."""
+    rows, cols = 8, 12
+    cells = np.zeros((rows, cols, 3))
+    cells[:, 6:] = [1.0, -0.5, 2.0]
+    ok = np.ones((rows, cols), bool)
+    spread = colour_spread(cells, ok, 64, 16)
+    expected = 0.25 * 0.75 * (1.0 + 0.25 + 4.0)
+    np.testing.assert_allclose(spread[:, 6], expected, rtol=1e-12)
+    np.testing.assert_allclose(spread[:, 5], expected, rtol=1e-12)  # columns 4, 5 (a) and 6 (b)
+    assert np.all(spread[:, :5] == 0) and np.all(spread[:, 8:] == 0)
+    ok[:, 6] = False  # column 6 holds no pixels: window 5 sees only a, window 7 only b
+    spread = colour_spread(cells, ok, 64, 16)
+    assert spread[3, 5] == 0 and spread[3, 7] == 0
+
+
+def test_cell_colours_are_the_log_of_the_cell_mean_above_a_dark_floor():
+    """Each 16-px cell's colour is log(its mean linear colour + the floor): a cell of a dark surface whose noise
+    dips below black reads log(floor + its mean), not the log of single noisy pixels; the grid's empty cells (a
+    stride past the frame) are flagged."""
+    rng = np.random.default_rng(2)
+    rgb = np.full((40, 56, 3), 0.3, np.float32)
+    rgb[:24, :24] = rng.normal(0.004, 0.005, (24, 24, 3))  # dark and noisy, partly below black
+    cells, ok = cell_colours(rgb, 16, (4, 5), 0.01)
+    np.testing.assert_allclose(cells[2, 3], np.log(0.31), rtol=1e-5)
+    np.testing.assert_allclose(cells[1, 1], np.log(0.01 + rgb[8:24, 8:24].mean(axis=(0, 1))), rtol=1e-4)
+    assert ok[:3, :4].all() and not ok[3, :].any() and not ok[:, 4].any()
+
+
+def test_a_uniform_surface_reads_as_it_did():
+    rows, cols = 9, 11
+    inv = np.full((rows, cols), 0.4, np.float32)
+    var = np.full((rows, cols), 1e-4, np.float32)
+    cells = np.full((rows, cols, 3), -1.2)
+    got, got_var = support_read(inv, var, cells, np.ones((rows, cols), bool), SupportConfig(), 64, 16)
+    np.testing.assert_allclose(got, 0.4, rtol=1e-6)
+    np.testing.assert_allclose(got_var, 1e-4, rtol=1e-4)
+    same, same_var = support_read(inv + np.arange(cols, dtype=np.float32), var, cells, np.ones((rows, cols), bool),
+                                  SupportConfig(radius_windows=0), 64, 16)
+    np.testing.assert_array_equal(same, inv + np.arange(cols, dtype=np.float32))
+    np.testing.assert_array_equal(same_var, var)
+
+
+def test_windows_straddling_an_occlusion_take_the_read_of_their_own_side():
+    """A near surface (1/d = 1, colour a) left of column 6 and a far one (1/d = 0.2, colour b) from it. The windows
+    whose support straddles the step read the far surface (as a near object's rim does: the background's sharp
+    texture wins the likelihood). Their like-coloured neighbours of one surface put them right; the far side
+    keeps its read, and no near read leaks across the colour edge."""
+    rows, cols = 10, 14
+    cells = np.zeros((rows, cols, 3))
+    cells[:, 6:] = 1.0
+    inv = np.where(np.arange(cols) < 6, 1.0, 0.2)[None, :].repeat(rows, 0).astype(np.float32)
+    inv[:, 5] = 0.2  # the near side's straddling windows read far
+    var = np.full((rows, cols), 1e-4, np.float32)
+    got, got_var = support_read(inv, var, cells, np.ones((rows, cols), bool), SupportConfig(), 64, 16)
+    np.testing.assert_allclose(got[:, 5], 1.0, atol=1e-3)
+    np.testing.assert_allclose(got[:, 6:], 0.2, atol=1e-5)
+    np.testing.assert_allclose(got[:, :5], 1.0, atol=1e-3)
+    assert np.all(got_var[:, 5] < 1e-3)
+
+
+def test_windows_without_a_read_stay_without_and_lend_nothing():
+    rows, cols = 8, 8
+    inv = np.full((rows, cols), 0.5, np.float32)
+    inv[:, :3] = np.nan
+    var = np.full((rows, cols), 1e-4, np.float32)
+    got, got_var = support_read(inv, var, np.zeros((rows, cols, 3)), np.ones((rows, cols), bool), SupportConfig(),
+                                64, 16)
+    assert np.isnan(got[:, :3]).all() and np.isnan(got_var[:, :3]).all()
+    np.testing.assert_allclose(got[:, 3:], 0.5, rtol=1e-6)
+
+
+def test_extreme_colours_and_spreads_give_finite_reads():
+    """Cells from a black floor (log 1e-3) beside clipped white, and 1e6-fold colour differences: every weight
+    underflows in the linear domain, but the log-domain normalisation still reads a mixture of the neighbours."""
+    rng = np.random.default_rng(5)
+    rows, cols = 12, 12
+    cells = rng.choice([-6.9, 0.0, 1e6], size=(rows, cols, 3))
+    inv = rng.uniform(0.1, 1.4, (rows, cols)).astype(np.float32)
+    var = rng.uniform(1e-6, 1e-2, (rows, cols)).astype(np.float32)
+    got, got_var = support_read(inv, var, cells, np.ones((rows, cols), bool),
+                                SupportConfig(spread_scale=1e-9, colour_sigma=1e-6), 64, 16)
+    assert np.isfinite(got).all() and np.isfinite(got_var).all()
+    assert np.all((got >= 0.1 - 1e-6) & (got <= 1.4 + 1e-6)) and np.all(got_var >= 0)
+
+
+@pytest.mark.parametrize("knobs, word", [({"radius_windows": -1}, "radius_windows"),
+                                         ({"spread_scale": float("nan")}, "spread_scale"),
+                                         ({"colour_sigma": 0}, "colour_sigma"),
+                                         ({"radius": 3}, "unexpected")])
+def test_a_manifest_with_bad_support_knobs_is_refused(tmp_path, knobs, word):
+    path = tmp_path / EVIDENCE_MODEL.name
+    shutil.copy(EVIDENCE_MODEL, path)
+    manifest = json.loads(EVIDENCE_MODEL.with_suffix(".manifest.json").read_text())
+    path.with_suffix(".manifest.json").write_text(json.dumps(dict(manifest, support=knobs)))
+    with pytest.raises(ModelError, match=f"support.*{word}"):
+        EvidenceNetwork(path)
+
+
+def test_a_near_object_over_a_far_wall_reads_its_rim_near(tmp_path):
+    """A 1/f-textured square at 1.2 m over a 1/f-textured wall at 5 m, 20° of field, σ 0.005, rendered and decoded
+    with the design's tensor kernels. Read by the shipped evidence network with its support knobs and with them
+    taken out of its manifest: the square's rim (its pixels within 16 px of its outline) reads nearer the truth
+    with them, and the frame as a whole no worse."""
+    from bmi_sdk.lenses import lens_geometry, lens_tensor
+    from bmi_sdk.nn.data import simulate_raw
+    from bmi_sdk.nn.evaluate import BenchmarkCamera, tile_frame
+    from bmi_sdk.render import PsfMap, render_coded
+    from bmi_sdk.runtime.evidence import decode_evidence, evidence_stage
+    from bmi_sdk.scenes.procedural import pink_noise
+    from bmi_sdk.sensor import NoiseProfile, relative_illumination
+
+    lens, size, near_m, far_m = "bmi_monocentric", 256, 1.2, 5.0
+    tensor, geometry = lens_tensor(lens), lens_geometry(lens)
+    rng = np.random.default_rng(11)
+
+    def texture(tint):
+        t = pink_noise((size, size), rng)
+        return np.clip(np.asarray(tint) * np.exp(0.8 * (t - t.mean()) / t.std())[..., None], 0, 1)
+
+    inside = np.zeros((size, size), bool)
+    inside[72:184, 72:184] = True
+    rgb = np.where(inside[..., None], texture([0.45, 0.2, 0.15]), texture([0.12, 0.2, 0.35])).astype(np.float32)
+    range_m = np.where(inside, near_m, far_m).astype(np.float32)
+    centre_row, centre_col = geometry.pixel_of_field(20.0, 0.0)
+    row0, col0 = (2 * int(round(float(c) / 2)) - size // 2 for c in (centre_row, centre_col))  # whole RGGB cells
+    psf_map = PsfMap(tensor, geometry, mode="tensor")
+    optical = render_coded(rgb, range_m, tensor, geometry, row0=row0, col0=col0, psf_map=psf_map)
+    optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
+    raw = simulate_raw(optical, 0.005, np.random.default_rng(12), row0, col0)
+    frame = tile_frame(raw, geometry, row0, col0, NoiseProfile.additive(0.005), lens)
+    camera = BenchmarkCamera(lens)
+
+    manifest = json.loads(EVIDENCE_MODEL.with_suffix(".manifest.json").read_text())
+    assert manifest.get("support")  # the shipped network reads with its support knobs
+    plain = tmp_path / EVIDENCE_MODEL.name
+    shutil.copy(EVIDENCE_MODEL, plain)
+    plain.with_suffix(".manifest.json").write_text(json.dumps({k: v for k, v in manifest.items() if k != "support"}))
+    from scipy import ndimage
+
+    rim = inside & (ndimage.distance_transform_edt(inside) <= 16)
+    errors = {}
+    for name, path in (("support", EVIDENCE_MODEL), ("plain", plain)):
+        network = EvidenceNetwork(path, threads=2)
+        decoded = decode_evidence(network, evidence_stage(network, camera, threads=2), frame, camera)
+        rel = np.abs(decoded.depth_m - range_m) / range_m
+        ok = np.isfinite(rel)
+        errors[name] = (float(rel[ok & rim].mean()), float(rel[ok].mean()))
+        assert (decoded.report["support"] is None) == (name == "plain")
+    assert errors["support"][0] < 0.7 * errors["plain"][0], errors
+    assert errors["support"][1] <= errors["plain"][1], errors
