@@ -36,7 +36,7 @@ import numpy as np
 class SupportConfig:
     """The knobs of ``support_read`` (an evidence network's manifest ``support``)."""
 
-    radius_windows: int = 2          # neighbours up to this many windows away on each axis (0: the read as it is)
+    radius_windows: int = 1          # neighbours up to this many windows away on each axis (0: the read as it is)
     spatial_sigma_windows: float = 1.0
     colour_sigma: float = 0.3        # log colour
     spread_scale: float = 0.05       # τ: a support whose colour variance is τ weighs e⁻¹
