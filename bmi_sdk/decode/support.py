@@ -31,6 +31,10 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+MAX_RADIUS_WINDOWS = 4
+"""The widest support read: 9 × 9 windows (64 px either side at stride 16), whose 81 weight grids a full frame
+holds at once (~70 MB)."""
+
 
 @dataclass(frozen=True)
 class SupportConfig:
@@ -44,8 +48,9 @@ class SupportConfig:
 
     def __post_init__(self):
         if isinstance(self.radius_windows, bool) or not isinstance(self.radius_windows, int) \
-                or not 0 <= self.radius_windows <= 16:
-            raise ValueError(f"support radius_windows must be a whole number in [0, 16], got {self.radius_windows!r}")
+                or not 0 <= self.radius_windows <= MAX_RADIUS_WINDOWS:
+            raise ValueError(f"support radius_windows must be a whole number in [0, {MAX_RADIUS_WINDOWS}], got "
+                             f"{self.radius_windows!r}")
         for name in ("spatial_sigma_windows", "colour_sigma", "spread_scale", "dark_floor"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
@@ -134,15 +139,14 @@ def support_read(inv_grid: np.ndarray, var_grid: np.ndarray, cells: np.ndarray, 
         colour = np.einsum("...c,...c->...", diff, diff) / (2.0 * config.colour_sigma ** 2)
         return lp_p[a:a + rows, b:b + cols] - d2 / (2.0 * config.spatial_sigma_windows ** 2) - colour
 
-    top = np.full((rows, cols), -np.inf)
-    for a, b in offsets:
-        np.maximum(top, log_weight(a, b), out=top)
+    log_weights = [log_weight(a, b) for a, b in offsets]  # ≤ 81 grids (radius ≤ MAX_RADIUS_WINDOWS)
+    top = np.max(log_weights, axis=0)
     top = np.where(valid, top, 0.0)  # a valid window lends to itself, so its largest log weight is finite
     weight = np.zeros((rows, cols))
     first = np.zeros((rows, cols))
     second = np.zeros((rows, cols))
-    for a, b in offsets:
-        w = np.exp(log_weight(a, b) - top)
+    for (a, b), lw in zip(offsets, log_weights):
+        w = np.exp(lw - top)
         x = inv_p[a:a + rows, b:b + cols]
         weight += w
         first += w * x

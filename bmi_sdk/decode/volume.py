@@ -110,28 +110,25 @@ def pixel_log_colour(rgb: np.ndarray, floor: float = 1e-3) -> np.ndarray:
     return np.log(out, out=out)
 
 
-def cell_colour(image: np.ndarray, stride_px: int, grid_shape: tuple[int, int],
-                band_cells: int = 64) -> np.ndarray:
+def cell_colour(image: np.ndarray, stride_px: int, grid_shape: tuple[int, int]) -> np.ndarray:
     """(R, C, 3) mean colour of each window's cell (``cell_bounds``) of an H × W × 3 image (log colour for the
     guided upsampling; linear colour for ``support.cell_colours``).
 
     Cell k spans pixels [k·stride − stride/2, k·stride + stride/2) clipped to the frame: in the frame shifted
-    by stride/2 down and right it is the stride × stride block k, so ``band_cells`` rows of cells at a time are
-    copied into a zero-padded band and summed block by block (float32); each sum is divided by the cell's
-    clipped area (an empty cell reads 0)."""
+    by stride/2 down and right and zero-padded to R·stride × C·stride, it is the stride × stride block k. The
+    blocks' means are one area resampling (``cv2.resize``, ``INTER_AREA``, exact for a whole-number factor),
+    made sums and divided by each cell's clipped area (an empty cell reads 0). float32."""
+    import cv2
+
     rows, cols = grid_shape
     s, half = int(stride_px), int(stride_px) // 2
     height, width = image.shape[:2]
-    col_hi = max(0, min(width, cols * s - half))  # the pixels some cell holds
-    sums = np.empty((rows, cols, 3), np.float32)
-    for r0 in range(0, rows, band_cells):
-        r1 = min(rows, r0 + band_cells)
-        first = r0 * s - half  # the pixel row of the band's first row
-        top, bottom = max(0, first), max(0, min(height, r1 * s - half))
-        band = np.zeros(((r1 - r0) * s, cols * s, 3), np.float32)
-        if bottom > top:
-            band[top - first:bottom - first, half:half + col_hi] = image[top:bottom, :col_hi]
-        sums[r0:r1] = band.reshape(r1 - r0, s, cols, s, 3).sum(axis=(1, 3))
+    crop = np.ascontiguousarray(image[:max(0, rows * s - half), :max(0, cols * s - half)], np.float32)
+    if crop.size == 0:
+        return np.zeros((rows, cols, 3), np.float32)
+    shifted = cv2.copyMakeBorder(crop, half, rows * s - half - crop.shape[0], half, cols * s - half - crop.shape[1],
+                                 cv2.BORDER_CONSTANT, value=0)
+    sums = cv2.resize(shifted, (cols, rows), interpolation=cv2.INTER_AREA) * np.float32(s * s)
     area = np.maximum(cell_area_px(s, grid_shape, height, width), 1)[..., None]
     return sums / area.astype(np.float32)
 
