@@ -31,6 +31,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from .volume import cell_area_px, cell_colour
+
 MAX_RADIUS_WINDOWS = 4
 """The widest support read: 9 × 9 windows (64 px either side at stride 16), whose 81 weight grids a full frame
 holds at once (~70 MB)."""
@@ -66,8 +68,6 @@ def cell_colours(rgb: np.ndarray, stride_px: int, grid_shape: tuple[int, int], d
     (white = 1): log(mean colour of the window's cell + ``dark_floor``). The floor makes colours darker than it
     differ by their difference rather than their ratio: a cell mean of a dark surface, a few noise σ above
     black, would otherwise swing by whole units of log colour."""
-    from .volume import cell_area_px, cell_colour
-
     mean = cell_colour(rgb, stride_px, grid_shape)
     return np.log(np.maximum(mean, 0.0) + np.float32(dark_floor)), cell_area_px(stride_px, grid_shape,
                                                                                    *rgb.shape[:2]) > 0
