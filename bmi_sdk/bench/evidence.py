@@ -55,13 +55,12 @@ def _variants(shipped, colour_sigma: float) -> list[tuple[str, object, float]]:
 def _read(inv_grid, sig_grid, rgb, log_rgb, support, colour_sigma: float, config) -> tuple[np.ndarray, np.ndarray]:
     """(depth_m, 1σ) at every pixel of the network's window read: the support read (None: off), then the guided
     upsampling, as ``runtime.evidence.decode_evidence`` does."""
-    from ..decode.support import cell_colours, support_read
+    from ..decode.support import frame_support_read
     from ..decode.volume import guided_upsample
 
     inv, var = inv_grid, sig_grid.astype(np.float32) ** 2
     if support is not None:
-        cells, cell_ok = cell_colours(rgb, config.stride_px, inv.shape, support.dark_floor)
-        inv, var = support_read(inv, var, cells, cell_ok, support, config.window_px, config.stride_px)
+        inv, var = frame_support_read(inv, var, rgb, support, config.window_px, config.stride_px)
     inv_px, var_px = guided_upsample(inv, var, log_rgb, config.stride_px, colour_sigma, threads=2)
     depth = np.where(inv_px > 0, 1.0 / np.where(inv_px > 0, inv_px, 1.0), np.nan)
     return depth, np.sqrt(var_px) * depth ** 2

@@ -155,3 +155,11 @@ def support_read(inv_grid: np.ndarray, var_grid: np.ndarray, cells: np.ndarray, 
     mean = first / safe
     var = np.maximum(second / safe - mean * mean, 0.0)
     return np.where(valid, mean, np.nan).astype(np.float32), np.where(valid, var, np.nan).astype(np.float32)
+
+
+def frame_support_read(inv_grid: np.ndarray, var_grid: np.ndarray, rgb: np.ndarray, config: SupportConfig,
+                       window_px: int, stride_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """``support_read`` of a frame's window grid, its cell colours taken from the frame's H × W × 3 linear RGB
+    (``cell_colours`` at the config's dark floor): the step the evidence decoder runs."""
+    cells, cell_ok = cell_colours(rgb, stride_px, inv_grid.shape, config.dark_floor)
+    return support_read(inv_grid, var_grid, cells, cell_ok, config, window_px, stride_px)

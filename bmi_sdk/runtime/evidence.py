@@ -10,7 +10,7 @@ Steps for one frame (docs/decoder.md):
    padded to a multiple of 4 windows and read in bands of ``BAND_ROWS`` grid rows (with a halo of
    ``HALO_ROWS``, the network's reach), so memory stays bounded on a full frame;
 3. each window's read becomes the mixture of its like-coloured neighbours whose support holds one colour
-   (``decode.support.support_read``, the manifest's ``support``): a window straddling an occlusion takes the
+   (``decode.support.frame_support_read``, the manifest's ``support``): a window straddling an occlusion takes the
    read of the windows that see one surface of its colour;
 4. 1/d and its variance go to every pixel by colour-guided upsampling (``decode.volume.guided_upsample``) over
    the demosaiced frame: a pixel between windows takes those of its own colour, and its σ includes the
@@ -31,7 +31,7 @@ import numpy as np
 
 from ..built_camera import BuiltCamera
 from ..decode import ClassicalConfig, ClassicalDecoder
-from ..decode.support import SupportConfig, cell_colours, support_read
+from ..decode.support import SupportConfig, frame_support_read
 from ..decode.volume import guided_upsample, pixel_log_colour, volume_inputs
 from ..model_io import raw_to_rgb
 from ..model_manifest import ModelError, verify_model
@@ -159,9 +159,8 @@ def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, ca
     var_grid = sig_grid.astype(np.float32) ** 2
     if network.support is not None:
         t1 = time.perf_counter()
-        cells, cell_ok = cell_colours(rgb, stride_px, inv_grid.shape, network.support.dark_floor)
-        inv_grid, var_grid = support_read(inv_grid, var_grid, cells, cell_ok, network.support,
-                                          stage.config.window_px, stride_px)
+        inv_grid, var_grid = frame_support_read(inv_grid, var_grid, rgb, network.support, stage.config.window_px,
+                                                stride_px)
         timings["support_s"] = time.perf_counter() - t1
     log_rgb = pixel_log_colour(rgb)
     del rgb
