@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from bmi_sdk.bench.record import markdown_tables, write_record
+from bmi_sdk.bench.record import check_record_path, markdown_tables, write_record
 from bmi_sdk.runtime import DECODERS, BuiltCamera, DecodedFrame, open_decoder, run_job
 from bmi_sdk.runtime.decoders import decoder_kind
 
@@ -89,3 +89,33 @@ def test_a_benchmark_text_becomes_a_record(tmp_path):
     assert record["command"] == "bmi bench infer --json r/bench.json" and record["tables"] == [table]
     assert set(record["machine"]) == {"platform", "cores", "python", "load_average"}
     assert len(record["date"]) == 10 and (record["commit"] is None or len(record["commit"]) == 40)
+
+
+def test_an_earlier_record_is_never_replaced_unasked(tmp_path):
+    """``--json PATH``: a path that holds a file is refused before the run (``check_record_path``) and at the write
+    itself (another run may have written it meanwhile), the earlier file kept byte for byte; ``--overwrite``
+    replaces it."""
+    table = {"title": "t", "columns": ["a"], "rows": [[1]], "notes": ""}
+    path = write_record(tmp_path / "r.json", [table], ["bench", "x"])
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        check_record_path(path, overwrite=False)
+    check_record_path(path, overwrite=True)
+    check_record_path(tmp_path / "new.json", overwrite=False)
+    with pytest.raises(FileExistsError, match="another run wrote meanwhile"):
+        write_record(path, [dict(table, rows=[[2]])], ["bench", "y"])
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["r.json"]  # no temporary file left behind
+    write_record(path, [dict(table, rows=[[2]])], ["bench", "y"], overwrite=True)
+    assert json.loads(path.read_text())["tables"][0]["rows"] == [[2]]
+
+
+def test_bench_and_eval_refuse_an_earlier_record_before_running(tmp_path, bmi):
+    """Run twice into one ``--json`` path: the second run stops at once (no minutes of benchmark lost first) with
+    a one-line error naming ``--overwrite``, and the earlier record is untouched."""
+    earlier = tmp_path / "r.json"
+    earlier.write_text("{}\n")
+    for command in (["bench", "evidence"], ["eval", "--decoder", "classical"]):
+        done = bmi(*command, "--json", earlier, check=False)
+        assert done.returncode == 1 and "holds an earlier run's record" in done.stderr and "--overwrite" in done.stderr
+        assert earlier.read_text() == "{}\n"

@@ -14,7 +14,7 @@ import math
 import time
 
 from ..resources import cpu_seconds, peak_rss_mb  # noqa: F401  (the targets import them from here)
-from .record import add_json_argument, markdown_tables, write_record
+from .record import add_json_argument, check_record_path, markdown_tables, write_record
 
 
 def markdown_table(header: list[str], rows: list[list]) -> str:
@@ -53,7 +53,8 @@ def register_target(subparsers, name: str, help_text: str, description: str, sec
     refuses it) and prints ``run()``. ``section`` names the docs/benchmarks.md section its record fills."""
 
     def handler(args) -> int:
-        emit(run(full=args.full) if full else run(), args.json)
+        check_record_path(args.json, args.overwrite)
+        emit(run(full=args.full) if full else run(), args.json, args.overwrite)
         return 0
 
     p = subparsers.add_parser(name, help=help_text, description=description)
@@ -63,8 +64,9 @@ def register_target(subparsers, name: str, help_text: str, description: str, sec
     p.set_defaults(handler=handler)
 
 
-def emit(text: str, json_path=None) -> None:
-    """Print a benchmark's markdown ``text``; with ``json_path`` also write its tables there as a record."""
+def emit(text: str, json_path=None, overwrite: bool = False) -> None:
+    """Print a benchmark's markdown ``text``; with ``json_path`` also write its tables there as a record
+    (``record.write_record``: an earlier one is replaced only with ``overwrite``)."""
     print(text)
     if json_path is not None:
-        write_record(json_path, markdown_tables(text))
+        write_record(json_path, markdown_tables(text), overwrite=overwrite)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import add_json_argument, emit, markdown_table
+from . import add_json_argument, check_record_path, emit, markdown_table
 
 RECOVERY_SEEDS_QUICK = 8
 RECOVERY_SEEDS_FULL = 50
@@ -116,7 +116,8 @@ def run(full: bool = False, seeds: int | None = None, out_json: str | None = Non
 
 def register(subparsers) -> None:
     def handler(args) -> int:
-        emit(run(full=args.full, seeds=args.seeds, out_json=args.records), args.json)
+        check_record_path(args.json, args.overwrite)
+        emit(run(full=args.full, seeds=args.seeds, out_json=args.records), args.json, args.overwrite)
         return 0
 
     p = subparsers.add_parser("calibrate", help="hardware-error calibration: recovery, σ coverage, points and "

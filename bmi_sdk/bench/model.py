@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import add_json_argument, emit, markdown_table
+from . import add_json_argument, check_record_path, emit, markdown_table
 
 TILE_PX = 512
 PRESET_NAMES = ("tiny", "small", "paper")
@@ -155,8 +155,9 @@ def register(subparsers) -> None:
 
 
 def _handler(args) -> int:
+    check_record_path(args.json, args.overwrite)
     models = dict(item.split("=", 1) for item in args.models.split(",") if item)
     text = run([p.strip() for p in args.presets.split(",") if p.strip()], {k: Path(v) for k, v in models.items()},
                args.tiles)
-    emit(text, args.json)
+    emit(text, args.json, args.overwrite)
     return 0

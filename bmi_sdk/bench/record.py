@@ -26,10 +26,20 @@ EMPTY_CELLS = ("", "–", "—", "-")
 
 
 def add_json_argument(p) -> None:
-    """``--json PATH`` on parser ``p``."""
+    """``--json PATH`` and ``--overwrite`` on parser ``p`` (the handler calls ``check_record_path`` first)."""
     p.add_argument("--json", default=None, metavar="PATH",
                    help="also write the tables as a JSON record (command, commit, date, machine, tables) to PATH, "
-                        "for tools/docs_tables.py")
+                        "for tools/docs_tables.py; a PATH that holds an earlier record is refused before the run "
+                        "starts")
+    p.add_argument("--overwrite", action="store_true", help="replace the earlier record at --json PATH")
+
+
+def check_record_path(path, overwrite: bool) -> None:
+    """Refuse, before a run's minutes of work, a ``--json`` PATH that already holds a file (unless ``overwrite``):
+    an earlier run's record is never replaced unasked."""
+    if path is not None and not overwrite and Path(path).exists():
+        raise FileExistsError(f"--json {path} holds an earlier run's record; pass --overwrite to replace it, or "
+                              "choose another path")
 
 
 def machine() -> dict:
@@ -100,12 +110,17 @@ def markdown_tables(text: str) -> list[dict]:
     return tables
 
 
-def write_record(path, tables: list[dict], argv: list[str] | None = None) -> Path:
-    """Write the record of this run's ``tables`` to ``path`` (atomically); returns the path."""
+def write_record(path, tables: list[dict], argv: list[str] | None = None, overwrite: bool = False) -> Path:
+    """Write the record of this run's ``tables`` to ``path`` (atomically); returns the path. Without ``overwrite``
+    a file at ``path``, even one another run wrote meanwhile, is kept and ``FileExistsError`` raised."""
     argv = sys.argv[1:] if argv is None else argv
     record = {"command": " ".join(["bmi", *argv]), "commit": commit(), "date": datetime.date.today().isoformat(),
               "machine": machine(), "tables": tables}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_json(path, record)
+    try:
+        write_json(path, record, replace=overwrite)
+    except FileExistsError:
+        raise FileExistsError(f"--json {path} holds a record another run wrote meanwhile; this run's record was "
+                              "not written (pass --overwrite to replace it)") from None
     return path

@@ -75,6 +75,7 @@ def _scales(args) -> list[float]:
 def _run(args) -> int:
     from dataclasses import replace
 
+    from bmi_sdk.bench.record import check_record_path, write_record
     from bmi_sdk.cli.infer import WINDOW_KNOBS, changed_classical_flags, classical_config
     from bmi_sdk.nn.evaluate import Benchmark, run_benchmark
     from bmi_sdk.runtime.decoders import DECODERS, DEFAULT_DECODER, decoder_kind
@@ -92,6 +93,7 @@ def _run(args) -> int:
         if value < least:
             raise ValueError(f"{flag} {value}: must be a whole number >= {least}")
     scales = _scales(args)
+    check_record_path(args.json, args.overwrite)
     bench = Benchmark(tiles=args.tiles, tile_px=args.tile_px, seed=args.seed, threads=args.threads,
                       scene_scale=scales[0])
     conditions = [c.strip() for c in args.conditions.split(",")] if args.conditions else None
@@ -103,9 +105,7 @@ def _run(args) -> int:
                                   args.fisheye_model, progress=not args.jsonl, decoders=decoders,
                                   classical_config=config, cameras=args.cameras)
     if args.json:
-        from bmi_sdk.bench.record import write_record
-
-        write_record(args.json, [eval_table(rows, bench), strata_table(rows, bench)])
+        write_record(args.json, [eval_table(rows, bench), strata_table(rows, bench)], overwrite=args.overwrite)
     if args.jsonl:
         for row in rows:
             print(json.dumps(row))
