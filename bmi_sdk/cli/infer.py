@@ -225,7 +225,9 @@ def register(subparsers) -> None:
                         "(default: each frame's 1st-99th percentile)")
     p.add_argument("--ply-step", type=whole(1), default=1, help="one point per N×N pixels in points.ply (default 1)")
     p.add_argument("--decoder", choices=tuple(DECODERS), default=None,
-                   help=f"learned: the classical evidence refined by a network (learned.onnx), with a depth 1σ; "
+                   help=f"evidence: the classical stage's cost volume read by a small network (evidence.onnx), "
+                        f"each window's read taken from its like-coloured neighbours, with a depth 1σ; "
+                        f"learned: the classical evidence refined by a network (learned.onnx), with a depth 1σ; "
                         f"classical: depth evidence from the camera's own (calibrated) kernels, no network, with a "
                         f"depth 1σ; cnn: the shipped end-to-end network (default: the kind of --model, else "
                         f"{DEFAULT_DECODER}; docs/decoder.md)")
