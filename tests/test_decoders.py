@@ -102,6 +102,9 @@ def test_an_earlier_record_is_never_replaced_unasked(tmp_path):
         check_record_path(path, overwrite=False)
     check_record_path(path, overwrite=True)
     check_record_path(tmp_path / "new.json", overwrite=False)
+    for not_a_file in ("", tmp_path):
+        with pytest.raises(ValueError, match="not a folder"):
+            check_record_path(not_a_file, overwrite=True)
     with pytest.raises(FileExistsError, match="another run wrote meanwhile"):
         write_record(path, [dict(table, rows=[[2]])], ["bench", "y"])
     assert path.read_bytes() == before

@@ -35,9 +35,13 @@ def add_json_argument(p) -> None:
 
 
 def check_record_path(path, overwrite: bool) -> None:
-    """Refuse, before a run's minutes of work, a ``--json`` PATH that already holds a file (unless ``overwrite``):
-    an earlier run's record is never replaced unasked."""
-    if path is not None and not overwrite and Path(path).exists():
+    """Refuse, before a run's minutes of work, a ``--json`` PATH that is empty or a folder, or that already holds a
+    file (unless ``overwrite``): an earlier run's record is never replaced unasked."""
+    if path is None:
+        return
+    if not str(path).strip() or Path(path).is_dir():
+        raise ValueError(f"--json {str(path)!r}: give the path of a file to write the record to, not a folder")
+    if not overwrite and Path(path).exists():
         raise FileExistsError(f"--json {path} holds an earlier run's record; pass --overwrite to replace it, or "
                               "choose another path")
 
