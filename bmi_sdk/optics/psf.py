@@ -82,11 +82,7 @@ def _rotated_pupil(fit: PupilFit, u_off: np.ndarray, v_off: np.ndarray, rotation
     With u = L cos φ − M sin φ and v = L sin φ + M cos φ, the transform over (u, v)
     lands the PSF's radial axis along (cos φ, sin φ) of the output (col, row) axes.
     """
-    phi = np.radians(rotation_deg)
-    uu, vv = np.meshgrid(u_off, v_off, indexing="ij")
-    ell = fit.l_centre + uu * np.cos(phi) + vv * np.sin(phi)
-    emm = fit.m_centre - uu * np.sin(phi) + vv * np.cos(phi)
-    w, amp, *apertures = fit.evaluate_points_many(("w_waves", "amplitude", *fit.apertures), ell, emm)
+    w, amp, *apertures = fit.evaluate_rotated(("w_waves", "amplitude", *fit.apertures), u_off, v_off, rotation_deg)
     amp = np.maximum(amp, 0.0)
     transmission = np.ones_like(w)
     for aperture in apertures:
