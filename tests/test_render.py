@@ -245,3 +245,48 @@ def test_tensor_mode_refuses_a_perturbation(tensor):
     with pytest.raises(ValueError, match="psf_mode='exact'"):
         PsfMap(tensor, BMI_SENSOR, mode="tensor", perturbation=Perturbation(tilt_arcmin=(1.0, 0.0)))
     PsfMap(tensor, BMI_SENSOR, mode="tensor", perturbation=Perturbation())  # the design is fine
+
+
+def test_zones_on_one_theta_ring_share_the_design_fits_and_give_the_kernels_each_would_alone(tensor, monkeypatch):
+    """The design's pupil fit depends on θ alone: a map that traced (θ, φ1) first turns the same fits for (θ, φ2)
+    (no second trace), and its kernels equal those of a fresh map asked for (θ, φ2) alone. A memo bound of a
+    few fits (here 4) keeps only the most recent, and the kernels stay the same."""
+    from bmi_sdk.render import psf_map as psf_map_module
+
+    theta, depth_indices = 41.5, [0, 2]
+    alone = PsfMap(tensor, BMI_SENSOR).kernels(theta, -72.5, depth_indices)
+    traced = []
+    real_fit_pupils = psf_map_module.fit_pupils
+    monkeypatch.setattr(psf_map_module, "fit_pupils", lambda *a, **k: traced.append(a[1]) or real_fit_pupils(*a, **k))
+    ring = PsfMap(tensor, BMI_SENSOR)
+    ring.kernels(theta, 17.0, depth_indices)
+    shared = ring.kernels(theta, -72.5, depth_indices)
+    assert traced == [theta] and np.array_equal(shared, alone)
+    monkeypatch.setattr(psf_map_module, "FIT_MEMO_ENTRIES", 4)
+    small = PsfMap(tensor, BMI_SENSOR)
+    small.kernels(theta, 17.0, depth_indices)
+    assert len(small._fits) == 4 and np.array_equal(small.kernels(theta, -72.5, depth_indices), alone)
+
+
+def test_two_threads_tracing_different_zones_give_the_one_thread_kernels_and_counts(tensor):
+    """PsfMap.kernel_sets on distinct field positions from two threads at once (a first frame's block threads):
+    every kernel as one thread traces it, and every trace counted once."""
+    import threading
+
+    positions = [(12.0, 30.0), (12.0, -150.0), (47.5, 80.0), (47.5, 5.0)]
+    serial = PsfMap(tensor, BMI_SENSOR)
+    expected = [np.stack(serial.kernel_sets(t, p, [0, 1, 2])) for t, p in positions]
+    shared = PsfMap(tensor, BMI_SENSOR)
+    got: dict = {}
+
+    def trace(which):
+        for n in which:
+            got[n] = np.stack(shared.kernel_sets(*positions[n], [0, 1, 2]))
+
+    threads = [threading.Thread(target=trace, args=(which,)) for which in ((0, 2), (1, 3))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all(np.array_equal(got[n], expected[n]) for n in range(len(positions)))
+    assert shared.kernels_traced == serial.kernels_traced == 3 * len(positions)

@@ -22,9 +22,10 @@ ZONE_STEP_DEG = 0.5
 class ZoneKernels:
     """Memoised (C, D, K, K) kernels and folded evidence models for (θ, φ) zones of one ``PsfMap``.
 
-    Safe to share between the decoder's block threads: kernels are asked of the ``PsfMap`` under one lock (its own
-    memo, disk shards and trace counters are not thread-safe), a zone's evidence models are made under that zone's
-    lock (once, and other zones' at the same time), and memoised entries are read without either."""
+    Safe to share between the decoder's block threads: a zone's kernels and evidence models are made under that
+    zone's lock (once), other zones' at the same time (a camera's first frame traces two zones at once on two
+    threads: ``PsfMap.kernel_sets`` allows it for distinct field positions), and memoised entries are read
+    without a lock."""
 
     def __init__(self, psf_map, candidates, slopes: tuple[float, ...], window_px: int):
         if window_px % 2 or window_px < 8:
@@ -36,17 +37,22 @@ class ZoneKernels:
         self._kernels: dict[tuple, np.ndarray] = {}
         self._models: dict[tuple, np.ndarray] = {}
         self.kernel_sets_computed = 0
-        self._lock = threading.Lock()  # around the PsfMap
-        self._zone_locks: dict[tuple, threading.Lock] = {}
+        self._count_lock = threading.Lock()  # around ``kernel_sets_computed``
+        self._zone_locks: dict[tuple, threading.RLock] = {}
 
     def __getstate__(self) -> dict:
         """Pickled without its locks (a decoder travels to scale-out workers): each copy makes its own."""
-        return {k: v for k, v in self.__dict__.items() if k not in ("_lock", "_zone_locks")}
+        return {k: v for k, v in self.__dict__.items() if k not in ("_count_lock", "_zone_locks")}
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
-        self._lock = threading.Lock()
+        self._count_lock = threading.Lock()
         self._zone_locks = {}
+
+    def _zone_lock(self, zone: tuple) -> threading.RLock:
+        """The zone's lock (re-entrant: ``models`` asks ``kernels`` under it); setdefault makes one per zone
+        atomically."""
+        return self._zone_locks.setdefault(zone, threading.RLock())
 
     @staticmethod
     def zone(theta_deg: float, phi_deg: float) -> tuple[float, float]:
@@ -96,13 +102,14 @@ class ZoneKernels:
         """(C, len(which), K, K) unit-sum kernels of candidates ``which`` (indices into ``candidates``)."""
         which = np.atleast_1d(np.asarray(which, dtype=int))
         if any(zone + (int(j),) not in self._kernels for j in which):
-            with self._lock:  # another thread may have made them meanwhile: look again under the lock
+            with self._zone_lock(zone):  # another thread may have made them meanwhile: look again under the lock
                 missing = [int(j) for j in which if zone + (int(j),) not in self._kernels]
                 if missing:  # the map's own arrays where it memoises them (exact mode): no second copy
                     sets = self.psf_map.kernel_sets(zone[0], zone[1], self.candidates.index[missing])
                     for j, kernel in zip(missing, sets):
                         self._kernels[zone + (j,)] = kernel
-                    self.kernel_sets_computed += len(missing)
+                    with self._count_lock:
+                        self.kernel_sets_computed += len(missing)
         return np.stack([self._kernels[zone + (int(j),)] for j in which], axis=1)
 
     def models(self, zone: tuple[float, float], which: np.ndarray) -> np.ndarray:
@@ -110,7 +117,7 @@ class ZoneKernels:
         which = np.atleast_1d(np.asarray(which, dtype=int))
         n_plane = self.window_px // 2
         if any(zone + (int(j),) not in self._models for j in which):
-            with self._zone_locks.setdefault(zone, threading.Lock()):  # setdefault: one lock per zone, atomically
+            with self._zone_lock(zone):
                 missing = [int(j) for j in which if zone + (int(j),) not in self._models]
                 if missing:
                     k = self.kernels(zone, np.asarray(missing))                       # (C, m, K, K)

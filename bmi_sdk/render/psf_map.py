@@ -55,6 +55,8 @@ import hashlib
 import json
 import math
 import os
+import threading
+from collections import OrderedDict
 from pathlib import Path
 
 import cv2
@@ -64,7 +66,7 @@ from ..geometry import SensorGeometry
 from ..optics import spectral
 from ..optics.perturb import CHIEF_FIT_DEGREE, CHIEF_FIT_GRID, Perturbation, spot_kernels, trace_spots
 from ..optics.psf import psf_from_pupil
-from ..optics.pupil import fit_pupils
+from ..optics.pupil import PupilFit, fit_pupils
 from ..optics.tensor import PsfTensor, usable_kernel_shard, write_kernel_shard
 
 INTERPOLATIONS = ("linear", "inverse_square")
@@ -102,6 +104,9 @@ def resample_kernel(kernel: np.ndarray, scale: float) -> np.ndarray:
 
 
 MODES = ("exact", "tensor")
+FIT_MEMO_ENTRIES = 12288
+"""Design pupil fits a map keeps (~4.6 kB each, ~57 MB in all): a full frame's rings need ~9300 (111 θ × 28
+candidates × 3 wavelengths)."""
 
 
 class PsfMap:
@@ -145,9 +150,18 @@ class PsfMap:
         self.scale = tensor.spec.pitch_um / geometry.pitch_um
         self.field_deg = np.asarray(tensor.spec.field_deg, dtype=np.float64)
         self._exact: dict[tuple, np.ndarray] = {}
+        self._fits: OrderedDict[tuple, PupilFit] = OrderedDict()  # (θ, depth index, λ nm) → design pupil fit
+        self._lock = threading.Lock()  # around the memos' bookkeeping (see ``kernel_sets``)
         self.exact_cache_dir = None if cache_dir is None or mode != "exact" else Path(cache_dir) / self.exact_key()
         self._zones_read: set[tuple] = set()
         self.kernels_traced = 0  # exact (θ, φ, depth) kernel sets traced here, not read from memory or disk
+
+    def __getstate__(self) -> dict:
+        """Pickled (to scale-out workers) without its lock and the pupil-fit memo (cheap to rebuild, tens of MB)."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("_lock", "_fits")}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state, _fits=OrderedDict(), _lock=threading.Lock())
 
     def exact_key(self) -> str:
         """Identity of this map's exact kernels: the tensor's (lens, errors, spec), the errors named here, the
@@ -162,9 +176,10 @@ class PsfMap:
 
     def _read_zone(self, key: tuple) -> None:
         """Take a field position's cached exact kernels (once; a shard failing its checks is recomputed)."""
-        if self.exact_cache_dir is None or key in self._zones_read:
-            return
-        self._zones_read.add(key)
+        with self._lock:
+            if self.exact_cache_dir is None or key in self._zones_read:
+                return
+            self._zones_read.add(key)
         shape = (self.n_channels, len(self.tensor.spec.depth_m), self.kernel_px, self.kernel_px)
         shard = usable_kernel_shard(self._zone_path(key), shape, stacklevel=4, sparse=True)
         if shard is None:
@@ -198,27 +213,57 @@ class PsfMap:
         self._read_zone(key)
         missing = [int(j) for j in depth_indices if key + (int(j),) not in self._exact]
         if missing:
-            spec = self.tensor.spec
-            lam_nm = spectral.wavelengths_nm(spec.channels)
-            depth = np.asarray(spec.depth_m)[missing]
-            d_grid, l_grid = np.meshgrid(depth, lam_nm, indexing="ij")
-            theta = float(np.clip(theta_deg, 0.0, self.field_deg[-1]))
-            if self.perturbation is None:
-                fits = fit_pupils(self.tensor.lens, theta, d_grid.ravel(), l_grid.ravel() * 1e-3,
-                                  grid=spec.fit_grid, degree=spec.fit_degree)
-                flat = [psf_from_pupil(fit, self.kernel_px, self.geometry.pitch_um, spec.oversample, spec.guard,
-                                       rotation_deg=float(phi_deg)).kernel for fit in fits]
-            else:
-                flat = self._perturbed_mono(theta, float(phi_deg), d_grid.ravel(), l_grid.ravel() * 1e-3)
-            by_depth = np.asarray(flat).reshape(len(missing), len(lam_nm), self.kernel_px, self.kernel_px)
-            mono = {lam: by_depth[:, m] for m, lam in enumerate(lam_nm)}
-            kernels = spectral.channel_kernels(mono, spec.channels, clip_negative=self.perturbation is not None)
+            kernels = self._trace(theta_deg, phi_deg, missing)
             for n, dj in enumerate(missing):
-                self._exact[key + (dj,)] = _frozen(kernels[:, n].astype(np.float32))
-            self.kernels_traced += len(missing)
+                self._exact[key + (dj,)] = _frozen(kernels[:, n].copy())  # contiguous, and alone: no view keeps the rest
+            with self._lock:
+                self.kernels_traced += len(missing)
             if self.exact_cache_dir is not None:
                 self._write_zone(key)
         return [self._exact[key + (int(j),)] for j in depth_indices]
+
+    def _trace(self, theta_deg: float, phi_deg: float, depth_indices: list[int]) -> np.ndarray:
+        """(C, len(depth_indices), K, K) float32 kernels traced at exactly (θ, φ), nothing memoised but pupil fits."""
+        spec = self.tensor.spec
+        lam_nm = spectral.wavelengths_nm(spec.channels)
+        depth = np.asarray(spec.depth_m)[depth_indices]
+        d_grid, l_grid = np.meshgrid(depth, lam_nm, indexing="ij")
+        theta = float(np.clip(theta_deg, 0.0, self.field_deg[-1]))
+        if self.perturbation is None:
+            fits = self._design_fits(theta, depth_indices, lam_nm)
+            flat = [psf_from_pupil(fit, self.kernel_px, self.geometry.pitch_um, spec.oversample, spec.guard,
+                                   rotation_deg=float(phi_deg)).kernel for fit in fits]
+        else:
+            flat = self._perturbed_mono(theta, float(phi_deg), d_grid.ravel(), l_grid.ravel() * 1e-3)
+        by_depth = np.asarray(flat).reshape(len(depth_indices), len(lam_nm), self.kernel_px, self.kernel_px)
+        mono = {lam: by_depth[:, m] for m, lam in enumerate(lam_nm)}
+        kernels = spectral.channel_kernels(mono, spec.channels, clip_negative=self.perturbation is not None)
+        return kernels.astype(np.float32)
+
+    def _design_fits(self, theta_deg: float, depth_indices: list[int], lam_nm) -> list:
+        """Fitted pupils of the design lens at field θ, one per (depth, wavelength), depth-major.
+
+        The design is rotationally symmetric, so a pupil fit depends on θ alone and every zone on the same θ
+        ring (a frame has ~4–6 zones per ring) turns the same fits (``psf_from_pupil(rotation_deg=φ)``). They are
+        memoised, least recently used first out beyond ``FIT_MEMO_ENTRIES``, and the missing ones traced in one
+        batch."""
+        spec = self.tensor.spec
+        keys = [(round(float(theta_deg), 6), j, float(lam)) for j in depth_indices for lam in lam_nm]
+        with self._lock:
+            found = {key: self._fits[key] for key in keys if key in self._fits}
+        missing = [key for key in keys if key not in found]
+        if missing:  # traced outside the lock: another field position's trace goes on meanwhile
+            depth_m = np.asarray(spec.depth_m)[[key[1] for key in missing]]
+            wavelength_um = np.array([key[2] for key in missing]) * 1e-3
+            found.update(zip(missing, fit_pupils(self.tensor.lens, theta_deg, depth_m, wavelength_um,
+                                                 grid=spec.fit_grid, degree=spec.fit_degree)))
+        with self._lock:
+            for key in keys:
+                self._fits[key] = found[key]
+                self._fits.move_to_end(key)
+            while len(self._fits) > FIT_MEMO_ENTRIES:
+                self._fits.popitem(last=False)
+        return [found[key] for key in keys]
 
     def _perturbed_mono(self, theta_deg: float, phi_deg: float, depth_m: np.ndarray,
                         wavelength_um: np.ndarray) -> np.ndarray:
@@ -267,11 +312,15 @@ class PsfMap:
     def kernel_sets(self, theta_deg: float, phi_deg: float, depth_indices) -> list[np.ndarray]:
         """[(C, K, K) float32 unit-sum kernels per depth index] for one field position. In exact mode they are this
         map's own memoised arrays (read-only), so a caller that keeps them (``decode.ZoneKernels``) holds no second
-        copy: a full frame's exact kernels are ~0.2 GB."""
+        copy: a full frame's exact kernels are ~0.2 GB. Threads may ask for *different* field positions at once
+        (each traces its own; the memos' bookkeeping is locked); the same position at once is the caller's to
+        serialise (``decode.ZoneKernels`` locks per zone), or both threads trace it. Tensor mode serves one caller at
+        a time."""
         depth_indices = np.atleast_1d(np.asarray(depth_indices, dtype=int))
         if self.mode == "exact":
             return self._exact_sets(theta_deg, phi_deg, depth_indices)
-        k = self.kernels(theta_deg, phi_deg, depth_indices)
+        with self._lock:  # the tensor fills its entries on first use, one caller at a time
+            k = self.kernels(theta_deg, phi_deg, depth_indices)
         return [k[:, n] for n in range(k.shape[1])]
 
     def kernels(self, theta_deg: float, phi_deg: float, depth_indices) -> np.ndarray:
@@ -294,3 +343,4 @@ def _frozen(kernel: np.ndarray) -> np.ndarray:
     """``kernel`` made read-only: a memoised kernel is handed to callers as it is (``PsfMap.kernel_sets``)."""
     kernel.flags.writeable = False
     return kernel
+
