@@ -8,7 +8,7 @@ job order; a job's exception ends the run, and the pool (pending jobs cancelled)
 bar are closed however the loop ends. ``state`` builds what every job of one process shares
 (a decoder, a PSF tensor) once per process, as ``scaleout.fan_out``'s does per Dask worker.
 
-Imports only the standard library and tqdm, so every layer (the optics included) may use it.
+Imports only the standard library, tqdm and threadpoolctl, so every layer (the optics included) may use it.
 """
 
 from __future__ import annotations
@@ -17,6 +17,8 @@ import concurrent.futures as cf
 import multiprocessing
 import os
 from typing import Any, Callable, Iterator, Sequence
+
+from threadpoolctl import threadpool_limits
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -101,11 +103,17 @@ def map_threads(fn: Callable[[Any], Any], items: Sequence, threads: int, name: s
     """Yield ``(item, fn(item))`` for each item, in order, computed on ``threads`` threads of this process (numpy,
     scipy's FFT and OpenCV release the GIL in their loops). The items are all queued at once; when the loop ends early (an
     exception in ``fn``, a consumer that stops, Ctrl-C) the ones not yet started are cancelled, so that the error
-    surfaces after at most the ``threads`` running ones instead of after every queued item."""
+    surfaces after at most the ``threads`` running ones instead of after every queued item.
+
+    BLAS runs one thread per call meanwhile (process-wide, ``threadpoolctl``): the threads are the parallelism, and
+    BLAS threads on top of them spin for the cores they hold (a full frame's decode takes 1.2× as long with them,
+    its first frame 1.9×: docs/benchmarks.md). One BLAS thread also keeps every result the same to the last bit
+    on any number of threads."""
     pool = cf.ThreadPoolExecutor(max_workers=max(1, threads), thread_name_prefix=name)
     try:
-        futures = [(item, pool.submit(fn, item)) for item in items]
-        for item, future in futures:
-            yield item, future.result()
+        with threadpool_limits(limits=1, user_api="blas"):
+            futures = [(item, pool.submit(fn, item)) for item in items]
+            for item, future in futures:
+                yield item, future.result()
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
