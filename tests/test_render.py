@@ -290,3 +290,30 @@ def test_two_threads_tracing_different_zones_give_the_one_thread_kernels_and_cou
         t.join()
     assert all(np.array_equal(got[n], expected[n]) for n in range(len(positions)))
     assert shared.kernels_traced == serial.kernels_traced == 3 * len(positions)
+
+
+def test_a_built_lens_lands_its_kernels_where_trace_spots_lands_the_design_chief_ray_on_every_ring_zone(tensor):
+    """A built lens's kernels are centred where the design's chief ray lands (module doc). The map traces the
+    design's chief rays once per θ ring and lands them at each φ; trace_spots traces and lands them at that φ
+    itself. Both give the same landing, so the kernels equal the spot kernels placed at trace_spots' landing."""
+    from bmi_sdk.optics import spectral
+    from bmi_sdk.optics.perturb import CHIEF_FIT_DEGREE, CHIEF_FIT_GRID, Perturbation, spot_kernels, trace_spots
+
+    p = Perturbation(decenter_um=(6.0, -4.0), tilt_arcmin=(1.5, 0.0))
+    ring = PsfMap(tensor, BMI_SENSOR, perturbation=p)
+    theta, depth_index = 37.5, 1
+    lam_um = np.array(spectral.wavelengths_nm(SMALL.channels)) * 1e-3
+    depth_m = np.full(len(lam_um), SMALL.depth_m[depth_index])
+    for phi in (22.0, -97.5):
+        got = ring.kernels(theta, phi, [depth_index])[:, 0]
+        _, landing, _ = trace_spots(MONO, Perturbation(), np.full(len(lam_um), theta), phi, depth_m, lam_um,
+                                    BMI_SENSOR.centre_px, BMI_SENSOR.pitch_um, fit_grid=CHIEF_FIT_GRID,
+                                    fit_degree=CHIEF_FIT_DEGREE)
+        mono = spot_kernels(MONO, p, np.full(len(lam_um), theta), phi, depth_m, lam_um, landing, SMALL.kernel_px,
+                            BMI_SENSOR.centre_px, BMI_SENSOR.pitch_um, SMALL.oversample, SMALL.guard, SMALL.fit_grid,
+                            SMALL.fit_degree).kernels
+        expected = spectral.channel_kernels({lam: mono[m][None] for m, lam in
+                                             enumerate(spectral.wavelengths_nm(SMALL.channels))},
+                                            SMALL.channels, clip_negative=True)[:, 0]
+        assert np.abs(got - expected).max() <= 1e-6 * expected.max()
+    assert sum(key[0] for key in ring._fits) == len(lam_um)  # the chief rays of (θ, depth, λ): traced once

@@ -66,14 +66,25 @@ def _pixel_operator(kernel_px: int, oversample: int) -> np.ndarray:
 
 
 @lru_cache(maxsize=512)
+def _centred_phase_matrix(n_sub: int, step_mm: float, n_pupil: int, d_l: float, lam_mm: float) -> np.ndarray:
+    """exp(ik x_m l_j) for sub-sample positions x_m centred on the chief point and pupil offsets l_j (complex64,
+    read-only: shared by every PSF of that sampling)."""
+    x = (np.arange(n_sub) - n_sub // 2) * step_mm
+    l_off = (np.arange(n_pupil) - n_pupil // 2) * d_l
+    out = np.exp(1j * (2 * np.pi / lam_mm) * np.outer(x, l_off)).astype(np.complex64)
+    out.flags.writeable = False
+    return out
+
+
 def _phase_matrix(n_sub: int, step_mm: float, n_pupil: int, d_l: float, lam_mm: float,
                   shift_mm: float = 0.0) -> np.ndarray:
-    """exp(ik x_m l_j) for sub-sample positions x_m (+ ``shift_mm``) and pupil offsets l_j (complex64)."""
-    x = (np.arange(n_sub) - n_sub // 2) * step_mm
-    if shift_mm != 0.0:
-        x = x + shift_mm
+    """exp(ik (x_m + ``shift_mm``) l_j): the centred matrix times the shift's phase per pupil column (a spot off its
+    pixel centre has its own shift, so only the centred part is worth keeping)."""
+    centred = _centred_phase_matrix(n_sub, step_mm, n_pupil, d_l, lam_mm)
+    if shift_mm == 0.0:
+        return centred
     l_off = (np.arange(n_pupil) - n_pupil // 2) * d_l
-    return np.exp(1j * (2 * np.pi / lam_mm) * np.outer(x, l_off)).astype(np.complex64)
+    return centred * np.exp(1j * (2 * np.pi / lam_mm) * shift_mm * l_off).astype(np.complex64)[None, :]
 
 
 def _rotated_pupil(fit: PupilFit, u_off: np.ndarray, v_off: np.ndarray, rotation_deg: float):

@@ -64,7 +64,8 @@ import numpy as np
 
 from ..geometry import SensorGeometry
 from ..optics import spectral
-from ..optics.perturb import CHIEF_FIT_DEGREE, CHIEF_FIT_GRID, Perturbation, spot_kernels, trace_spots
+from ..optics.perturb import (CHIEF_FIT_DEGREE, CHIEF_FIT_GRID, Perturbation, landing_px, perturbed_lens, sensor_pose,
+                              spot_kernels, trace_spots)
 from ..optics.psf import psf_from_pupil
 from ..optics.pupil import PupilFit, fit_pupils
 from ..optics.tensor import PsfTensor, usable_kernel_shard, write_kernel_shard
@@ -105,7 +106,7 @@ def resample_kernel(kernel: np.ndarray, scale: float) -> np.ndarray:
 
 MODES = ("exact", "tensor")
 FIT_MEMO_ENTRIES = 12288
-"""Design pupil fits a map keeps (~4.6 kB each, ~57 MB in all): a full frame's rings need ~9300 (111 θ × 28
+"""Design pupil fits a map keeps (≤ 4.6 kB each, ≤ 57 MB in all): a full frame's rings need ~9300 (111 θ × 28
 candidates × 3 wavelengths)."""
 
 
@@ -226,37 +227,42 @@ class PsfMap:
         """(C, len(depth_indices), K, K) float32 kernels traced at exactly (θ, φ), nothing memoised but pupil fits."""
         spec = self.tensor.spec
         lam_nm = spectral.wavelengths_nm(spec.channels)
-        depth = np.asarray(spec.depth_m)[depth_indices]
-        d_grid, l_grid = np.meshgrid(depth, lam_nm, indexing="ij")
         theta = float(np.clip(theta_deg, 0.0, self.field_deg[-1]))
         if self.perturbation is None:
             fits = self._design_fits(theta, depth_indices, lam_nm)
             flat = [psf_from_pupil(fit, self.kernel_px, self.geometry.pitch_um, spec.oversample, spec.guard,
                                    rotation_deg=float(phi_deg)).kernel for fit in fits]
         else:
-            flat = self._perturbed_mono(theta, float(phi_deg), d_grid.ravel(), l_grid.ravel() * 1e-3)
+            flat = self._perturbed_mono(theta, float(phi_deg), depth_indices, lam_nm)
         by_depth = np.asarray(flat).reshape(len(depth_indices), len(lam_nm), self.kernel_px, self.kernel_px)
         mono = {lam: by_depth[:, m] for m, lam in enumerate(lam_nm)}
         kernels = spectral.channel_kernels(mono, spec.channels, clip_negative=self.perturbation is not None)
         return kernels.astype(np.float32)
 
-    def _design_fits(self, theta_deg: float, depth_indices: list[int], lam_nm) -> list:
-        """Fitted pupils of the design lens at field θ, one per (depth, wavelength), depth-major.
+    def _design_fits(self, theta_deg: float, depth_indices: list[int], lam_nm, chief_only: bool = False) -> list:
+        """Fitted pupils of the design lens at field θ, one per (depth, wavelength), depth-major; ``chief_only``: the
+        coarse fits whose chief rays place a built lens's kernels (``_perturbed_mono``), as ``trace_spots`` fits them.
 
         The design is rotationally symmetric, so a pupil fit depends on θ alone and every zone on the same θ
-        ring (a frame has ~4–6 zones per ring) turns the same fits (``psf_from_pupil(rotation_deg=φ)``). They are
-        memoised, least recently used first out beyond ``FIT_MEMO_ENTRIES``, and the missing ones traced in one
-        batch."""
+        ring (a frame has ~4–6 zones per ring) turns the same fits (``psf_from_pupil(rotation_deg=φ)``) or lands
+        the same chief rays. They are memoised, least recently used first out beyond ``FIT_MEMO_ENTRIES``, and the
+        missing ones traced in one batch."""
         spec = self.tensor.spec
-        keys = [(round(float(theta_deg), 6), j, float(lam)) for j in depth_indices for lam in lam_nm]
+        keys = [(chief_only, round(float(theta_deg), 6), j, float(lam)) for j in depth_indices for lam in lam_nm]
         with self._lock:
             found = {key: self._fits[key] for key in keys if key in self._fits}
         missing = [key for key in keys if key not in found]
         if missing:  # traced outside the lock: another field position's trace goes on meanwhile
-            depth_m = np.asarray(spec.depth_m)[[key[1] for key in missing]]
-            wavelength_um = np.array([key[2] for key in missing]) * 1e-3
-            found.update(zip(missing, fit_pupils(self.tensor.lens, theta_deg, depth_m, wavelength_um,
-                                                 grid=spec.fit_grid, degree=spec.fit_degree)))
+            depth_m = np.asarray(spec.depth_m)[[key[2] for key in missing]]
+            wavelength_um = np.array([key[3] for key in missing]) * 1e-3
+            if chief_only:
+                fits, _, _ = trace_spots(self.tensor.lens, Perturbation(), np.full(len(missing), theta_deg), 0.0,
+                                         depth_m, wavelength_um, self.geometry.centre_px, self.geometry.pitch_um,
+                                         fit_grid=CHIEF_FIT_GRID, fit_degree=CHIEF_FIT_DEGREE)
+            else:
+                fits = fit_pupils(self.tensor.lens, theta_deg, depth_m, wavelength_um, grid=spec.fit_grid,
+                                  degree=spec.fit_degree)
+            found.update(zip(missing, fits))
         with self._lock:
             for key in keys:
                 self._fits[key] = found[key]
@@ -265,15 +271,21 @@ class PsfMap:
                 self._fits.popitem(last=False)
         return [found[key] for key in keys]
 
-    def _perturbed_mono(self, theta_deg: float, phi_deg: float, depth_m: np.ndarray,
-                        wavelength_um: np.ndarray) -> np.ndarray:
-        """(n, K, K) kernels of the perturbed lens, each centred where the design's chief ray lands (module doc)."""
+    def _perturbed_mono(self, theta_deg: float, phi_deg: float, depth_indices: list[int], lam_nm) -> np.ndarray:
+        """(n, K, K) kernels of the perturbed lens at each (depth, wavelength), depth-major, each centred where the
+        design's chief ray lands (module doc)."""
         spec, lens, pitch_um = self.tensor.spec, self.tensor.lens, self.geometry.pitch_um
+        d_grid, l_grid = np.meshgrid(np.asarray(spec.depth_m)[depth_indices], lam_nm, indexing="ij")
+        depth_m, wavelength_um = d_grid.ravel(), l_grid.ravel() * 1e-3
         theta = np.full(len(depth_m), theta_deg)
         centre_px = self.geometry.centre_px
-        # The chief ray is traced before (and apart from) the pupil fit: a coarse fit gives the same landing.
-        _, design_px, _ = trace_spots(lens, Perturbation(), theta, phi_deg, depth_m, wavelength_um, centre_px,
-                                      pitch_um, fit_grid=CHIEF_FIT_GRID, fit_degree=CHIEF_FIT_DEGREE)
+        # The design's chief rays (apart from the pupil fit: a coarse fit gives the same landing), landed at φ as
+        # trace_spots lands them; the design's sensor pose is the identity at every φ.
+        design = Perturbation()
+        chief = np.stack([fit.chief_point_mm for fit in self._design_fits(theta_deg, depth_indices, lam_nm, True)])
+        phi = np.full(len(depth_m), phi_deg)
+        design_px = landing_px(perturbed_lens(lens, design), *sensor_pose(design, phi), chief, phi, centre_px,
+                               pitch_um)
         if self.centre_calibrated:
             axis = np.zeros(len(depth_m))
             _, axis_design, _ = trace_spots(lens, Perturbation(), axis, phi_deg, depth_m, wavelength_um, centre_px,
