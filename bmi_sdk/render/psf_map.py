@@ -64,8 +64,16 @@ import numpy as np
 
 from ..geometry import SensorGeometry
 from ..optics import spectral
-from ..optics.perturb import (CHIEF_FIT_DEGREE, CHIEF_FIT_GRID, Perturbation, landing_px, perturbed_lens, sensor_pose,
-                              spot_kernels, trace_spots)
+from ..optics.perturb import (
+    CHIEF_FIT_DEGREE,
+    CHIEF_FIT_GRID,
+    Perturbation,
+    landing_px,
+    perturbed_lens,
+    sensor_pose,
+    spot_kernels,
+    trace_spots,
+)
 from ..optics.psf import psf_from_pupil
 from ..optics.pupil import PupilFit, fit_pupils
 from ..optics.tensor import PsfTensor, usable_kernel_shard, write_kernel_shard
