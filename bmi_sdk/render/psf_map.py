@@ -114,8 +114,8 @@ def resample_kernel(kernel: np.ndarray, scale: float) -> np.ndarray:
 
 MODES = ("exact", "tensor")
 FIT_MEMO_ENTRIES = 12288
-"""Design pupil fits a map keeps (≤ 4.6 kB each, ≤ 57 MB in all): a full frame's rings need ~9300 (111 θ × 28
-candidates × 3 wavelengths)."""
+"""Design pupil fits a map keeps (``PsfMap._design_fits``; ≤ 4.6 kB each, ≤ 57 MB in all): a full frame's rings
+need ~9300 (111 θ × 28 candidates × 3 wavelengths)."""
 
 
 class PsfMap:
@@ -160,7 +160,7 @@ class PsfMap:
         self.scale = tensor.spec.pitch_um / geometry.pitch_um
         self.field_deg = np.asarray(tensor.spec.field_deg, dtype=np.float64)
         self._exact: dict[tuple, np.ndarray] = {}
-        self._fits: OrderedDict[tuple, PupilFit] = OrderedDict()  # (θ, depth index, λ nm) → design pupil fit
+        self._fits: OrderedDict[tuple, PupilFit] = OrderedDict()  # (chief only, θ, depth index, λ nm) → design fit
         self._lock = threading.Lock()  # around the memos' bookkeeping (see ``kernel_sets``)
         self.exact_cache_dir = None if cache_dir is None or mode != "exact" else Path(cache_dir) / self.exact_key()
         self._zones_read: set[tuple] = set()
@@ -364,4 +364,3 @@ def _frozen(kernel: np.ndarray) -> np.ndarray:
     """``kernel`` made read-only: a memoised kernel is handed to callers as it is (``PsfMap.kernel_sets``)."""
     kernel.flags.writeable = False
     return kernel
-
