@@ -122,3 +122,21 @@ def test_bench_and_eval_refuse_an_earlier_record_before_running(tmp_path, bmi):
         done = bmi(*command, "--json", earlier, check=False)
         assert done.returncode == 1 and "holds an earlier run's record" in done.stderr and "--overwrite" in done.stderr
         assert earlier.read_text() == "{}\n"
+
+
+def test_bench_frame_times_a_cameras_first_frame_and_its_next_from_an_empty_cache(dng, tmp_path, bmi):
+    """``bmi bench frame``: per camera, the first run traces the zone kernels its frame reads into an empty PSF
+    cache and the next run reads every one of them back (0 traced); each row has the run's own wall time and peak
+    memory. A missing frame or calibration is refused before any run."""
+    import json
+
+    record_path = tmp_path / "frame.json"
+    bmi("bench", "frame", dng, "--json", record_path)
+    (table,) = json.loads(record_path.read_text())["tables"]
+    rows = [dict(zip(table["columns"], row)) for row in table["rows"]]
+    assert [(r["camera"], r["run"]) for r in rows] == [("design", "first frame"), ("design", "next frame")]
+    assert rows[0]["kernel sets traced"] > 0 and rows[1]["kernel sets traced"] == 0
+    assert all(r["whole command s"] > 0 and 0.05 < r["peak RSS GB"] < 24 for r in rows)
+    for args in (["nosuch.dng"], [dng, "--calibration", tmp_path / "nosuch.json"]):
+        done = bmi("bench", "frame", *args, check=False)
+        assert done.returncode == 1 and "no such file" in done.stderr
