@@ -107,7 +107,7 @@ def map_threads(fn: Callable[[Any], Any], items: Sequence, threads: int, name: s
 
     BLAS runs one thread per call meanwhile (process-wide, ``threadpoolctl``): the threads are the parallelism, and
     BLAS threads on top of them spin for the cores they hold (a full frame's decode takes 1.2× as long with them,
-    its first frame 1.9×: docs/benchmarks.md). One BLAS thread also keeps every result the same to the last bit
+    its first frame 1.7×: docs/benchmarks.md). One BLAS thread also keeps every result the same to the last bit
     on any number of threads."""
     pool = cf.ThreadPoolExecutor(max_workers=max(1, threads), thread_name_prefix=name)
     try:

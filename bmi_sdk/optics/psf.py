@@ -65,13 +65,18 @@ def _pixel_operator(kernel_px: int, oversample: int) -> np.ndarray:
     return h[(centres[:, None] - np.arange(n_sub)[None, :]) % n_sub]
 
 
+def _centred_samples(count: int, step: float) -> np.ndarray:
+    """``count`` positions ``step`` apart with the middle one (index count // 2) at 0: sub-pixel samples about the
+    chief point, pupil offsets about the pupil's centre."""
+    return (np.arange(count) - count // 2) * step
+
+
 @lru_cache(maxsize=512)
 def _centred_phase_matrix(n_sub: int, step_mm: float, n_pupil: int, d_l: float, lam_mm: float) -> np.ndarray:
     """exp(ik x_m l_j) for sub-sample positions x_m centred on the chief point and pupil offsets l_j (complex64,
     read-only: shared by every PSF of that sampling)."""
-    x = (np.arange(n_sub) - n_sub // 2) * step_mm
-    l_off = (np.arange(n_pupil) - n_pupil // 2) * d_l
-    out = np.exp(1j * (2 * np.pi / lam_mm) * np.outer(x, l_off)).astype(np.complex64)
+    x = _centred_samples(n_sub, step_mm)
+    out = np.exp(1j * (2 * np.pi / lam_mm) * np.outer(x, _centred_samples(n_pupil, d_l))).astype(np.complex64)
     out.flags.writeable = False
     return out
 
@@ -83,8 +88,8 @@ def _phase_matrix(n_sub: int, step_mm: float, n_pupil: int, d_l: float, lam_mm: 
     centred = _centred_phase_matrix(n_sub, step_mm, n_pupil, d_l, lam_mm)
     if shift_mm == 0.0:
         return centred
-    l_off = (np.arange(n_pupil) - n_pupil // 2) * d_l
-    return centred * np.exp(1j * (2 * np.pi / lam_mm) * shift_mm * l_off).astype(np.complex64)[None, :]
+    column_phase = np.exp(1j * (2 * np.pi / lam_mm) * shift_mm * _centred_samples(n_pupil, d_l))
+    return centred * column_phase.astype(np.complex64)[None, :]
 
 
 def _rotated_pupil(fit: PupilFit, u_off: np.ndarray, v_off: np.ndarray, rotation_deg: float):
@@ -94,11 +99,16 @@ def _rotated_pupil(fit: PupilFit, u_off: np.ndarray, v_off: np.ndarray, rotation
     lands the PSF's radial axis along (cos φ, sin φ) of the output (col, row) axes.
     """
     w, amp, *apertures = fit.evaluate_rotated(("w_waves", "amplitude", *fit.apertures), u_off, v_off, rotation_deg)
-    amp = np.maximum(amp, 0.0)
-    transmission = np.ones_like(w)
+    return _complex_pupil(w, amp, apertures)
+
+
+def _complex_pupil(w_waves: np.ndarray, amplitude: np.ndarray, apertures) -> np.ndarray:
+    """P = T·a·exp(−2πi W) from the fitted wavefront (waves), amplitude (clipped at 0) and aperture functions on
+    one grid (T: the product of their soft apertures)."""
+    transmission = np.ones_like(w_waves)
     for aperture in apertures:
         transmission *= _soft_aperture(aperture)
-    return transmission * amp * np.exp(-2j * np.pi * w)
+    return transmission * np.maximum(amplitude, 0.0) * np.exp(-2j * np.pi * w_waves)
 
 
 def pupil_function(fit: PupilFit, l_grid: np.ndarray, m_grid: np.ndarray, aperture_l_scale: float = 1.0):
@@ -107,13 +117,9 @@ def pupil_function(fit: PupilFit, l_grid: np.ndarray, m_grid: np.ndarray, apertu
     ``aperture_l_scale`` < 1 compresses only the apertures along L (the
     paper's cos θ ellipse applied to an on-axis pupil).
     """
-    w = fit.evaluate("w_waves", l_grid, m_grid)
-    amp = np.maximum(fit.evaluate("amplitude", l_grid, m_grid), 0.0)
     l_ap = fit.l_centre + (l_grid - fit.l_centre) / aperture_l_scale
-    transmission = np.ones_like(w)
-    for name in fit.apertures:
-        transmission *= _soft_aperture(fit.evaluate(name, l_ap, m_grid))
-    return transmission * amp * np.exp(-2j * np.pi * w)
+    return _complex_pupil(fit.evaluate("w_waves", l_grid, m_grid), fit.evaluate("amplitude", l_grid, m_grid),
+                          [fit.evaluate(name, l_ap, m_grid) for name in fit.apertures])
 
 
 def estimate_psf_bytes(kernel_px: int, oversample: int, n_pupil_l: int, n_pupil_m: int) -> float:
@@ -162,8 +168,8 @@ def psf_from_pupil(fit: PupilFit, kernel_px: int, pitch_um: float = 2.0, oversam
     check_fits(estimate_psf_bytes(kernel_px, oversample, n_l, n_m),
                f"a {kernel_px}×{kernel_px} px PSF at oversample {oversample} ({n_l}×{n_m} pupil samples)",
                "lower kernel_px or oversample (bmi psf export --kernel-px, --oversample)")
-    l_off = (np.arange(n_l) - n_l // 2) * d_l
-    m_off = (np.arange(n_m) - n_m // 2) * d_l
+    l_off = _centred_samples(n_l, d_l)
+    m_off = _centred_samples(n_m, d_l)
     if rotation_deg % 360.0 != 0.0:
         pupil = _rotated_pupil(fit, l_off, m_off, rotation_deg)
     else:

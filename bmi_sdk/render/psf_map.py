@@ -291,7 +291,8 @@ class PsfMap:
         # The design's chief rays (apart from the pupil fit: a coarse fit gives the same landing), landed at φ as
         # trace_spots lands them; the design's sensor pose is the identity at every φ.
         design = Perturbation()
-        chief = np.stack([fit.chief_point_mm for fit in self._design_fits(theta_deg, depth_indices, lam_nm, True)])
+        chief_fits = self._design_fits(theta_deg, depth_indices, lam_nm, chief_only=True)
+        chief = np.stack([fit.chief_point_mm for fit in chief_fits])
         phi = np.full(len(depth_m), phi_deg)
         design_px = landing_px(perturbed_lens(lens, design), *sensor_pose(design, phi), chief, phi, centre_px,
                                pitch_um)

@@ -128,13 +128,13 @@ def warm_kernels(camera: BuiltCamera, config: ClassicalConfig = ClassicalConfig(
                  workers: int = 1, progress: bool = False) -> dict:
     """Trace ahead of a capture every kernel a frame's decode can read, into the disk cache (``bmi psf warm``).
 
-    A camera's first full frame otherwise spends much of its time tracing (~60 s of a ~100 s decode for the
-    design, ~120 s of ~160 s for a built lens, on this 2-core machine; docs/benchmarks.md); its later frames,
-    and any process after a warm-up, read the kernels. ``roi`` = (row0, col0, height, width) of the sensor (default the whole sensor). The
-    zones are those ``ClassicalDecoder.frame_zones`` lists, every candidate of the evidence and the AiF's,
-    so any scene's decode finds them. ``workers`` > 1 traces zones in that many single-threaded processes
-    (each writes its own zones' shards). Returns what was done: zones, kernel sets traced (0 when the cache
-    was already warm), the cache folder and the wall time.
+    A camera's first full frame otherwise spends much of its time tracing (~65 s of a 109 s command for the
+    design, ~120 s of 168 s for a built lens, on this 2-core machine; docs/benchmarks.md, ``bmi bench frame``);
+    its later frames, and any process after a warm-up, read the kernels. ``roi`` = (row0, col0, height, width)
+    of the sensor (default the whole sensor). The zones are those ``ClassicalDecoder.frame_zones`` lists, every
+    candidate of the evidence and the AiF's, so any scene's decode finds them. ``workers`` > 1 traces zones in
+    that many single-threaded processes (each writes its own zones' shards). Returns what was done: zones,
+    kernel sets traced (0 when the cache was already warm), the cache folder and the wall time.
     """
     import time
 
