@@ -161,6 +161,7 @@ class PsfMap:
         self.field_deg = np.asarray(tensor.spec.field_deg, dtype=np.float64)
         self._exact: dict[tuple, np.ndarray] = {}
         self._fits: OrderedDict[tuple, PupilFit] = OrderedDict()  # (chief only, θ, depth index, λ nm) → design fit
+        self._axis_shift: dict[tuple, np.ndarray] = {}  # (depth index, λ nm) → image shift (``_image_shift_px``)
         self._lock = threading.Lock()  # around the memos' bookkeeping (see ``kernel_sets``)
         self.exact_cache_dir = None if cache_dir is None or mode != "exact" else Path(cache_dir) / self.exact_key()
         self._zones_read: set[tuple] = set()
@@ -297,16 +298,35 @@ class PsfMap:
         design_px = landing_px(perturbed_lens(lens, design), *sensor_pose(design, phi), chief, phi, centre_px,
                                pitch_um)
         if self.centre_calibrated:
-            axis = np.zeros(len(depth_m))
-            _, axis_design, _ = trace_spots(lens, Perturbation(), axis, phi_deg, depth_m, wavelength_um, centre_px,
-                                            pitch_um, fit_grid=CHIEF_FIT_GRID, fit_degree=CHIEF_FIT_DEGREE)
-            _, axis_built, _ = trace_spots(lens, self.perturbation, axis, phi_deg, depth_m, wavelength_um, centre_px,
-                                           pitch_um, fit_grid=CHIEF_FIT_GRID, fit_degree=CHIEF_FIT_DEGREE)
-            shift_rc = np.array([self.perturbation.psf_shift_px[1], self.perturbation.psf_shift_px[0]])
-            design_px = design_px + (axis_built + shift_rc - axis_design)  # the image centre moves with the spot
+            design_px = design_px + self._image_shift_px(depth_indices, lam_nm)  # the image centre moves with the spot
         return spot_kernels(lens, self.perturbation, theta, phi_deg, depth_m, wavelength_um, design_px,
                             self.kernel_px, centre_px, pitch_um, spec.oversample, spec.guard, spec.fit_grid,
                             spec.fit_degree).kernels
+
+    def _image_shift_px(self, depth_indices: list[int], lam_nm) -> np.ndarray:
+        """(n, 2) (row, col) shift of the whole image per (depth, wavelength), depth-major: where the built lens's
+        on-axis spot lands (``psf_shift_px`` included) less where the design's does. A calibrated optical centre
+        takes it out of every kernel (``centre_calibrated``).
+
+        An on-axis source is one point at every azimuth, so its landing is the same for every zone: it is traced
+        once per (depth, wavelength) at φ = 0 and memoised."""
+        keys = [(j, float(lam)) for j in depth_indices for lam in lam_nm]
+        with self._lock:
+            missing = sorted({key for key in keys if key not in self._axis_shift})
+        if missing:
+            spec, lens, pitch_um, centre_px = self.tensor.spec, self.tensor.lens, self.geometry.pitch_um, \
+                self.geometry.centre_px
+            depth_m = np.asarray(spec.depth_m)[[key[0] for key in missing]]
+            wavelength_um = np.array([key[1] for key in missing]) * 1e-3
+            axis = np.zeros(len(missing))
+            _, axis_design, _ = trace_spots(lens, Perturbation(), axis, 0.0, depth_m, wavelength_um, centre_px,
+                                            pitch_um, fit_grid=CHIEF_FIT_GRID, fit_degree=CHIEF_FIT_DEGREE)
+            _, axis_built, _ = trace_spots(lens, self.perturbation, axis, 0.0, depth_m, wavelength_um, centre_px,
+                                           pitch_um, fit_grid=CHIEF_FIT_GRID, fit_degree=CHIEF_FIT_DEGREE)
+            shift_rc = np.array([self.perturbation.psf_shift_px[1], self.perturbation.psf_shift_px[0]])
+            with self._lock:
+                self._axis_shift.update(zip(missing, axis_built + shift_rc - axis_design))
+        return np.stack([self._axis_shift[key] for key in keys])
 
     def _bracket(self, theta_deg: float):
         """Tensor indices and weights for θ (clamped to the tensor's field range)."""
