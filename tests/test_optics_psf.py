@@ -10,7 +10,7 @@ from scipy.special import j1
 
 from bmi_sdk.optics import PsfTensor, TensorSpec, fit_pupil, fit_pupils, get_lens, psf_from_pupil, trace
 from bmi_sdk.optics.paraxial import entrance_pupil, indices
-from bmi_sdk.optics.pupil import _launch, stop_radius_mm
+from bmi_sdk.optics.pupil import _fit_batched, _launch, _pairs, stop_radius_mm
 
 MONO = get_lens("bmi_monocentric")
 
@@ -187,3 +187,22 @@ def test_a_turned_pupil_polynomial_equals_the_pointwise_sum_at_the_turned_points
             expected = sum(c[i, j] * xi**i * eta**j for i in range(fit.degree + 1) for j in range(fit.degree + 1 - i))
             assert values.shape == (37, 41)
             assert np.abs(values - expected)[inside].max() <= 1e-11 * max(1.0, np.abs(expected[inside]).max())
+
+
+def test_the_moment_based_pupil_fit_equals_a_weighted_least_squares_solve():
+    """``_fit_batched`` builds each entry's normal equations from moments and one batched product; the reference is
+    numpy's lstsq on the explicit weighted monomial basis, per entry and per fitted column."""
+    rng = np.random.default_rng(7)
+    entries, rays, degree, columns = 4, 300, 10, 3
+    xi, eta = rng.uniform(-1, 1, (2, entries, rays))
+    weights = rng.uniform(0, 1, (entries, rays)) * (rng.uniform(size=(entries, rays)) > 0.1)
+    values = rng.normal(size=(entries, rays, columns))
+    coeffs, residual = _fit_batched(xi, eta, values, weights, degree)
+    pairs = _pairs(degree)
+    for e in range(entries):
+        root_w = np.sqrt(weights[e])[:, None]
+        basis = np.stack([xi[e] ** i * eta[e] ** j for i, j in pairs], axis=1)
+        expected = np.linalg.lstsq(basis * root_w, values[e] * root_w, rcond=None)[0]
+        got = np.stack([coeffs[e, i, j] for i, j in pairs])
+        assert np.abs(got - expected).max() <= 1e-8 * np.abs(expected).max()
+        assert np.allclose(residual[e], values[e, :, 0] - basis @ expected[:, 0], atol=1e-8)
