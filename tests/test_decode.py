@@ -513,6 +513,32 @@ def test_blocks_outside_the_image_circle_are_skipped(nominal_decoder):
     assert not out.valid.any() and np.isnan(out.depth_m).all() and not out.aif.any()
 
 
+def test_the_aif_blocks_read_the_zones_the_evidence_blocks_traced():
+    """The AiF's blocks cover the evidence blocks' pixels and take their zones: across the whole sensor (the
+    partial blocks at its bottom and right edges included) every AiF block's zone is an evidence block's, and at the
+    defaults its candidates are the coarse pass's, so a camera's first frame traces no zone for the AiF alone."""
+    from bmi_sdk.decode.classical import (
+        aif_block_centre,
+        aif_blocks,
+        coarse_indices,
+        evidence_block_centre,
+        evidence_blocks,
+    )
+    from bmi_sdk.decode.kernels import ZoneKernels
+
+    cfg = ClassicalConfig()
+    height, width = GEOMETRY.height_px, GEOMETRY.width_px
+    evidence_zones = {ZoneKernels.zone_at(GEOMETRY, *evidence_block_centre(cfg, block))
+                      for block in evidence_blocks(cfg, height, width)}
+    blocks = aif_blocks(cfg, height, width)
+    aif_zones = {ZoneKernels.zone_at(GEOMETRY, *aif_block_centre(cfg, block, height, width)) for block in blocks}
+    assert aif_zones <= evidence_zones and len(aif_zones) > 300
+    assert np.array_equal(coarse_indices(cfg.candidates, cfg.aif_step), coarse_indices(cfg.candidates, cfg.coarse_step))
+    for r, r1, c, c1 in blocks:  # each zone's field position lies inside the block it serves
+        row, col = aif_block_centre(cfg, (r, r1, c, c1), height, width)
+        assert r <= row < r1 and c <= col < c1
+
+
 def _scene_window():
     """(raw, row0, col0, psf_map, noise) of a 320² procedural scene from 0.7 to 10 m at θ ≈ 10° (four evidence
     blocks), rendered and decoded with the nominal tensor kernels at σ 0.005."""

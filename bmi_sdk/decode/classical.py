@@ -468,7 +468,8 @@ class ClassicalDecoder:
             cols = reflect_indices(c - halo, fft_span_px(c1 - c, halo), width)
             window = raw[np.ix_(rows, cols)]
             rgb = raw_to_rgb(window, black, white, window_cfa(cfa, row0 + r - halo, col0 + c - halo))
-            zone = ZoneKernels.zone_at(geometry, row0 + (r + r1) / 2, col0 + (c + c1) / 2)
+            centre_row, centre_col = aif_block_centre(cfg, block, height, width)
+            zone = ZoneKernels.zone_at(geometry, row0 + centre_row, col0 + centre_col)
             median_inv = np.nanmedian(inv_px[r:r1, c:c1][core_valid])
             inv_core = np.where(core_valid, inv_px[r:r1, c:c1], median_inv)
             core = (slice(halo, halo + r1 - r), slice(halo, halo + c1 - c))
@@ -509,9 +510,11 @@ class ClassicalDecoder:
                 wanted.setdefault(ZoneKernels.zone_at(geometry, row0 + centre_row, col0 + centre_col),
                                   set()).update(every)
         aif_cands = coarse_indices(len(self.candidates), cfg.aif_step)
-        for r, r1, c, c1 in aif_blocks(cfg, height, width):
+        for block in aif_blocks(cfg, height, width):
+            r, r1, c, c1 = block
             if frame_valid[r:r1, c:c1].any():
-                wanted.setdefault(ZoneKernels.zone_at(geometry, row0 + (r + r1) / 2, col0 + (c + c1) / 2),
+                centre_row, centre_col = aif_block_centre(cfg, block, height, width)
+                wanted.setdefault(ZoneKernels.zone_at(geometry, row0 + centre_row, col0 + centre_col),
                                   set()).update(aif_cands.tolist())
         return {zone: np.array(sorted(idx)) for zone, idx in sorted(wanted.items())}
 
@@ -549,6 +552,18 @@ def aif_blocks(config: ClassicalConfig, height: int, width: int) -> list[tuple[i
     size = config.block_windows * config.stride_px
     return [(r, min(r + size, height), c, min(c + size, width))
             for r in range(0, height, size) for c in range(0, width, size)]
+
+
+def aif_block_centre(config: ClassicalConfig, block: tuple, height: int, width: int) -> tuple[float, float]:
+    """(row, col) frame pixel of an AiF block's zone: the centre of the evidence block over the same pixels (the two
+    grids share their origin and block size), so the AiF deconvolves with kernels the evidence pass traced for its
+    zone (at the defaults ``aif_step`` = ``coarse_step``: the coarse pass's candidates) instead of tracing zones of its
+    own on a camera's first frame. A whole block's is 7.5 px from its middle; the zone step is ~31 px."""
+    r, _, c, _ = block
+    grid_rows, grid_cols = window_grid_shape(config, height, width)
+    br, bc = r // config.stride_px, c // config.stride_px
+    return evidence_block_centre(config, (br, bc, min(config.block_windows, grid_rows - br),
+                                          min(config.block_windows, grid_cols - bc)))
 
 
 def fft_span_px(core_px: int, halo_px: int) -> int:
