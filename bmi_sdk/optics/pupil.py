@@ -276,6 +276,13 @@ _aim_memo: OrderedDict[tuple, tuple] = OrderedDict()
 _aim_lock = threading.Lock()
 
 
+def clear_aim_memo() -> None:
+    """Forget every memoised aim (``_aimed``): the next fit of any (θ, d, λ) aims from scratch, as a benchmark of a
+    cold fit needs."""
+    with _aim_lock:
+        _aim_memo.clear()
+
+
 def _aimed(lens, field_deg, depth_m, lam_um, z_ep, r_ep, r_stop) -> np.ndarray:
     """(4, B): each entry's refined chief launch position b_c, meridional extent [b_lo, b_hi] and sagittal half
     extent (``_aim``, then ``_refine_chief``).

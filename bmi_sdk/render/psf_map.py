@@ -125,7 +125,7 @@ class PsfMap:
     zero is the design, and its kernels are bit-identical to a map without one. A tensor
     built with errors carries them (``tensor.perturbation``); naming other errors is refused.
     ``cache_dir`` (``exact`` mode): keep the exact kernels on disk there, under ``exact_key`` (a zone's kernels
-    cost ~10 ms per (zone, depth) on one core for the design, ~20 ms for a built lens: a minute or more of a
+    cost ~7 ms per (zone, depth) on one core for the design, ~12 ms for a built lens: a minute or more of a
     frame's first decode).
     ``centre_calibrated``: the camera's optical centre is known (as ``bmi calibrate``
     measures it), so the on-axis spot displacement of the perturbation, a shift of

@@ -116,11 +116,13 @@ class _ZoneTracer:
         return classical_decoder(self.camera, self.config)
 
 
-def _trace_zone(decoder: ClassicalDecoder, job: tuple) -> int:
-    """Trace (or read) the kernels of one zone's candidates into the disk cache; returns the kernel sets traced."""
-    zone, which = job
+def _trace_ring(decoder: ClassicalDecoder, ring: list) -> int:
+    """Trace (or read) the kernels of one θ ring's zones, [(zone, candidate indices)], into the disk cache; returns
+    the kernel sets traced. A ring is one job, so its zones share the process's pupil fits (the design's depend on
+    θ alone) and aims (every lens's)."""
     before = decoder.zones.psf_map.kernels_traced
-    decoder.zones.kernels(zone, which)
+    for zone, which in ring:
+        decoder.zones.kernels(zone, which)
     return decoder.zones.psf_map.kernels_traced - before
 
 
@@ -128,12 +130,12 @@ def warm_kernels(camera: BuiltCamera, config: ClassicalConfig = ClassicalConfig(
                  workers: int = 1, progress: bool = False) -> dict:
     """Trace ahead of a capture every kernel a frame's decode can read, into the disk cache (``bmi psf warm``).
 
-    A camera's first full frame otherwise spends much of its time tracing (~65 s of a 109 s command for the
-    design, ~120 s of 168 s for a built lens, on this 2-core machine; docs/benchmarks.md, ``bmi bench frame``);
+    A camera's first full frame otherwise spends much of its time tracing (~50 s of an 84 s command for the
+    design, ~75 s of 118 s for a built lens, on this 2-core machine; docs/benchmarks.md, ``bmi bench frame``);
     its later frames, and any process after a warm-up, read the kernels. ``roi`` = (row0, col0, height, width)
     of the sensor (default the whole sensor). The zones are those ``ClassicalDecoder.frame_zones`` lists, every
     candidate of the evidence and the AiF's, so any scene's decode finds them. ``workers`` > 1 traces zones in
-    that many single-threaded processes (each writes its own zones' shards). Returns what was done: zones,
+    that many single-threaded processes, a θ ring per job (each writes its own zones' shards). Returns what was done: zones,
     kernel sets traced (0 when the cache was already warm), the cache folder and the wall time.
     """
     import time
@@ -150,9 +152,12 @@ def warm_kernels(camera: BuiltCamera, config: ClassicalConfig = ClassicalConfig(
                          f"{geometry.height_px} × {geometry.width_px} sensor")
     decoder = classical_decoder(camera, config)
     zones = decoder.frame_zones(geometry, height, width, row0, col0)
+    rings: dict[float, list] = {}
+    for zone, which in zones.items():
+        rings.setdefault(zone[0], []).append((zone, which))
     start = time.perf_counter()
-    traced = sum(map_jobs(_trace_zone, list(zones.items()), workers, state=_ZoneTracer(camera, config),
-                          desc="tracing zone kernels", unit="zone", progress=progress))
+    traced = sum(map_jobs(_trace_ring, list(rings.values()), workers, state=_ZoneTracer(camera, config),
+                          desc="tracing zone kernels", unit="θ ring", progress=progress))
     return {"camera_sha256": camera.sha256(), "calibration_id": camera.calibration_id, "zones": len(zones),
             "kernel_sets": int(sum(len(w) for w in zones.values())), "kernel_sets_traced": int(traced),
             "cache_dir": str(decoder.zones.psf_map.exact_cache_dir), "wall_s": time.perf_counter() - start}
