@@ -206,3 +206,32 @@ def test_the_moment_based_pupil_fit_equals_a_weighted_least_squares_solve():
         got = np.stack([coeffs[e, i, j] for i, j in pairs])
         assert np.abs(got - expected).max() <= 1e-8 * np.abs(expected).max()
         assert np.allclose(residual[e], values[e, :, 0] - basis @ expected[:, 0], atol=1e-8)
+
+
+def test_a_memoised_aim_gives_the_fit_a_fresh_aim_gives_whatever_the_sensor_pose():
+    """Aiming depends on the lens up to its stop only: pupils of a moved sensor fitted with the aims the design's fits
+    left in the memo (traced in another batch, in another order) equal those fitted one by one with the memo
+    cleared, and the memoised aims carry nothing of the pose (the moved sensor's wavefront differs from the
+    design's)."""
+    from bmi_sdk.optics.pupil import _aim_memo, clear_aim_memo
+
+    offset_mm = np.array([0.007, -0.005, 0.0])
+    entries = ([31.0, 55.0], [1.0, 4.0], [0.55, 0.45])
+    fresh = []
+    for entry in zip(*entries):  # each aimed alone, from scratch
+        clear_aim_memo()
+        fresh += fit_pupils(MONO, *entry, sensor_offset_mm=offset_mm)
+    clear_aim_memo()
+    design = fit_pupils(MONO, [55.0, 10.0, 31.0], [4.0, 2.0, 1.0], [0.45, 0.65, 0.55])
+    aimed = len(_aim_memo)
+    memoised = fit_pupils(MONO, *entries, sensor_offset_mm=offset_mm)
+    assert len(_aim_memo) == aimed == 3  # the moved sensor's fits aimed nothing new
+    for a, b in zip(fresh, memoised):  # a degree-10 fit carries batch rounding at ~1e-8 in its top coefficients
+        assert np.allclose(a.chief_point_mm, b.chief_point_mm, rtol=0, atol=1e-12)
+        l_grid = a.l_centre + np.linspace(-a.l_half, a.l_half, 31)
+        m_grid = a.m_centre + np.linspace(-a.m_half, a.m_half, 31)
+        for name in ("w_waves", "amplitude", *a.apertures):
+            assert np.abs(a.evaluate(name, l_grid, m_grid) - b.evaluate(name, l_grid, m_grid)).max() < 1e-6, name
+        assert np.abs(psf_from_pupil(a, 41).kernel - psf_from_pupil(b, 41).kernel).sum() < 1e-6
+    moved, nominal = memoised[0], design[2]
+    assert np.abs(moved.coeffs["w_waves"] - nominal.coeffs["w_waves"]).max() > 1e-3
