@@ -158,7 +158,7 @@ def traced_ray_geometry(camera: BuiltCamera, field_step_deg: float = 0.5, azimut
     What the point cloud and ``depth_z`` use. The design camera's is its sensor geometry. A camera
     with decenter, tilt, PSF shift or a sensor-radius error images the scene elsewhere: its chief
     rays (587.6 nm, infinity, like the design table) are traced through the built lens
-    (``optics.perturb.trace_spots``) on a (θ, φ) grid of ``field_step_deg`` × ``azimuths``. The
+    (``optics.perturb.chief_landing_px``) on a (θ, φ) grid of ``field_step_deg`` × ``azimuths``. The
     optical centre moves to where the axis lands, the radial table is the azimuth mean of the
     landing distances from it, the sensor radius is the built one, and what the symmetric mapping
     leaves (a decenter moves a spot by d⊥/R: its sagittal and meridional shifts differ by up to
@@ -173,14 +173,13 @@ def traced_ray_geometry(camera: BuiltCamera, field_step_deg: float = 0.5, azimut
 
     from .geometry import DisplacedGeometry
     from .optics import get_lens
-    from .optics.perturb import CHIEF_FIT_DEGREE, CHIEF_FIT_GRID, perturbed_lens, trace_spots
+    from .optics.perturb import chief_landing_px, perturbed_lens
 
     lens = get_lens(camera.lens_name)
     theta = np.arange(0.0, base.max_field_deg + field_step_deg / 2, field_step_deg)
     phi = np.arange(azimuths) * (360.0 / azimuths)
     theta_grid, phi_grid = (a.ravel() for a in np.meshgrid(theta, phi, indexing="ij"))
-    _, land, _ = trace_spots(lens, p, theta_grid, phi_grid, math.inf, 0.5876, base.centre_px, base.pitch_um,
-                             fit_grid=CHIEF_FIT_GRID, fit_degree=CHIEF_FIT_DEGREE)
+    land = chief_landing_px(lens, p, theta_grid, phi_grid, math.inf, 0.5876, base.centre_px, base.pitch_um)
     land = land + np.array([p.psf_shift_px[1], p.psf_shift_px[0]])
     by_field = land.reshape(len(theta), len(phi), 2)
     centre = by_field[0].mean(axis=0)

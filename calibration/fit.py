@@ -32,8 +32,8 @@ from bmi_sdk.optics.perturb import (
     SIZES,
     VECTOR_NAMES,
     Perturbation,
+    chief_landing_px,
     spot_kernels,
-    trace_spots,
 )
 
 from .extract import Extraction
@@ -177,7 +177,7 @@ def initial_positions(lens, g, spots, channel, kernel_px, geometry, spread_px, f
     lam = CHANNEL_NM[channel] * 1e-3
     measured = np.array([s.centroid_px for s in spots])
     start = Perturbation.from_vector(g, spread_px)
-    _, land, _ = trace_spots(lens, start, theta, phi, depth, lam, geometry.centre_px, geometry.pitch_um)
+    land = chief_landing_px(lens, start, theta, phi, depth, lam, geometry.centre_px, geometry.pitch_um)
     land = land + np.array([start.psf_shift_px[1], start.psf_shift_px[0]])
     # kernels centred on their own landing point, so no spot is cut by the window
     first = spot_kernels(lens, start, theta, phi, depth, lam, np.rint(land), kernel_px, geometry.centre_px,
@@ -191,7 +191,7 @@ def initial_positions(lens, g, spots, channel, kernel_px, geometry, spread_px, f
 
     def landing(vector):
         p = Perturbation.from_vector(vector, spread_px)
-        _, chief, _ = trace_spots(lens, p, theta, phi, depth, lam, geometry.centre_px, geometry.pitch_um)
+        chief = chief_landing_px(lens, p, theta, phi, depth, lam, geometry.centre_px, geometry.pitch_um)
         return chief + np.array([p.psf_shift_px[1], p.psf_shift_px[0]])
 
     base_names = [n for n in PARAMETERS for _ in range(SIZES[n])]

@@ -35,7 +35,7 @@ from bmi_sdk.io_atomic import write_json
 from bmi_sdk.json_files import read_json_object
 from bmi_sdk.lenses import LENS_KERNEL_PX
 from bmi_sdk.optics import get_lens
-from bmi_sdk.optics.perturb import Perturbation, spot_kernels, trace_spots
+from bmi_sdk.optics.perturb import Perturbation, chief_landing_px, spot_kernels
 
 CAPTURES_SCHEMA = "bmi-calibration-captures/1"
 CHANNEL_NM = (656.3, 587.6, 486.1)  # the tensor's representative lines (R, G, B)
@@ -155,10 +155,8 @@ class CapturePlan:
 def design_landing_px(target: Target, geometry=BMI_SENSOR, lens_name: str = "bmi_monocentric") -> np.ndarray:
     """(n, 2) (row, col) where the design lens puts each source's chief ray (green line)."""
     s = target.sources
-    _, land, _ = trace_spots(get_lens(lens_name), Perturbation(), [p.field_deg for p in s],
-                             [p.azimuth_deg for p in s], [p.depth_m for p in s], CHANNEL_NM[1] * 1e-3,
-                             geometry.centre_px, geometry.pitch_um)
-    return land
+    return chief_landing_px(get_lens(lens_name), Perturbation(), [p.field_deg for p in s], [p.azimuth_deg for p in s],
+                            [p.depth_m for p in s], CHANNEL_NM[1] * 1e-3, geometry.centre_px, geometry.pitch_um)
 
 
 def plan_rois(target: Target, plan: CapturePlan, geometry=BMI_SENSOR, lens_name: str = "bmi_monocentric"):
@@ -194,8 +192,8 @@ class PointSourceScene:
         self.landing_px: np.ndarray | None = None  # the first channel's landing points (x, y) px
         per_channel = {}
         for c in target.channels:
-            _, land, _ = trace_spots(lens, perturbation, theta, phi, depth, CHANNEL_NM[c] * 1e-3,
-                                     geometry.centre_px, geometry.pitch_um)
+            land = chief_landing_px(lens, perturbation, theta, phi, depth, CHANNEL_NM[c] * 1e-3,
+                                    geometry.centre_px, geometry.pitch_um)
             land = land + np.array([perturbation.psf_shift_px[1], perturbation.psf_shift_px[0]])
             if self.landing_px is None:
                 self.landing_px = land

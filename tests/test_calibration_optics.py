@@ -137,16 +137,21 @@ def test_a_built_tensor_is_keyed_by_its_errors_and_carries_them_to_exact_kernels
 
 
 def test_a_chief_ray_landing_does_not_depend_on_the_pupil_fit(lens):
-    """CHIEF_FIT_GRID/DEGREE (a fifth of the cost) may place kernels and rays only because the chief ray is traced
-    apart from the fit: the landing is bit-identical to a full fit's, perturbed or not."""
-    from bmi_sdk.optics.perturb import CHIEF_FIT_DEGREE, CHIEF_FIT_GRID
+    """``chief_landing_px`` traces only the chief rays; ``trace_spots`` traces them, then the pupil grid and its fit.
+    Kernels and rays may be placed by the former only because the chief ray is aimed and traced apart from the fit:
+    both land every spot on the same point to the last bit, perturbed or not (a shift, decenter, tilt and a sensor
+    of the wrong radius; infinity included)."""
+    from bmi_sdk.optics.perturb import chief_landing_px
 
     theta, phi, depth = [0.0, 23.0, 51.0, 59.0], [0.0, 40.0, 200.0, 311.0], [0.7, 2.0, math.inf, 9.0]
-    for p in (Perturbation(), Perturbation(decenter_um=(6.0, 2.0), tilt_arcmin=(0.4, -0.3), sensor_radius_error_pct=1.0)):
+    built = Perturbation(decenter_um=(6.0, 2.0), tilt_arcmin=(0.4, -0.3), sensor_radius_error_pct=1.0,
+                         psf_shift_px=(0.3, -0.2))
+    landings = []
+    for p in (Perturbation(), built):
         full = trace_spots(lens, p, theta, phi, depth, LAM, CENTRE)[1]
-        coarse = trace_spots(lens, p, theta, phi, depth, LAM, CENTRE, fit_grid=CHIEF_FIT_GRID,
-                             fit_degree=CHIEF_FIT_DEGREE)[1]
-        np.testing.assert_array_equal(coarse, full)
+        landings.append(chief_landing_px(lens, p, theta, phi, depth, LAM, CENTRE))
+        np.testing.assert_array_equal(landings[-1], full)
+    assert np.abs(landings[1] - landings[0]).max() > 1.0  # the built lens lands its spots elsewhere
 
 
 def test_a_calibrated_camera_s_exact_kernels_are_kept_on_disk(lens, tmp_path, monkeypatch):
@@ -180,3 +185,4 @@ def test_a_calibrated_camera_s_exact_kernels_are_kept_on_disk(lens, tmp_path, mo
     shards[0].write_bytes(shards[0].read_bytes()[:200])  # truncated
     with pytest.warns(PsfCacheWarning, match="recomputing"):
         np.testing.assert_array_equal(camera_map(p).kernels(33.0, 21.0, [0, 2]), traced)
+

@@ -297,7 +297,7 @@ def test_a_built_lens_lands_its_kernels_where_trace_spots_lands_the_design_chief
     design's chief rays once per θ ring and lands them at each φ; trace_spots traces and lands them at that φ
     itself. Both give the same landing, so the kernels equal the spot kernels placed at trace_spots' landing."""
     from bmi_sdk.optics import spectral
-    from bmi_sdk.optics.perturb import CHIEF_FIT_DEGREE, CHIEF_FIT_GRID, Perturbation, spot_kernels, trace_spots
+    from bmi_sdk.optics.perturb import Perturbation, spot_kernels, trace_spots
 
     p = Perturbation(decenter_um=(6.0, -4.0), tilt_arcmin=(1.5, 0.0))
     ring = PsfMap(tensor, BMI_SENSOR, perturbation=p)
@@ -307,8 +307,7 @@ def test_a_built_lens_lands_its_kernels_where_trace_spots_lands_the_design_chief
     for phi in (22.0, -97.5):
         got = ring.kernels(theta, phi, [depth_index])[:, 0]
         _, landing, _ = trace_spots(MONO, Perturbation(), np.full(len(lam_um), theta), phi, depth_m, lam_um,
-                                    BMI_SENSOR.centre_px, BMI_SENSOR.pitch_um, fit_grid=CHIEF_FIT_GRID,
-                                    fit_degree=CHIEF_FIT_DEGREE)
+                                    BMI_SENSOR.centre_px, BMI_SENSOR.pitch_um)
         mono = spot_kernels(MONO, p, np.full(len(lam_um), theta), phi, depth_m, lam_um, landing, SMALL.kernel_px,
                             BMI_SENSOR.centre_px, BMI_SENSOR.pitch_um, SMALL.oversample, SMALL.guard, SMALL.fit_grid,
                             SMALL.fit_degree).kernels

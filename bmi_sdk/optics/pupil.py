@@ -290,12 +290,14 @@ def _aimed(lens, field_deg, depth_m, lam_um, z_ep, r_ep, r_stop) -> np.ndarray:
     They depend on the lens only up to its stop (the rays are traced to the stop), not on the image surface or its
     pose. A built lens's decenter, tilt and sensor radius move the sensor alone, so each of its (θ, φ) pupils is
     aimed as the design's (θ, d, λ) is: they are memoised per (the lens's surfaces and entrance pupil, θ, d, λ)
-    and shared by every zone on a θ ring, every azimuth and every pose a calibration tries."""
+    and shared by every zone on a θ ring, every azimuth and every pose a calibration tries; a batch that holds
+    one (θ, d, λ) at many azimuths aims it once."""
     front = (lens.surfaces, lens.entrance_pupil_diameter_mm)
     keys = [(front, float(t), float(d), float(lam)) for t, d, lam in zip(field_deg, depth_m, lam_um)]
     with _aim_lock:
         found = {key: _aim_memo[key] for key in keys if key in _aim_memo}
-    todo = np.array([i for i, key in enumerate(keys) if key not in found], dtype=int)
+    first = {key: i for i, key in reversed(list(enumerate(keys)))}  # each key's first entry: aimed once a batch
+    todo = np.array([i for key, i in first.items() if key not in found], dtype=int)
     if len(todo):  # aimed outside the lock: another thread's batch goes on meanwhile
         b_c, b_lo, b_hi, a_hi = _aim(lens, field_deg[todo], depth_m[todo], lam_um[todo], z_ep[todo], r_ep[todo],
                                      r_stop)
@@ -390,6 +392,36 @@ the converging-wave fit loses precision (residual 2.2e-4 waves at 1e5 m, 0.12 at
 the kernel keeps 63 % of its energy): docs/reliability.md."""
 
 
+def _entries(lens: Lens, field_deg, depth_m, wavelength_um):
+    """The batch's (θ, d, λ) as flat arrays (checked; depths past ``FAR_AS_INFINITY_M`` made infinite) with each
+    entry's paraxial entrance pupil z and radius, the stop radius and the image-space index."""
+    field_deg, depth_m, wavelength_um = (np.atleast_1d(np.asarray(x, dtype=np.float64)).ravel()
+                                         for x in np.broadcast_arrays(field_deg, depth_m, wavelength_um))
+    if np.any(field_deg < 0):
+        raise ValueError(f"field_deg must be ≥ 0 (the lens is rotationally symmetric), got {field_deg.min()}")
+    if np.any(~(depth_m > 0)):
+        raise ValueError(f"depth_m must be > 0 (use math.inf for infinity), got {depth_m.min()}")
+    depth_m = np.where(depth_m >= FAR_AS_INFINITY_M, np.inf, depth_m)
+    lam_values, lam_index = np.unique(wavelength_um, return_inverse=True)
+    n_by_lam = np.stack([indices(lens, v) for v in lam_values])
+    ep = [entrance_pupil(lens, n) for n in n_by_lam]
+    z_ep = np.array([e[0] for e in ep])[lam_index]
+    per_ep = np.abs(np.array([e[1] for e in ep]))[lam_index]
+    r_stop = stop_radius_mm(lens)
+    return field_deg, depth_m, wavelength_um, z_ep, r_stop / per_ep, r_stop, n_by_lam[lam_index, -1]
+
+
+def chief_points(lens: Lens, field_deg, depth_m, wavelength_um, sensor_offset_mm=None,
+                 sensor_rotation=None) -> np.ndarray:
+    """(B, 3) where each (θ, d, λ) entry's real chief ray meets the image surface (placed as in ``fit_pupils``): the
+    chief ray ``fit_pupils`` traces, without the pupil grid and its fit, for callers that need only where spots
+    land (the same points, bit for bit)."""
+    field_deg, depth_m, wavelength_um, z_ep, r_ep, r_stop, _ = _entries(lens, field_deg, depth_m, wavelength_um)
+    b_c = _aimed(lens, field_deg, depth_m, wavelength_um, z_ep, r_ep, r_stop)[0]
+    pose = _entry_pose(sensor_offset_mm, sensor_rotation, len(field_deg), lens.stop_z_mm)
+    return _chief_on_sensor(lens, field_deg, depth_m, wavelength_um, z_ep, b_c, pose)[0]
+
+
 def fit_pupils(lens: Lens, field_deg, depth_m, wavelength_um, grid: int = 20, degree: int = 10,
                sensor_offset_mm=None, sensor_rotation=None) -> list[PupilFit]:
     """Trace every (θ, d, λ) entry exactly and fit its converging wave (see module doc).
@@ -403,21 +435,7 @@ def fit_pupils(lens: Lens, field_deg, depth_m, wavelength_um, grid: int = 20, de
     (``bmi_sdk.optics.perturb`` does this). None for both is the nominal lens,
     bit-identical to the call without them.
     """
-    field_deg, depth_m, wavelength_um = (np.atleast_1d(np.asarray(x, dtype=np.float64)).ravel()
-                                         for x in np.broadcast_arrays(field_deg, depth_m, wavelength_um))
-    if np.any(field_deg < 0):
-        raise ValueError(f"field_deg must be ≥ 0 (the lens is rotationally symmetric), got {field_deg.min()}")
-    if np.any(~(depth_m > 0)):
-        raise ValueError(f"depth_m must be > 0 (use math.inf for infinity), got {depth_m.min()}")
-    depth_m = np.where(depth_m >= FAR_AS_INFINITY_M, np.inf, depth_m)
-    lam_values, lam_index = np.unique(wavelength_um, return_inverse=True)
-    n_by_lam = np.stack([indices(lens, v) for v in lam_values])
-    ep = [entrance_pupil(lens, n) for n in n_by_lam]
-    z_ep = np.array([e[0] for e in ep])[lam_index]
-    per_ep = np.abs(np.array([e[1] for e in ep]))[lam_index]
-    n_img = n_by_lam[lam_index, -1]
-    r_stop = stop_radius_mm(lens)
-    r_ep = r_stop / per_ep
+    field_deg, depth_m, wavelength_um, z_ep, r_ep, r_stop, n_img = _entries(lens, field_deg, depth_m, wavelength_um)
     b_c, b_lo, b_hi, a_hi = _aimed(lens, field_deg, depth_m, wavelength_um, z_ep, r_ep, r_stop)
     pose = _entry_pose(sensor_offset_mm, sensor_rotation, len(field_deg), lens.stop_z_mm)
     chief_p, chief_s, chief_opl = _chief_on_sensor(lens, field_deg, depth_m, wavelength_um, z_ep, b_c, pose)

@@ -65,17 +65,15 @@ import numpy as np
 from ..geometry import SensorGeometry
 from ..optics import spectral
 from ..optics.perturb import (
-    CHIEF_FIT_DEGREE,
-    CHIEF_FIT_GRID,
     Perturbation,
+    chief_landing_px,
     landing_px,
     perturbed_lens,
     sensor_pose,
     spot_kernels,
-    trace_spots,
 )
 from ..optics.psf import psf_from_pupil
-from ..optics.pupil import PupilFit, fit_pupils
+from ..optics.pupil import PupilFit, chief_points, fit_pupils
 from ..optics.tensor import PsfTensor, usable_kernel_shard, write_kernel_shard
 
 INTERPOLATIONS = ("linear", "inverse_square")
@@ -250,8 +248,9 @@ class PsfMap:
         return kernels.astype(np.float32)
 
     def _design_fits(self, theta_deg: float, depth_indices: list[int], lam_nm, chief_only: bool = False) -> list:
-        """Fitted pupils of the design lens at field θ, one per (depth, wavelength), depth-major; ``chief_only``: the
-        coarse fits whose chief rays place a built lens's kernels (``_perturbed_mono``), as ``trace_spots`` fits them.
+        """Fitted pupils of the design lens at field θ, one per (depth, wavelength), depth-major; ``chief_only``:
+        instead, the points where the design's chief rays meet the sensor (``pupil.chief_points``, (3,) mm each),
+        which place a built lens's kernels (``_perturbed_mono``).
 
         The design is rotationally symmetric, so a pupil fit depends on θ alone and every zone on the same θ
         ring (a frame has ~4–6 zones per ring) turns the same fits (``psf_from_pupil(rotation_deg=φ)``) or lands
@@ -266,9 +265,7 @@ class PsfMap:
             depth_m = np.asarray(spec.depth_m)[[key[2] for key in missing]]
             wavelength_um = np.array([key[3] for key in missing]) * 1e-3
             if chief_only:
-                fits, _, _ = trace_spots(self.tensor.lens, Perturbation(), np.full(len(missing), theta_deg), 0.0,
-                                         depth_m, wavelength_um, self.geometry.centre_px, self.geometry.pitch_um,
-                                         fit_grid=CHIEF_FIT_GRID, fit_degree=CHIEF_FIT_DEGREE)
+                fits = list(chief_points(self.tensor.lens, theta_deg, depth_m, wavelength_um))
             else:
                 fits = fit_pupils(self.tensor.lens, theta_deg, depth_m, wavelength_um, grid=spec.fit_grid,
                                   degree=spec.fit_degree)
@@ -289,11 +286,10 @@ class PsfMap:
         depth_m, wavelength_um = d_grid.ravel(), l_grid.ravel() * 1e-3
         theta = np.full(len(depth_m), theta_deg)
         centre_px = self.geometry.centre_px
-        # The design's chief rays (apart from the pupil fit: a coarse fit gives the same landing), landed at φ as
-        # trace_spots lands them; the design's sensor pose is the identity at every φ.
+        # The design's chief rays (one θ ring's, memoised), landed at φ as chief_landing_px lands them; the design's
+        # sensor pose is the identity at every φ.
         design = Perturbation()
-        chief_fits = self._design_fits(theta_deg, depth_indices, lam_nm, chief_only=True)
-        chief = np.stack([fit.chief_point_mm for fit in chief_fits])
+        chief = np.stack(self._design_fits(theta_deg, depth_indices, lam_nm, chief_only=True))
         phi = np.full(len(depth_m), phi_deg)
         design_px = landing_px(perturbed_lens(lens, design), *sensor_pose(design, phi), chief, phi, centre_px,
                                pitch_um)
@@ -319,10 +315,9 @@ class PsfMap:
             depth_m = np.asarray(spec.depth_m)[[key[0] for key in missing]]
             wavelength_um = np.array([key[1] for key in missing]) * 1e-3
             axis = np.zeros(len(missing))
-            _, axis_design, _ = trace_spots(lens, Perturbation(), axis, 0.0, depth_m, wavelength_um, centre_px,
-                                            pitch_um, fit_grid=CHIEF_FIT_GRID, fit_degree=CHIEF_FIT_DEGREE)
-            _, axis_built, _ = trace_spots(lens, self.perturbation, axis, 0.0, depth_m, wavelength_um, centre_px,
-                                           pitch_um, fit_grid=CHIEF_FIT_GRID, fit_degree=CHIEF_FIT_DEGREE)
+            axis_design = chief_landing_px(lens, Perturbation(), axis, 0.0, depth_m, wavelength_um, centre_px, pitch_um)
+            axis_built = chief_landing_px(lens, self.perturbation, axis, 0.0, depth_m, wavelength_um, centre_px,
+                                          pitch_um)
             shift_rc = np.array([self.perturbation.psf_shift_px[1], self.perturbation.psf_shift_px[0]])
             with self._lock:
                 self._axis_shift.update(zip(missing, axis_built + shift_rc - axis_design))
