@@ -79,11 +79,15 @@ def test_a_decoder_without_a_network_or_options_refuses_them():
 
 def test_a_benchmark_text_becomes_a_record(tmp_path):
     text = ("### Seams, 512² tiles\n\nThe window run whole and tiled.\n\n| tile px | AiF MAD | note |\n|---|---|---|\n"
-            "| 256 | 0.0012 | – |\n| 512 | 3e-05 | whole |\n\nMeasured on one core.\n")
-    (table,) = markdown_tables(text)
+            "| 256 | 0.0012 | – |\n| 512 | 3e-05 | whole |\n\nMeasured on one core.\n\n### Cost\n\n| what | s |\n"
+            "|---|---|\n| one tile | 0.5 |\n")
+    table, cost = markdown_tables(text)
     assert table == {"title": "Seams, 512² tiles", "columns": ["tile px", "AiF MAD", "note"],
                      "rows": [[256, 0.0012, None], [512, 3e-05, "whole"]],
                      "notes": "The window run whole and tiled. Measured on one core."}
+    assert cost == {"title": "Cost", "columns": ["what", "s"], "rows": [["one tile", 0.5]], "notes": ""}
+    (table,) = markdown_tables(text[:text.index("### Cost")])  # text after the last table joins its notes too
+    assert table["notes"] == "The window run whole and tiled. Measured on one core."
     path = write_record(tmp_path / "r" / "bench.json", [table], ["bench", "infer", "--json", "r/bench.json"])
     record = json.loads(path.read_text())
     assert record["command"] == "bmi bench infer --json r/bench.json" and record["tables"] == [table]

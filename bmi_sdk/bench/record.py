@@ -83,12 +83,17 @@ def _split_row(line: str) -> list[str]:
 def markdown_tables(text: str) -> list[dict]:
     """The tables of a markdown ``text`` as record tables: title (the nearest heading above, else the first line
     of the text above it, else "table N"), columns, rows and notes (the text between its title and the table;
-    the text after the last table joins that table's notes)."""
+    text after a table, up to the next heading or the end, joins that table's notes)."""
     tables: list[dict] = []
     heading, notes, block = None, [], []
+    after_table = False  # the lines in ``notes`` follow a table under the current heading
+
+    def join_trailing_notes() -> None:
+        if after_table and notes:
+            tables[-1]["notes"] = " ".join([tables[-1]["notes"], *notes]).strip()
 
     def close_table() -> None:
-        nonlocal notes, block
+        nonlocal notes, block, after_table
         if not block:
             return
         rows = [_split_row(line) for line in block]
@@ -96,7 +101,7 @@ def markdown_tables(text: str) -> list[dict]:
         title = heading or (notes[0] if notes else f"table {len(tables) + 1}")
         tables.append({"title": title.rstrip(":"), "columns": rows[0], "rows": [[cell(c) for c in r] for r in body],
                        "notes": " ".join(n for n in notes if n != title).strip()})
-        notes, block = [], []
+        notes, block, after_table = [], [], True
 
     for line in text.splitlines():
         stripped = line.strip()
@@ -105,12 +110,12 @@ def markdown_tables(text: str) -> list[dict]:
             continue
         close_table()
         if stripped.startswith("#"):
-            heading, notes = stripped.lstrip("#").strip(), []
+            join_trailing_notes()
+            heading, notes, after_table = stripped.lstrip("#").strip(), [], False
         elif stripped:
             notes.append(stripped)
     close_table()
-    if tables and notes:
-        tables[-1]["notes"] = " ".join([tables[-1]["notes"], *notes]).strip()
+    join_trailing_notes()
     return tables
 
 
