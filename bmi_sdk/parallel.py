@@ -35,8 +35,10 @@ def spawn_single_threaded_pool(workers: int, initializer: Callable | None = None
         pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                                       initializer=initializer, initargs=initargs)
         try:
-            for _ in range(workers):  # start the processes now, while the environment says one thread
-                pool.submit(int, 0).result()
+            # Start every process now, while the environment says one thread: the pool spawns a process for a
+            # submitted job only while none is idle, so all the warm-up jobs go in before any is awaited.
+            for started in [pool.submit(int, 0) for _ in range(workers)]:
+                started.result()
         except BaseException:  # an initializer that failed broke the pool: do not leave its processes behind
             pool.shutdown(cancel_futures=True)
             raise

@@ -70,6 +70,22 @@ def test_the_pools_processes_start_with_one_blas_thread_and_leave_the_environmen
     assert os.environ["OMP_NUM_THREADS"] == "7" and "MKL_NUM_THREADS" not in os.environ
 
 
+@pytest.mark.skipif(not os.path.exists("/proc/self/environ"), reason="reads each worker's environment from /proc")
+def test_every_process_of_a_pool_starts_while_the_environment_says_one_thread(monkeypatch):
+    """A spawn pool starts a process for a job only while no worker is idle; the pool must start all of its
+    processes before it restores the environment, or a later one runs BLAS on every core beside the others."""
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    pool = parallel.spawn_single_threaded_pool(2)
+    try:
+        pids = list(pool._processes)  # the processes running when the pool is handed over
+        environments = [open(f"/proc/{pid}/environ", "rb").read().split(b"\0") for pid in pids]
+    finally:
+        pool.shutdown()
+    assert len(pids) == 2
+    assert all(b"OPENBLAS_NUM_THREADS=1" in env for env in environments)
+    assert "OPENBLAS_NUM_THREADS" not in os.environ
+
+
 def test_map_threads_keeps_order_and_a_failure_cancels_what_has_not_started():
     """Items come back in order with their results; an item that raises ends the loop with its error, and the items
     queued behind it never run (a Ctrl-C or an error inside a frame's 432 blocks must not wait for all of them)."""
