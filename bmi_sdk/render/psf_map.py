@@ -112,8 +112,8 @@ def resample_kernel(kernel: np.ndarray, scale: float) -> np.ndarray:
 
 MODES = ("exact", "tensor")
 FIT_MEMO_ENTRIES = 12288
-"""Design pupil fits a map keeps (``PsfMap._design_fits``; ≤ 4.6 kB each, ≤ 57 MB in all): a full frame's rings
-need ~9300 (111 θ × 28 candidates × 3 wavelengths)."""
+"""Design pupil fits and chief points a map keeps (``PsfMap._design_fits``; ≤ 4.6 kB each, ≤ 57 MB in all): a
+full frame's rings need ~9300 fits (111 θ × 28 candidates × 3 wavelengths)."""
 
 
 class PsfMap:
@@ -158,7 +158,8 @@ class PsfMap:
         self.scale = tensor.spec.pitch_um / geometry.pitch_um
         self.field_deg = np.asarray(tensor.spec.field_deg, dtype=np.float64)
         self._exact: dict[tuple, np.ndarray] = {}
-        self._fits: OrderedDict[tuple, PupilFit] = OrderedDict()  # (chief only, θ, depth index, λ nm) → design fit
+        # (chief only, θ, depth index, λ nm) → the design's pupil fit, or its chief point (``_design_fits``)
+        self._fits: OrderedDict[tuple, PupilFit | np.ndarray] = OrderedDict()
         self._axis_shift: dict[tuple, np.ndarray] = {}  # (depth index, λ nm) → image shift (``_image_shift_px``)
         self._lock = threading.Lock()  # around the memos' bookkeeping (see ``kernel_sets``)
         self.exact_cache_dir = None if cache_dir is None or mode != "exact" else Path(cache_dir) / self.exact_key()
