@@ -122,9 +122,8 @@ class PsfMap:
     ``perturbation`` (``exact`` mode only): the hardware errors of a built lens; ``None`` or all
     zero is the design, and its kernels are bit-identical to a map without one. A tensor
     built with errors carries them (``tensor.perturbation``); naming other errors is refused.
-    ``cache_dir`` (``exact`` mode): keep the exact kernels on disk there, under ``exact_key`` (a zone's kernels
-    cost ~7 ms per (zone, depth) on one core for the design, ~12 ms for a built lens: a minute or more of a
-    frame's first decode).
+    ``cache_dir`` (``exact`` mode): keep the exact kernels on disk there, under ``exact_key`` (a full frame's
+    ~7700 kernel sets take a minute or more of its first decode: ``bmi bench frame``, docs/benchmarks.md).
     ``centre_calibrated``: the camera's optical centre is known (as ``bmi calibrate``
     measures it), so the on-axis spot displacement of the perturbation, a shift of
     the whole image, is taken out of every kernel; what remains is the
