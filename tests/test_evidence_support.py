@@ -8,7 +8,8 @@ import shutil
 import numpy as np
 import pytest
 
-from bmi_sdk.decode.support import SupportConfig, cell_colours, colour_spread, support_read, taper_weights
+from bmi_sdk.decode.support import (SupportConfig, cell_colours, colour_spread, relative_median, support_read,
+                                   taper_weights)
 from bmi_sdk.model_manifest import ModelError
 from bmi_sdk.runtime.evidence import EVIDENCE_MODEL, EvidenceNetwork
 
@@ -82,6 +83,64 @@ def test_windows_straddling_an_occlusion_take_the_read_of_their_own_side():
     assert np.all(got_var[:, 5] < 1e-3)
 
 
+def test_the_relative_median_minimises_the_expected_relative_error():
+    """Brute force: the expected relative error Σ w_k |d − d_k| / d_k of a mixture of reads is convex and piecewise
+    linear in d, so its least value lies at one of the reads; ``relative_median`` reaches it on every column of
+    random reads and weights (some zero), and a dense grid of depths between the reads finds nothing lower."""
+    rng = np.random.default_rng(3)
+    inv = rng.uniform(0.1, 1.43, (9, 400))
+    weights = rng.exponential(1.0, (9, 400)) * (rng.uniform(size=(9, 400)) > 0.2)
+    weights[0] += 1e-3  # every column has some weight
+    got = relative_median(inv, weights)
+
+    def loss(depth_m, k):
+        return np.sum(weights[:, k, None] * np.abs(depth_m[None, :] - 1.0 / inv[:, k, None]) * inv[:, k, None], axis=0)
+
+    grid_m = np.linspace(0.6, 11.0, 4001)
+    for k in range(inv.shape[1]):
+        at_reads = loss(1.0 / inv[:, k], k)
+        assert got[k] in inv[weights[:, k] > 0, k]
+        assert loss(np.array([1.0 / got[k]]), k)[0] <= at_reads.min() * (1 + 1e-12)
+        assert loss(np.array([1.0 / got[k]]), k)[0] <= loss(grid_m, k).min() * (1 + 1e-12)
+
+
+def test_a_window_beside_a_depth_step_of_one_colour_reads_one_surface_and_reports_the_gap():
+    """One colour everywhere (no colour or purity weight), reads 1/d = 1 left of column 5 and 0.25 from it: the
+    weights are the spatial ones, 1, e^−½, e^−1 for the centre, edge and corner neighbours. Window (4, 5) sees
+    mass (e^−½ + 2e^−1) · 1 of the near read against (1 + 3e^−½ + 2e^−1) · 0.25 of the far one, so the relative
+    median reads the near surface, where the mean reads 1/d between the two; the variance is the mixture's about
+    the read. A window two columns from the step reads its own surface."""
+    rows, cols = 9, 10
+    inv = np.where(np.arange(cols) < 5, 1.0, 0.25)[None, :].repeat(rows, 0).astype(np.float32)
+    var = np.full((rows, cols), 1e-4, np.float32)
+    cells = np.zeros((rows, cols, 3))
+    ok = np.ones((rows, cols), bool)
+    e_half, e_one = np.exp(-0.5), np.exp(-1.0)
+    w_near, w_far = e_half + 2 * e_one, 1 + 3 * e_half + 2 * e_one
+    got, got_var = support_read(inv, var, cells, ok, SupportConfig(estimate="relative_median"), 64, 16)
+    mean, mean_var = support_read(inv, var, cells, ok, SupportConfig(estimate="mean"), 64, 16)
+    assert w_near * 1.0 > w_far * 0.25
+    np.testing.assert_allclose(got[4, 5], 1.0)
+    np.testing.assert_allclose(got_var[4, 5], 1e-4 + w_far * 0.75 ** 2 / (w_near + w_far), rtol=1e-5)
+    np.testing.assert_allclose(mean[4, 5], (w_near + 0.25 * w_far) / (w_near + w_far), rtol=1e-6)
+    np.testing.assert_allclose(got[4, 7], 0.25)
+    np.testing.assert_allclose(got[4, 2], 1.0)
+    np.testing.assert_allclose(got_var[4, 7], 1e-4, rtol=1e-4)
+    assert mean_var[4, 5] < got_var[4, 5]  # the mean sits between the surfaces: nearer both than either is to it
+
+
+def test_a_manifest_whose_support_names_no_estimate_reads_the_mean(tmp_path):
+    """Knobs chosen before the relative median existed were chosen for the mean: a manifest without ``estimate``
+    reads with it; the shipped manifest names the relative median."""
+    assert EvidenceNetwork(EVIDENCE_MODEL).support.estimate == "relative_median"
+    path = tmp_path / EVIDENCE_MODEL.name
+    shutil.copy(EVIDENCE_MODEL, path)
+    manifest = json.loads(EVIDENCE_MODEL.with_suffix(".manifest.json").read_text())
+    knobs = {k: v for k, v in manifest["support"].items() if k != "estimate"}
+    path.with_suffix(".manifest.json").write_text(json.dumps(dict(manifest, support=knobs)))
+    assert EvidenceNetwork(path).support.estimate == "mean"
+
+
 def test_windows_without_a_read_stay_without_and_lend_nothing():
     rows, cols = 8, 8
     inv = np.full((rows, cols), 0.5, np.float32)
@@ -110,6 +169,7 @@ def test_extreme_colours_and_spreads_give_finite_reads():
 @pytest.mark.parametrize("knobs, word", [({"radius_windows": -1}, "radius_windows"),
                                          ({"spread_scale": float("nan")}, "spread_scale"),
                                          ({"colour_sigma": 0}, "colour_sigma"),
+                                         ({"estimate": "mode"}, "estimate"),
                                          ({"radius": 3}, "unexpected")])
 def test_a_manifest_with_bad_support_knobs_is_refused(tmp_path, knobs, word):
     path = tmp_path / EVIDENCE_MODEL.name

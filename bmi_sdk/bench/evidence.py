@@ -3,14 +3,14 @@
 On ``bmi eval``'s benchmark tiles at the paper's scene scale (4; ``--full``: 12 tiles per region instead of 4),
 σ 0.005, design camera, tensor kernels (rendered and decoded with the same): the classical stage runs once per
 tile; the network then reads its volume. Two sweeps of what follows, each from the shipped knobs: the support
-read (``decode.support``: off, its radius, its spread scale τ; ∞: no purity weight) and the colour-guided
-upsampling's colour scale (``COLOUR_SIGMAS``; ∞: plain bilinear weights). Rows: AbsRel, δ1, the std of
-error / σ (1: honest σ), the confident coverage (share of valid pixels with σ ≤ 10 % of depth) and the time
-of the support read and the upsampling per megapixel; the classical decoder's own read beside them.
+read (``decode.support``: off, its radius, its spread scale τ (∞: no purity weight), its point estimate) and
+the colour-guided upsampling's colour scale (``COLOUR_SIGMAS``; ∞: plain bilinear weights). Rows: AbsRel, δ1,
+the std of error / σ (1: honest σ), the confident coverage (share of valid pixels with σ ≤ 10 % of depth) and
+the time of the support read and the upsampling per megapixel; the classical decoder's own read beside them.
 
 ``--full`` also reads the benchmarks' full 6000×4500 procedural frame (seed 7, σ 0.005, tensor-mode render
-decoded with the same kernels: ``decoder.full_frame_raw``) with the support read off and as shipped, beside
-the classical read of the same stage.
+decoded with the same kernels: ``decoder.full_frame_raw``) with the support read off, as shipped and with its
+other point estimate, beside the classical read of the same stage.
 """
 
 from __future__ import annotations
@@ -42,11 +42,15 @@ def _variants(shipped, colour_sigma: float) -> list[tuple[str, object, float]]:
     from the shipped ``shipped`` support and ``colour_sigma``."""
     from dataclasses import replace
 
+    from ..decode.support import ESTIMATES
+
     rows = [("support off", None, colour_sigma)]
     rows += [(f"support radius {r}" + (" (shipped)" if r == shipped.radius_windows else ""),
               replace(shipped, radius_windows=r), colour_sigma) for r in SUPPORT_RADII]
     rows += [(f"support τ {t:g}", replace(shipped, spread_scale=t if math.isfinite(t) else 1e12), colour_sigma)
              for t in SPREAD_SCALES if t != shipped.spread_scale]
+    rows += [(f"support estimate {e}", replace(shipped, estimate=e), colour_sigma) for e in ESTIMATES
+             if e != shipped.estimate]
     rows += [(f"colour σ {c:g}", shipped, c if math.isfinite(c) else 1e6) for c in COLOUR_SIGMAS
              if c != colour_sigma]
     return rows
@@ -82,7 +86,15 @@ def _full_frame(network, stage, tensor, geometry) -> str:
     rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
     log_rgb = pixel_log_colour(rgb)
     rows = [["classical", *_row(result.depth_m, result.depth_sigma_m, range_m, result.valid), f"{stage_s:.1f}"]]
-    for name, support in (("evidence, support off", None), ("evidence, support as shipped", network.support)):
+    from dataclasses import replace
+
+    from ..decode.support import ESTIMATES
+
+    reads = [("evidence, support off", None), ("evidence, support as shipped", network.support)]
+    if network.support is not None:
+        reads += [(f"evidence, support estimate {e}", replace(network.support, estimate=e)) for e in ESTIMATES
+                  if e != network.support.estimate]
+    for name, support in reads:
         t0 = time.perf_counter()
         depth, sigma = _read(inv_grid, sig_grid, rgb, log_rgb, support, network.colour_sigma, stage.config)
         rows.append([name, *_row(depth, sigma, range_m, result.valid), f"{time.perf_counter() - t0:.1f}"])

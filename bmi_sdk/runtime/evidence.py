@@ -77,11 +77,12 @@ class EvidenceNetwork:
         self.warmup_s = 0.0  # the grid's shape changes with the frame: there is no one shape to warm up
 
     def _support(self, knobs) -> SupportConfig | None:
-        """The manifest's ``support`` knobs (``decode.support``); None (each window keeps its own read) without."""
+        """The manifest's ``support`` knobs (``decode.support``); None (each window keeps its own read) without.
+        Knobs that name no ``estimate`` were chosen for the mixture's mean, and read with it."""
         if knobs is None:
             return None
         try:
-            return SupportConfig(**knobs)
+            return SupportConfig(**{"estimate": "mean", **knobs})
         except (TypeError, ValueError) as e:
             raise ModelError(f"manifest of {self.path.name}: its support knobs {knobs!r} are not valid: {e}") from None
 
