@@ -8,8 +8,14 @@ import shutil
 import numpy as np
 import pytest
 
-from bmi_sdk.decode.support import (SupportConfig, cell_colours, colour_spread, relative_median, support_read,
-                                   taper_weights)
+from bmi_sdk.decode.support import (
+    SupportConfig,
+    cell_colours,
+    colour_spread,
+    relative_median,
+    support_read,
+    taper_weights,
+)
 from bmi_sdk.model_manifest import ModelError
 from bmi_sdk.runtime.evidence import EVIDENCE_MODEL, EvidenceNetwork
 

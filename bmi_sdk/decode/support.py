@@ -179,7 +179,7 @@ def support_read(inv_grid: np.ndarray, var_grid: np.ndarray, cells: np.ndarray, 
 def relative_median(inv_depths: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """(...) the read of (K, ...) neighbours' 1/d ``inv_depths`` (> 0 where ``weights`` > 0) that minimises the
     expected relative error Σ_k w_k |d − d_k| / d_k of depth d = 1/read: the weighted median of the reads with
-    weights w_k / d_k = w_k · (1/d_k) (the lower of two medians on a tie). Entries of weight 0 take no part;
+    weights w_k / d_k = w_k · (1/d_k) (on a tie, the smaller 1/d of the two). Entries of weight 0 take no part;
     where every weight is 0 the result is the smallest read."""
     mass = np.where(weights > 0, weights * inv_depths, 0.0)
     order = np.argsort(inv_depths, axis=0)
