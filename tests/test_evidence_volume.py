@@ -50,23 +50,71 @@ def test_grid_targets_are_each_cells_median_inverse_depth():
     assert np.isnan(grid_targets(range_m, stride, (5, 6))).all()
 
 
-def test_posterior_matches_a_brute_force_sum():
+def test_posterior_matches_a_brute_force_integral():
+    """The read against a dense numerical integral of the continuous posterior (logit and 1/d linear in the
+    candidate index between candidates, uniform prior on the index) over the ``reach`` candidates either side of
+    the mode, on uneven candidate spacings and logits from flat to sharp (intervals whose logits differ by ~0, so
+    the power series is checked too); the spread against the discrete posterior's std."""
     rng = np.random.default_rng(1)
+    x = np.sort(rng.uniform(0.1, 1.4, 7))[::-1]
     logits = rng.normal(0, 3, (7, 4, 5))
-    x = np.linspace(1.4, 0.1, 7)
+    logits[:, 0, 0] = 0.0                                 # flat: every interval's δ = 0
+    logits[3, 1, 1], logits[4, 1, 1] = 5.0, 5.0 + 1e-4    # a near-flat top
+    logits[:, 2, 2] *= 40.0                               # sharp
     read, std = posterior(logits, x, axis=0, reach=2)
-    p = np.exp(logits) / np.exp(logits).sum(axis=0)
+    p = np.exp(logits - logits.max(axis=0)) / np.exp(logits - logits.max(axis=0)).sum(axis=0)
     brute_mean = np.einsum("dij,d->ij", p, x)
     brute_var = np.einsum("dij,dij->ij", p, (x[:, None, None] - brute_mean) ** 2)
     np.testing.assert_allclose(std, np.sqrt(brute_var), rtol=1e-10)
+    from scipy.integrate import quad
+
     for i in range(4):
         for j in range(5):
             k = int(np.argmax(logits[:, i, j]))
-            near = slice(max(0, k - 2), k + 3)
-            want = (p[near, i, j] * x[near]).sum() / p[near, i, j].sum()
-            assert read[i, j] == pytest.approx(want, rel=1e-12)
-    # every candidate within reach: the read is the whole posterior's mean
-    np.testing.assert_allclose(posterior(logits, x, axis=0, reach=7)[0], brute_mean, rtol=1e-12)
+            lo, hi = max(0, k - 2), min(6, k + 2)
+            top = logits[:, i, j].max()
+
+            def weight(t, i=i, j=j, top=top):
+                return np.exp(np.interp(t, np.arange(7), logits[:, i, j]) - top)
+
+            mass = sum(quad(weight, a, a + 1, epsabs=0, epsrel=1e-13)[0] for a in range(lo, hi))
+            moment = sum(quad(lambda t: weight(t) * np.interp(t, np.arange(7), x), a, a + 1, epsabs=0,
+                              epsrel=1e-13)[0] for a in range(lo, hi))
+            assert read[i, j] == pytest.approx(moment / mass, rel=1e-9)
+    # the read lies between the candidates about the mode; a flat posterior over every candidate reads the mean
+    # of 1/d along the index (the trapezoid rule over the candidates)
+    flat = posterior(np.zeros(7), x, reach=7)[0]
+    assert flat == pytest.approx(np.trapezoid(x) / 6, rel=1e-12)
+
+
+def test_a_sharp_posterior_between_two_candidates_reads_between_them():
+    """Two neighbouring candidates of equal logit far above the rest: the read is their midpoint in 1/d, where a
+    read snapped to the candidates would sit on one of them; a small lead of one moves the read towards it."""
+    x = np.linspace(1.4, 0.1, 27)
+    logits = np.full(27, -200.0)
+    logits[10] = logits[11] = 0.0
+    assert posterior(logits, x)[0] == pytest.approx(0.5 * (x[10] + x[11]), rel=1e-9)
+    logits[11] = -0.5
+    read = posterior(logits, x)[0]
+    assert 0.5 * (x[10] + x[11]) < read < x[10]
+    with pytest.raises(ValueError, match="reach"):
+        posterior(logits, x, reach=0)
+
+
+def test_the_network_reads_its_logits_as_the_numpy_posterior_does():
+    """``nn.volume_net.posterior_torch`` (training, export) is ``decode.volume.posterior`` (the runtime) in float32."""
+    torch = pytest.importorskip("torch")
+    from bmi_sdk.nn.volume_net import posterior_torch
+
+    rng = np.random.default_rng(4)
+    x = np.sort(rng.uniform(0.1, 1.4, 11))[::-1].copy()
+    logits = rng.normal(0, 4, (2, 11, 3, 6))
+    logits[0, :, 0, 0] = 0.0
+    got, got_std = posterior_torch(torch.as_tensor(logits, dtype=torch.float32), torch.as_tensor(x, dtype=torch.float32))
+    for n in range(2):
+        want, want_std = posterior(logits[n], x, axis=0)
+        np.testing.assert_allclose(got[n].numpy(), want, rtol=2e-6, atol=1e-6)
+        np.testing.assert_allclose(got_std[n].numpy(), want_std, rtol=1e-4, atol=1e-5)
 
 
 def test_a_far_second_mode_widens_the_spread_but_does_not_pull_the_read():

@@ -14,7 +14,8 @@ posterior, and training can only move it where the data says the evidence mislea
 texture, model error of a built camera).
 
 Depth is the posterior mean of 1/d about its mode (``MODE_REACH`` candidates either side: a far second mode
-does not pull the read between two surfaces), its 1σ ``reported_sigma``: the whole posterior's spread times a
+does not pull the read between two surfaces), the posterior continuous between candidates
+(``decode.volume.posterior``), its 1σ ``reported_sigma``: the whole posterior's spread times a
 scale, in quadrature with a floor (both fitted with the Gaussian likelihood): flat or two-peaked evidence gives a
 wide σ.
 
@@ -30,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from bmi_sdk.decode.volume import MODE_REACH, VOLUME_SCALE_NATS
+from bmi_sdk.decode.volume import MODE_REACH, VOLUME_SCALE_NATS, interval_moments
 
 PAD_MULTIPLE = 4
 """The grid's rows and columns are padded to a multiple of this (two ½ levels)."""
@@ -127,17 +128,21 @@ class VolumeNet(nn.Module):
 
 def posterior_torch(logits: torch.Tensor, inv_depth_per_m: torch.Tensor,
                     reach: int = MODE_REACH) -> tuple[torch.Tensor, torch.Tensor]:
-    """(read, spread) of 1/d under softmax over dim 1 of (N, D, R, C) logits (``decode.volume.posterior``): the
-    mean over the ``reach`` candidates either side of the most probable one, and the whole posterior's std."""
-    p = torch.softmax(logits, dim=1)
+    """(read, spread) of 1/d under (N, D, R, C) logits over dim 1, as ``decode.volume.posterior`` reads them: the
+    mean 1/d of the continuous posterior (logit and 1/d linear between neighbouring candidates) over the ``reach``
+    candidates either side of the most probable one, and the discrete posterior's std."""
+    z = logits - logits.amax(dim=1, keepdim=True)
+    p = torch.softmax(z, dim=1)
     x = inv_depth_per_m.view(1, -1, 1, 1)
     mean = (p * x).sum(dim=1)
     var = (p * (x - mean.unsqueeze(1)) ** 2).sum(dim=1)
-    index = torch.arange(logits.shape[1], device=logits.device).view(1, -1, 1, 1)
-    near = ((index - torch.argmax(logits, dim=1, keepdim=True)).abs() <= reach).to(p.dtype)
-    local = p * near
-    read = (local * x).sum(dim=1) / local.sum(dim=1)
-    return read, torch.sqrt(var + 1e-12)
+    mass, moment = interval_moments(z[:, :-1], z[:, 1:], xp=torch)
+    k = torch.arange(logits.shape[1] - 1, device=logits.device).view(1, -1, 1, 1)
+    mode = torch.argmax(z, dim=1, keepdim=True)
+    inside = ((k >= mode - reach) & (k + 1 <= mode + reach)).to(z.dtype)
+    mass = mass * inside
+    first = (x[:, :-1] * mass + (x[:, 1:] - x[:, :-1]) * moment * inside).sum(dim=1)
+    return first / mass.sum(dim=1), torch.sqrt(var + 1e-12)
 
 
 def reported_sigma(net: VolumeNet, posterior_std: torch.Tensor) -> torch.Tensor:

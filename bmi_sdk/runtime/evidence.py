@@ -6,7 +6,8 @@ Steps for one frame (docs/decoder.md):
    camera's exact kernels) scores every window against every depth candidate, with the knobs of the network's
    manifest, and keeps its cost volume (``decode.DecodeResult.grid_pooled`` / ``grid_curves``);
 2. the network (``evidence.onnx``, ``nn.volume_net``) turns the volume into logits over the candidates; 1/d is
-   the posterior mean, its 1σ the posterior spread, scaled and floored as fitted on held-out pairs. The grid is
+   the mean of the posterior they describe, continuous between candidates (``decode.volume.posterior``, read here
+   from the graph's logits), its 1σ the posterior spread, scaled and floored as fitted on held-out pairs. The grid is
    padded to a multiple of 4 windows and read in bands of ``BAND_ROWS`` grid rows (with a halo of
    ``HALO_ROWS``, the network's reach), so memory stays bounded on a full frame;
 3. each window's read becomes the mixture of its like-coloured neighbours whose support holds one colour
@@ -32,7 +33,7 @@ import numpy as np
 from ..built_camera import BuiltCamera
 from ..decode import ClassicalConfig, ClassicalDecoder
 from ..decode.support import SupportConfig, frame_support_read
-from ..decode.volume import guided_upsample, pixel_log_colour, volume_inputs
+from ..decode.volume import guided_upsample, pixel_log_colour, posterior, volume_inputs
 from ..model_io import raw_to_rgb
 from ..model_manifest import ModelError, verify_model
 from ..sensor import NoiseProfile
@@ -111,7 +112,8 @@ class EvidenceNetwork:
                 "load_s": self.load_s, "warmup_s": self.warmup_s}
 
     def read(self, volume: np.ndarray, guide: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(1/d, 1σ of 1/d), each R × C, of a (2, D, R, C) volume and (4, R, C) guide (``volume_inputs``)."""
+        """(1/d, 1σ of 1/d), each R × C, of a (2, D, R, C) volume and (4, R, C) guide (``volume_inputs``): the 1/d
+        ``decode.volume.posterior`` reads from the graph's logits, the 1σ the graph's own."""
         rows, cols = guide.shape[1:]
         inv = np.empty((rows, cols), np.float32)
         sig = np.empty((rows, cols), np.float32)
@@ -123,9 +125,9 @@ class EvidenceNetwork:
             vol = np.pad(volume[:, :, lo:hi], ((0, 0), (0, 0), (0, pad_r), (0, pad_c)))[None]
             gd = np.pad(guide[:, lo:hi], ((0, 0), (0, pad_r), (0, pad_c)))[None]
             feeds = {name: value for name, value in (("volume", vol), ("guide", gd)) if name in self.input_names}
-            out = self.session.run(["inv_depth", "sigma_inv"], feeds)
-            inv[top:bottom] = out[0][0, top - lo:bottom - lo, :cols]
-            sig[top:bottom] = out[1][0, top - lo:bottom - lo, :cols]
+            logits, sigma = self.session.run(["logits", "sigma_inv"], feeds)
+            inv[top:bottom] = posterior(logits[0, :, top - lo:bottom - lo, :cols], self.inv_depth_per_m)[0]
+            sig[top:bottom] = sigma[0, top - lo:bottom - lo, :cols]
         return inv, sig
 
 
