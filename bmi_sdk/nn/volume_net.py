@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from bmi_sdk.decode.volume import MODE_REACH, VOLUME_SCALE_NATS, interval_moments
+from bmi_sdk.decode.volume import INTERVAL_POINTS, MODE_REACH, VOLUME_SCALE_NATS, continuous_read
 
 PAD_MULTIPLE = 4
 """The grid's rows and columns are padded to a multiple of this (two ½ levels)."""
@@ -129,20 +129,16 @@ class VolumeNet(nn.Module):
 def posterior_torch(logits: torch.Tensor, inv_depth_per_m: torch.Tensor,
                     reach: int = MODE_REACH) -> tuple[torch.Tensor, torch.Tensor]:
     """(read, spread) of 1/d under (N, D, R, C) logits over dim 1, as ``decode.volume.posterior`` reads them: the
-    mean 1/d of the continuous posterior (logit and 1/d linear between neighbouring candidates) over the ``reach``
-    candidates either side of the most probable one, and the discrete posterior's std."""
+    mean 1/d of the continuous posterior (the logits' Catmull–Rom cubic over the candidate index, 1/d linear
+    between candidates) over the ``reach`` candidates either side of the most probable one, and the discrete
+    posterior's std."""
     z = logits - logits.amax(dim=1, keepdim=True)
     p = torch.softmax(z, dim=1)
     x = inv_depth_per_m.view(1, -1, 1, 1)
     mean = (p * x).sum(dim=1)
     var = (p * (x - mean.unsqueeze(1)) ** 2).sum(dim=1)
-    mass, moment = interval_moments(z[:, :-1], z[:, 1:], xp=torch)
-    k = torch.arange(logits.shape[1] - 1, device=logits.device).view(1, -1, 1, 1)
-    mode = torch.argmax(z, dim=1, keepdim=True)
-    inside = ((k >= mode - reach) & (k + 1 <= mode + reach)).to(z.dtype)
-    mass = mass * inside
-    first = (x[:, :-1] * mass + (x[:, 1:] - x[:, :-1]) * moment * inside).sum(dim=1)
-    return first / mass.sum(dim=1), torch.sqrt(var + 1e-12)
+    read = continuous_read(z.movedim(1, 0), inv_depth_per_m.view(-1, 1, 1, 1), reach, INTERVAL_POINTS, torch)
+    return read, torch.sqrt(var + 1e-12)
 
 
 def reported_sigma(net: VolumeNet, posterior_std: torch.Tensor) -> torch.Tensor:
