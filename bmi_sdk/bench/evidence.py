@@ -8,9 +8,10 @@ the colour-guided upsampling's colour scale (``COLOUR_SIGMAS``; ∞: plain bilin
 the std of error / σ (1: honest σ), the confident coverage (share of valid pixels with σ ≤ 10 % of depth) and
 the time of the support read and the upsampling per megapixel; the classical decoder's own read beside them.
 
-``--full`` also reads the benchmarks' full 6000×4500 procedural frame (seed 7, σ 0.005, tensor-mode render
-decoded with the same kernels: ``decoder.full_frame_raw``) with the support read off, as shipped and with its
-other point estimate, beside the classical read of the same stage.
+Then the issue's plane target: 1/f²-textured planes at 1–6 m on the axis and at 50° of field, read by the
+classical stage and the evidence decoder. ``--full`` also reads the benchmarks' full 6000×4500 procedural frame
+(seed 7, σ 0.005, tensor-mode render decoded with the same kernels: ``decoder.full_frame_raw``) with the support
+read off, as shipped and with its other point estimate, beside the classical read of the same stage.
 """
 
 from __future__ import annotations
@@ -25,6 +26,10 @@ from . import markdown_table, register_target
 COLOUR_SIGMAS = (0.1, 0.3, 1.0, math.inf)
 SUPPORT_RADII = (1, 2, 3, 4)
 SPREAD_SCALES = (0.02, 0.05, 0.2, math.inf)
+PLANE_RANGES_M = (1.0, 2.0, 3.0, 4.0, 6.0)
+PLANE_FIELDS_DEG = (0.0, 50.0)
+PLANE_TARGET_NEAR, PLANE_TARGET_FAR = 0.05, 0.08
+"""The issue's target for 1/f-textured planes: AbsRel ≤ 0.05 up to 4 m, ≤ 0.08 at 6 m, on the axis and at 50°."""
 
 
 def _row(depth: np.ndarray, sigma: np.ndarray, truth: np.ndarray, ok: np.ndarray) -> list[float]:
@@ -68,6 +73,37 @@ def _read(inv_grid, sig_grid, rgb, log_rgb, support, colour_sigma: float, config
     inv_px, var_px = guided_upsample(inv, var, log_rgb, config.stride_px, colour_sigma, threads=2)
     depth = np.where(inv_px > 0, 1.0 / np.where(inv_px > 0, inv_px, 1.0), np.nan)
     return depth, np.sqrt(var_px) * depth ** 2
+
+
+def _planes(network, stage, tensor, geometry) -> str:
+    """The issue's plane target: 1/f² planes (``decoder.plane_raw``, texture "pink", σ 0.005, the stage's kernels
+    render and decode) at ``PLANE_RANGES_M`` and ``PLANE_FIELDS_DEG``, read by the classical stage and by the
+    evidence decoder."""
+    from ..decode.volume import pixel_log_colour
+    from ..metrics import depth_metrics
+    from ..model_io import raw_to_rgb
+    from ..nn.data import STANDARD_SIGMA
+    from ..sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, NoiseProfile
+    from .decoder import plane_raw
+
+    rows = []
+    for field_deg in PLANE_FIELDS_DEG:
+        for depth_m in PLANE_RANGES_M:
+            raw, row0, col0 = plane_raw(tensor, geometry, field_deg, depth_m, texture="pink",
+                                        psf_map=stage.zones.psf_map)
+            result = stage.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0,
+                                  noise_profile=NoiseProfile.additive(STANDARD_SIGMA), aif=False)
+            inv_grid, sig_grid = network.read_decode(result)
+            rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
+            read, _ = _read(inv_grid, sig_grid, rgb, pixel_log_colour(rgb), network.support, network.colour_sigma,
+                            stage.config)
+            truth = np.full(raw.shape, depth_m, np.float32)
+            target = PLANE_TARGET_FAR if depth_m > 4.0 else PLANE_TARGET_NEAR
+            rows.append([f"{field_deg:g}°", f"{depth_m:g} m",
+                         *(depth_metrics(d, truth, result.valid)["absrel"] for d in (result.depth_m, read)),
+                         f"≤ {target:g}"])
+    return ("### 1/f² planes (192² px, φ 30°, σ 0.005, tensor kernels): AbsRel\n\n"
+            + markdown_table(["θ", "range", "classical", "evidence", "target"], rows))
 
 
 def _full_frame(network, stage, tensor, geometry) -> str:
@@ -151,6 +187,7 @@ def run(full: bool = False) -> str:
     out = (f"### Evidence decoder against the classical read (scene scale 4, σ {sigma_noise}, "
            f"{2 * bench.tiles} tiles of {bench.tile_px} px; shipped support {shipped}, colour σ "
            f"{network.colour_sigma:g})\n\n" + markdown_table(header, table))
+    out += "\n\n" + _planes(network, stage, tensor, geometry)
     if full:
         out += "\n\n" + _full_frame(network, stage, tensor, geometry)
     return out
