@@ -51,11 +51,12 @@ def test_grid_targets_are_each_cells_median_inverse_depth():
 
 
 def test_posterior_matches_a_brute_force_integral():
-    """The read against adaptive quadrature of the continuous posterior built independently (scipy's cubic Hermite
-    spline through the logits over the candidate index with Catmull–Rom slopes, 1/d linear in the index, uniform
-    prior on the index) over the ``reach`` candidates either side of the mode, on uneven candidate spacings and
-    logits from flat to sharp: with many points per interval to 1e-7, with the default 8 to a sixteenth of the
-    widest spacing; the spread against the discrete posterior's std."""
+    """The read against adaptive quadrature of the continuous posterior built independently: scipy's cubic Hermite
+    spline of the logits over 1/d with numpy's gradient as its slopes, and a uniform prior on the candidate index
+    (within each interval, density e^logit / the interval's width in 1/d), over the ``reach`` candidates either
+    side of the mode, on uneven candidate spacings and logits from flat to sharp: with many points per interval
+    to 1e-7, with the default 8 to a sixteenth of the widest spacing; the spread against the discrete
+    posterior's std."""
     from scipy.integrate import quad
     from scipy.interpolate import CubicHermiteSpline
 
@@ -70,17 +71,16 @@ def test_posterior_matches_a_brute_force_integral():
     brute_mean = np.einsum("dij,d->ij", p, x)
     brute_var = np.einsum("dij,dij->ij", p, (x[:, None, None] - brute_mean) ** 2)
     np.testing.assert_allclose(std, np.sqrt(brute_var), rtol=1e-10)
-    index = np.arange(7)
     for i in range(4):
         for j in range(5):
             z = logits[:, i, j] - logits[:, i, j].max()
-            slopes = np.gradient(z)  # central differences inside, one-sided at the ends
-            curve = CubicHermiteSpline(index, z, slopes)
+            curve = CubicHermiteSpline(x[::-1], z[::-1], np.gradient(z, x)[::-1])  # over increasing 1/d
             k = int(np.argmax(z))
-            lo, hi = max(0, k - 2), min(6, k + 2)
-            mass = sum(quad(lambda t: np.exp(curve(t)), a, a + 1, epsabs=0, epsrel=1e-12)[0] for a in range(lo, hi))
-            moment = sum(quad(lambda t: np.exp(curve(t)) * np.interp(t, index, x), a, a + 1, epsabs=0,
-                              epsrel=1e-12)[0] for a in range(lo, hi))
+            mass = moment = 0.0
+            for a in range(max(0, k - 2), min(6, k + 2)):
+                lo, hi, width = x[a + 1], x[a], x[a] - x[a + 1]
+                mass += quad(lambda v: np.exp(curve(v)), lo, hi, epsabs=0, epsrel=1e-12)[0] / width
+                moment += quad(lambda v: v * np.exp(curve(v)), lo, hi, epsabs=0, epsrel=1e-12)[0] / width
             assert fine[i, j] == pytest.approx(moment / mass, rel=1e-7)
             assert abs(coarse[i, j] - moment / mass) < np.abs(np.diff(x)).max() / 16
     # a flat posterior over every candidate reads the mean of 1/d along the index (the trapezoid rule over them)
@@ -99,6 +99,26 @@ def test_a_sharp_posterior_between_two_candidates_reads_between_them():
     assert 0.5 * (x[10] + x[11]) < read < x[10]
     with pytest.raises(ValueError, match="reach"):
         posterior(logits, x, reach=0)
+
+
+def test_a_sharp_pooled_curve_whose_minimum_lies_between_candidates_reads_between_them():
+    """A large surface's pooled curve: a parabola in 1/d, 17 and 67 nats above its vertex at the two candidates,
+    its vertex a third of the way from candidate 12 to 13. Through the volume's clip and the shipped anchor's
+    temperature, the read lies between the two candidates, near the vertex: the clip leaves the curve's shape
+    about its minimum alone (at a clip of 60 nats both neighbours would clip alike and the read would sit on
+    candidate 12)."""
+    from bmi_sdk.runtime.evidence import EvidenceNetwork
+
+    network = EvidenceNetwork()
+    x = network.inv_depth_per_m.astype(np.float64)
+    vertex = x[12] + (x[13] - x[12]) / 3
+    curve = 150.0 * ((x - vertex) / (x[13] - x[12])) ** 2            # ΔNLL: 150 nats per spacing², one window
+    pooled = curve[None, None, :].astype(np.float32)
+    vol, guide, _ = volume_inputs(pooled, pooled, np.zeros((1, 1, 3), np.float32))
+    read, _ = network.read(vol, guide)
+    assert x[13] < read[0, 0] < x[12]
+    assert abs(read[0, 0] - vertex) < 0.05 * abs(x[13] - x[12])
+    assert CLIP_NATS * 0.058 > 20  # the clip is e^-20 below the mode at the shipped temperature
 
 
 def test_the_network_reads_its_logits_as_the_numpy_posterior_does():

@@ -90,11 +90,13 @@ INTERVAL_POINTS = 8
 (the midpoint rule: a read resolves about 1/16 of the candidates' spacing, up to ~2 % of the depth at 10 m)."""
 
 
-def hermite_logits(z, xp=np):
-    """(D, ...) slopes of the Catmull–Rom interpolant of logits ``z`` (D, ...) over the candidate index: central
-    differences inside, one-sided at the ends. ``xp``: numpy or torch."""
-    inner = 0.5 * (z[2:] - z[:-2])
-    return xp.concatenate([z[1:2] - z[:1], inner, z[-1:] - z[-2:-1]], 0)
+def logit_slopes(z, x, xp=np):
+    """(D, ...) slopes d(logit)/d(1/d) of logits ``z`` (D, ...) at the candidates' 1/d ``x`` (D, 1, ...): the
+    three-point differences of uneven spacing inside (exact for a parabola in 1/d), one-sided at the ends.
+    ``xp``: numpy or torch."""
+    h_lo, h_hi = x[1:-1] - x[:-2], x[2:] - x[1:-1]
+    inner = (h_lo ** 2 * (z[2:] - z[1:-1]) + h_hi ** 2 * (z[1:-1] - z[:-2])) / (h_lo * h_hi * (h_lo + h_hi))
+    return xp.concatenate([(z[1:2] - z[:1]) / (x[1:2] - x[:1]), inner, (z[-1:] - z[-2:-1]) / (x[-1:] - x[-2:-1])], 0)
 
 
 def posterior(logits: np.ndarray, inv_depth_per_m: np.ndarray, axis: int = 0,
@@ -103,10 +105,11 @@ def posterior(logits: np.ndarray, inv_depth_per_m: np.ndarray, axis: int = 0,
     ``inv_depth_per_m``) describe.
 
     The read is continuous. The candidate index t is a continuous variable (a uniform prior on it, as the softmax
-    over candidates has on the index) whose logit is the Catmull–Rom cubic through the candidates' logits (slopes
-    from central differences: a minimum between two candidates shows between them) and 1/d is linear in t between
-    candidates; the read is that posterior's mean 1/d over the ``reach`` candidates either side of the most
-    probable one (a second, far mode would pull the whole mean between two surfaces, where neither is), evaluated
+    over candidates has on the index) and 1/d is linear in t between candidates; the logit is the cubic Hermite
+    interpolant through the candidates' logits in 1/d, its slopes the three-point differences of uneven spacing
+    (``logit_slopes``: a parabola in 1/d, the shape of a likelihood about its minimum, is reproduced exactly, so
+    a minimum between two candidates lies where it is). The read is that posterior's mean 1/d over the ``reach``
+    candidates either side of the most probable one (a second, far mode would pull the whole mean between two surfaces, where neither is), evaluated
     at ``points`` midpoints per interval. A read snapped to the candidates would be off by up to half their spacing
     (5–10 % of the depth beyond 3 m) on a surface whose pooled evidence is sharp. The spread is the discrete
     posterior's std over every candidate: wide for flat or two-peaked evidence."""
@@ -129,7 +132,7 @@ def continuous_read(z, x, reach: int, points: int, xp):
     (``xp``): the 2 ``reach`` intervals about the mode are gathered (those past either end weigh 0) and their cubic
     evaluated at ``points`` midpoints."""
     n = z.shape[0]
-    slopes = hermite_logits(z, xp)
+    slopes = logit_slopes(z, x, xp)
     mode = xp.argmax(z, 0)
     u = (xp.arange(points) + 0.5) / points
     u = u.reshape((points,) + (1,) * (z.ndim - 1))
@@ -141,8 +144,9 @@ def continuous_read(z, x, reach: int, points: int, xp):
         j = mode + offset
         ok = (j >= 0) & (j <= n - 2)
         j = xp.clip(j, 0, n - 2)[None]
-        z0, z1, m0, m1 = take(z, j), take(z, j + 1), take(slopes, j), take(slopes, j + 1)
         x0, x1 = take(x_full, j), take(x_full, j + 1)
+        z0, z1 = take(z, j), take(z, j + 1)
+        m0, m1 = take(slopes, j) * (x1 - x0), take(slopes, j + 1) * (x1 - x0)   # d(logit)/du, u ∈ [0, 1]
         zi = basis[0] * z0 + basis[1] * m0 + basis[2] * z1 + basis[3] * m1      # (points, ...)
         w = xp.exp(zi) * ok
         xi = x0 + u * (x1 - x0)

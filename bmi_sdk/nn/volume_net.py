@@ -129,8 +129,8 @@ class VolumeNet(nn.Module):
 def posterior_torch(logits: torch.Tensor, inv_depth_per_m: torch.Tensor,
                     reach: int = MODE_REACH) -> tuple[torch.Tensor, torch.Tensor]:
     """(read, spread) of 1/d under (N, D, R, C) logits over dim 1, as ``decode.volume.posterior`` reads them: the
-    mean 1/d of the continuous posterior (the logits' Catmull–Rom cubic over the candidate index, 1/d linear
-    between candidates) over the ``reach`` candidates either side of the most probable one, and the discrete
+    mean 1/d of the continuous posterior (the logits' cubic Hermite interpolant in 1/d, a uniform prior on the
+    candidate index) over the ``reach`` candidates either side of the most probable one, and the discrete
     posterior's std."""
     z = logits - logits.amax(dim=1, keepdim=True)
     p = torch.softmax(z, dim=1)
