@@ -47,18 +47,24 @@ def _variants(shipped, colour_sigma: float) -> list[tuple[str, object, float]]:
     from the shipped ``shipped`` support and ``colour_sigma``."""
     from dataclasses import replace
 
-    from ..decode.support import ESTIMATES
-
     rows = [("support off", None, colour_sigma)]
     rows += [(f"support radius {r}" + (" (shipped)" if r == shipped.radius_windows else ""),
               replace(shipped, radius_windows=r), colour_sigma) for r in SUPPORT_RADII]
     rows += [(f"support τ {t:g}", replace(shipped, spread_scale=t if math.isfinite(t) else 1e12), colour_sigma)
              for t in SPREAD_SCALES if t != shipped.spread_scale]
-    rows += [(f"support estimate {e}", replace(shipped, estimate=e), colour_sigma) for e in ESTIMATES
-             if e != shipped.estimate]
+    rows += [(f"support estimate {name}", support, colour_sigma) for name, support in _other_estimates(shipped)]
     rows += [(f"colour σ {c:g}", shipped, c if math.isfinite(c) else 1e6) for c in COLOUR_SIGMAS
              if c != colour_sigma]
     return rows
+
+
+def _other_estimates(shipped) -> list[tuple[str, object]]:
+    """(name, support knobs) of each point estimate the ``shipped`` support read does not use, its other knobs kept."""
+    from dataclasses import replace
+
+    from ..decode.support import ESTIMATES
+
+    return [(e, replace(shipped, estimate=e)) for e in ESTIMATES if e != shipped.estimate]
 
 
 def _read(inv_grid, sig_grid, rgb, log_rgb, support, colour_sigma: float, config) -> tuple[np.ndarray, np.ndarray]:
@@ -122,14 +128,9 @@ def _full_frame(network, stage, tensor, geometry) -> str:
     rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
     log_rgb = pixel_log_colour(rgb)
     rows = [["classical", *_row(result.depth_m, result.depth_sigma_m, range_m, result.valid), f"{stage_s:.1f}"]]
-    from dataclasses import replace
-
-    from ..decode.support import ESTIMATES
-
     reads = [("evidence, support off", None), ("evidence, support as shipped", network.support)]
     if network.support is not None:
-        reads += [(f"evidence, support estimate {e}", replace(network.support, estimate=e)) for e in ESTIMATES
-                  if e != network.support.estimate]
+        reads += [(f"evidence, support estimate {name}", support) for name, support in _other_estimates(network.support)]
     for name, support in reads:
         t0 = time.perf_counter()
         depth, sigma = _read(inv_grid, sig_grid, rgb, log_rgb, support, network.colour_sigma, stage.config)

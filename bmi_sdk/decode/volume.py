@@ -109,10 +109,11 @@ def posterior(logits: np.ndarray, inv_depth_per_m: np.ndarray, axis: int = 0,
     interpolant through the candidates' logits in 1/d, its slopes the three-point differences of uneven spacing
     (``logit_slopes``: a parabola in 1/d, the shape of a likelihood about its minimum, is reproduced exactly, so
     a minimum between two candidates lies where it is). The read is that posterior's mean 1/d over the ``reach``
-    candidates either side of the most probable one (a second, far mode would pull the whole mean between two surfaces, where neither is), evaluated
-    at ``points`` midpoints per interval. A read snapped to the candidates would be off by up to half their spacing
-    (5–10 % of the depth beyond 3 m) on a surface whose pooled evidence is sharp. The spread is the discrete
-    posterior's std over every candidate: wide for flat or two-peaked evidence."""
+    candidates either side of the most probable one (a second, far mode would pull the whole mean between two
+    surfaces, where neither is), evaluated at ``points`` midpoints per interval. A read snapped to the candidates
+    would be off by up to half their spacing (5–10 % of the depth beyond 3 m) on a surface whose pooled evidence
+    is sharp. The spread is the discrete posterior's std over every candidate: wide for flat or two-peaked
+    evidence."""
     if isinstance(reach, bool) or not isinstance(reach, int) or reach < 1:
         raise ValueError(f"posterior reach must be a whole number >= 1, got {reach!r}")
     z = np.moveaxis(np.asarray(logits, np.float64), axis, 0)
@@ -137,14 +138,14 @@ def continuous_read(z, x, reach: int, points: int, xp):
     u = (xp.arange(points) + 0.5) / points
     u = u.reshape((points,) + (1,) * (z.ndim - 1))
     basis = (2 * u ** 3 - 3 * u ** 2 + 1, u ** 3 - 2 * u ** 2 + u, -2 * u ** 3 + 3 * u ** 2, u ** 3 - u ** 2)
-    x_full = x + 0 * z
+    x_flat = x.reshape(-1)
     take = (lambda a, i: np.take_along_axis(a, i, 0)) if xp is np else (lambda a, i: xp.gather(a, 0, i))
     total = first = 0.0
     for offset in range(-reach, reach):
         j = mode + offset
         ok = (j >= 0) & (j <= n - 2)
         j = xp.clip(j, 0, n - 2)[None]
-        x0, x1 = take(x_full, j), take(x_full, j + 1)
+        x0, x1 = x_flat[j], x_flat[j + 1]   # the candidates' 1/d at each window's interval ends
         z0, z1 = take(z, j), take(z, j + 1)
         m0, m1 = take(slopes, j) * (x1 - x0), take(slopes, j + 1) * (x1 - x0)   # d(logit)/du, u ∈ [0, 1]
         zi = basis[0] * z0 + basis[1] * m0 + basis[2] * z1 + basis[3] * m1      # (points, ...)
