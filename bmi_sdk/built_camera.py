@@ -180,7 +180,7 @@ def traced_ray_geometry(camera: BuiltCamera, field_step_deg: float = 0.5, azimut
     phi = np.arange(azimuths) * (360.0 / azimuths)
     theta_grid, phi_grid = (a.ravel() for a in np.meshgrid(theta, phi, indexing="ij"))
     land = chief_landing_px(lens, p, theta_grid, phi_grid, math.inf, 0.5876, base.centre_px, base.pitch_um)
-    land = land + np.array([p.psf_shift_px[1], p.psf_shift_px[0]])
+    land = land + p.psf_shift_rc
     by_field = land.reshape(len(theta), len(phi), 2)
     centre = by_field[0].mean(axis=0)
     radial_mm = np.hypot(*(by_field - centre).transpose(2, 0, 1)).mean(axis=1) * base.pitch_um * 1e-3

@@ -178,7 +178,7 @@ def initial_positions(lens, g, spots, channel, kernel_px, geometry, spread_px, f
     measured = np.array([s.centroid_px for s in spots])
     start = Perturbation.from_vector(g, spread_px)
     land = chief_landing_px(lens, start, theta, phi, depth, lam, geometry.centre_px, geometry.pitch_um)
-    land = land + np.array([start.psf_shift_px[1], start.psf_shift_px[0]])
+    land = land + start.psf_shift_rc
     # kernels centred on their own landing point, so no spot is cut by the window
     first = spot_kernels(lens, start, theta, phi, depth, lam, np.rint(land), kernel_px, geometry.centre_px,
                          geometry.pitch_um, stray_light=False)
@@ -192,7 +192,7 @@ def initial_positions(lens, g, spots, channel, kernel_px, geometry, spread_px, f
     def landing(vector):
         p = Perturbation.from_vector(vector, spread_px)
         chief = chief_landing_px(lens, p, theta, phi, depth, lam, geometry.centre_px, geometry.pitch_um)
-        return chief + np.array([p.psf_shift_px[1], p.psf_shift_px[0]])
+        return chief + p.psf_shift_rc
 
     base_names = [n for n in PARAMETERS for _ in range(SIZES[n])]
     prior = np.array([PAPER_RANGES[base_names[i]] for i in cols])

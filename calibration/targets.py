@@ -194,7 +194,7 @@ class PointSourceScene:
         for c in target.channels:
             land = chief_landing_px(lens, perturbation, theta, phi, depth, CHANNEL_NM[c] * 1e-3,
                                     geometry.centre_px, geometry.pitch_um)
-            land = land + np.array([perturbation.psf_shift_px[1], perturbation.psf_shift_px[0]])
+            land = land + perturbation.psf_shift_rc
             if self.landing_px is None:
                 self.landing_px = land
             centre = np.rint(self.landing_px)

@@ -99,6 +99,11 @@ class Perturbation:
         """No error at all (a glare spread without glare changes nothing): the lens as designed."""
         return not np.any(self.to_vector())
 
+    @property
+    def psf_shift_rc(self) -> np.ndarray:
+        """(2,) ``psf_shift_px`` as a (row, col) offset in px, the order spot landings are held in."""
+        return np.array([self.psf_shift_px[1], self.psf_shift_px[0]], dtype=np.float64)
+
     # -- conversions ----------------------------------------------------------
     def to_vector(self) -> np.ndarray:
         return np.concatenate([np.atleast_1d(getattr(self, n)) for n in PARAMETERS]).astype(np.float64)
@@ -304,7 +309,7 @@ def spot_kernels(lens: Lens, p: Perturbation, field_deg, phi_deg, depth_m, wavel
     fits, chief_land, phi = trace_spots(lens, p, field_deg, phi_deg, depth_m, wavelength_um, sensor_centre_px,
                                         pitch_um, fit_grid, fit_degree)
     n = len(fits)
-    land = chief_land + np.array([p.psf_shift_px[1], p.psf_shift_px[0]])
+    land = chief_land + p.psf_shift_rc
     if sample_offset_px is None:
         centre = np.broadcast_to(np.asarray(centre_px, dtype=np.float64), (n, 2))
         sample = np.stack([centre[:, 1] - land[:, 1], centre[:, 0] - land[:, 0]], axis=-1)  # (dx, dy)

@@ -318,9 +318,8 @@ class PsfMap:
             axis_design = chief_landing_px(lens, Perturbation(), axis, 0.0, depth_m, wavelength_um, centre_px, pitch_um)
             axis_built = chief_landing_px(lens, self.perturbation, axis, 0.0, depth_m, wavelength_um, centre_px,
                                           pitch_um)
-            shift_rc = np.array([self.perturbation.psf_shift_px[1], self.perturbation.psf_shift_px[0]])
             with self._lock:
-                self._axis_shift.update(zip(missing, axis_built + shift_rc - axis_design))
+                self._axis_shift.update(zip(missing, axis_built + self.perturbation.psf_shift_rc - axis_design))
         return np.stack([self._axis_shift[key] for key in keys])
 
     def _bracket(self, theta_deg: float):
