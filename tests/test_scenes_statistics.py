@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from bmi_sdk.scenes.statistics import spectral_slope
+from bmi_sdk.scenes.statistics import power_law_levels, spectral_slope
 
 
 def power_law_noise(size: int, alpha: float, seed: int) -> np.ndarray:
@@ -40,3 +40,26 @@ def test_a_colour_image_reads_its_channel_mean_and_bad_input_is_named():
         spectral_slope(grey[:40, :40])
     with pytest.raises(ValueError, match="H × W"):
         spectral_slope(np.zeros(16))
+
+
+def test_power_law_levels_are_flat_for_power_law_noise_and_find_a_notch():
+    """1/f noise reads level 1 in every bin (4 draws averaged: the lowest bins hold few frequencies); the same noise
+    with its power halved over 1/128–1/64 cycles/px (a notch built in Fourier, independently of the estimator)
+    reads a dip there and not elsewhere."""
+    size = 1024
+    f = np.hypot(np.fft.fftfreq(size)[:, None], np.fft.fftfreq(size)[None, :])
+    notch = np.where((f > 1 / 128) & (f < 1 / 64), np.sqrt(0.5), 1.0)
+    flat, notched = [], []
+    for seed in range(4):
+        noise = power_law_noise(size, 1.0, seed)
+        f_cpp, level = power_law_levels(noise, bins=8)
+        flat.append(level)
+        notched.append(power_law_levels(np.fft.ifft2(np.fft.fft2(noise) * notch).real, bins=8)[1])
+    flat, ratio = np.mean(flat, axis=0), np.mean(notched, axis=0) / np.mean(flat, axis=0)
+    assert np.all(np.abs(np.log(flat)) < np.log(1.15))
+    inside = (f_cpp > 1 / 128) & (f_cpp < 1 / 64)
+    assert inside.any() and np.all(ratio[inside] / np.median(ratio) < 0.75)
+    far = (f_cpp > 1 / 24) | (f_cpp < 1 / 160)
+    assert np.all(np.abs(np.log(ratio[far] / np.median(ratio))) < np.log(1.12))
+    with pytest.raises(ValueError, match="power_law_levels reads"):
+        power_law_levels(np.zeros(16))

@@ -12,7 +12,13 @@ van Hateren 1996, Vision Research 36: a power-spectrum exponent near 2α ≈ 1.9
    mosaic, the renderer's resampling and the sensor noise act);
 4. fit log A = c − α log f by least squares over the bins' mean log frequency; return α.
 
-``python -m bmi_sdk.scenes.statistics`` prints α for procedural scenes and for ``bmi eval``'s tiles (docs/scenes.md).
+``power_law_levels`` asks whether one power law holds across a band, not only on average: the radially averaged
+power P(f) times f^2α, per logarithmic bin, relative to its geometric mean over the bins (1 in every bin for a
+1/f^α image). The depth evidence decides dark, faint surfaces by the lowest frequencies of a 64-px window
+(docs/decoder.md), so a dip or a bump in the 1/200–1/50 cycles/px octaves matters there even where α is right.
+
+``python -m bmi_sdk.scenes.statistics`` prints α for procedural scenes and for ``bmi eval``'s tiles, and the levels
+of a large scene (docs/scenes.md).
 """
 
 from __future__ import annotations
@@ -23,13 +29,14 @@ SLOPE_BAND_CPP = (0.02, 0.25)
 """The frequency band (cycles/px) ``spectral_slope`` fits over by default."""
 
 
-def spectral_slope(image: np.ndarray, band_cpp: tuple[float, float] = SLOPE_BAND_CPP, bins: int = 12) -> float:
-    """α of an H × W (grey) or H × W × C (its channel mean) image's amplitude spectrum A(f) ∝ 1/f^α (module doc)."""
+def _binned_spectrum(image: np.ndarray, band_cpp: tuple[float, float], bins: int, name: str) -> tuple:
+    """(log f, log mean amplitude, log mean power) per non-empty logarithmic bin of ``band_cpp`` of a grey image, or
+    its channel mean, after the mean is removed and a 2-D Hann window applied (module doc, steps 1–3)."""
     image = np.asarray(image, np.float64)
     if image.ndim == 3:
         image = image.mean(axis=2)
     if image.ndim != 2:
-        raise ValueError(f"spectral_slope reads an H × W or H × W × C image, got shape {image.shape}")
+        raise ValueError(f"{name} reads an H × W or H × W × C image, got shape {image.shape}")
     lo, hi = band_cpp
     if not 0.0 < lo < hi <= 0.5:
         raise ValueError(f"band_cpp must satisfy 0 < low < high <= 0.5 cycles/px, got {band_cpp}")
@@ -40,17 +47,32 @@ def spectral_slope(image: np.ndarray, band_cpp: tuple[float, float] = SLOPE_BAND
     window = np.hanning(height)[:, None] * np.hanning(width)[None, :]
     amplitude = np.abs(np.fft.fft2((image - image.mean()) * window)).ravel()
     f = np.hypot(np.fft.fftfreq(height)[:, None], np.fft.fftfreq(width)[None, :]).ravel()
-    edges = np.geomspace(lo, hi, bins + 1)
-    which = np.digitize(f, edges)
-    log_f, log_a = [], []
-    for i in range(1, bins + 1):
-        inside = which == i
-        if inside.any():
-            log_f.append(np.log(f[inside]).mean())
-            log_a.append(np.log(amplitude[inside].mean()))
-    if len(log_f) < 3:
+    which = np.digitize(f, np.geomspace(lo, hi, bins + 1))
+    rows = [(np.log(f[inside]).mean(), np.log(amplitude[inside].mean()), np.log((amplitude[inside] ** 2).mean()))
+            for inside in (which == i for i in range(1, bins + 1)) if inside.any()]
+    if len(rows) < 3:
         raise ValueError(f"a {height} × {width} image has frequencies in fewer than 3 bins of {band_cpp}")
+    log_f, log_a, log_p = (np.array(column) for column in zip(*rows))
+    return log_f, log_a, log_p
+
+
+def spectral_slope(image: np.ndarray, band_cpp: tuple[float, float] = SLOPE_BAND_CPP, bins: int = 12) -> float:
+    """α of an H × W (grey) or H × W × C (its channel mean) image's amplitude spectrum A(f) ∝ 1/f^α (module doc)."""
+    log_f, log_a, _ = _binned_spectrum(image, band_cpp, bins, "spectral_slope")
     return float(-np.polyfit(log_f, log_a, 1)[0])
+
+
+LEVELS_BAND_CPP = (1.0 / 256.0, 0.25)
+"""The band (cycles/px) ``power_law_levels`` reads by default: from below a 64-px window's first DFT bin up."""
+
+
+def power_law_levels(image: np.ndarray, band_cpp: tuple[float, float] = LEVELS_BAND_CPP, bins: int = 12,
+                     alpha: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(f_cpp, level): per logarithmic bin of ``band_cpp``, its mean frequency and the mean power times f^(2 ``alpha``)
+    relative to the bins' geometric mean (module doc): 1 in every bin for an image whose amplitude falls as 1/f^α."""
+    log_f, _, log_p = _binned_spectrum(image, band_cpp, bins, "power_law_levels")
+    whitened = log_p + 2.0 * alpha * log_f
+    return np.exp(log_f), np.exp(whitened - whitened.mean())
 
 
 SCENE_SCALES = (1, 4, 16)
@@ -59,7 +81,7 @@ SCENE_SCALES = (1, 4, 16)
 
 def _main() -> None:
     """Print α of procedural scenes: whole ones, and the centre crop of one drawn ×1, ×4, ×16 larger than the crop,
-    as ``bmi eval`` draws its tiles (``nn.data.scene_crop``)."""
+    as ``bmi eval`` draws its tiles (``nn.data.scene_crop``); then the power-law levels of large scenes' centres."""
     import argparse
 
     from bmi_sdk.scenes import generate_scene
@@ -69,6 +91,9 @@ def _main() -> None:
     parser.add_argument("--px", type=int, default=512, help="side of the whole scenes measured")
     parser.add_argument("--crop-px", type=int, default=240,
                         help="side of the crops (default: a bmi eval tile of 192 px with its 24-px margins)")
+    parser.add_argument("--levels-scene-px", type=int, default=3840,
+                        help="side of the scenes whose power-law levels are read (default: a ×16 bmi eval tile's)")
+    parser.add_argument("--levels-crop-px", type=int, default=1024, help="side of their centre crop that is read")
     args = parser.parse_args()
 
     def report(label: str, values: list[float]) -> None:
@@ -87,6 +112,20 @@ def _main() -> None:
     for scale in SCENE_SCALES:
         report(f"centre {args.crop_px}² px of a scene drawn ×{scale} larger",
                [spectral_slope(crop(scale, seed)) for seed in range(args.seeds)])
+
+    side, keep = args.levels_scene_px, args.levels_crop_px
+    top = (side - keep) // 2
+    levels = [power_law_levels(generate_scene(side, side, seed).rgb[top:top + keep, top:top + keep], bins=8)
+              for seed in range(args.seeds)]
+    f_cpp = levels[0][0]
+    print()
+    print(f"| power × f² relative to its band mean: centre {keep}² px of {side}² px scenes ({args.seeds} seeds) | "
+          + " | ".join(f"{f:.4f}" for f in f_cpp) + " |")
+    print("|---|" + "---|" * len(f_cpp))
+    level = np.array([lv for _, lv in levels])
+    print("| mean (1 for a 1/f image) | " + " | ".join(f"{v:.2f}" for v in level.mean(axis=0)) + " |")
+    print("| seeds' range | " + " | ".join(f"{a:.2f}–{b:.2f}" for a, b in zip(level.min(axis=0), level.max(axis=0)))
+          + " |")
 
 
 if __name__ == "__main__":
