@@ -94,6 +94,8 @@ def _main() -> None:
     parser.add_argument("--levels-scene-px", type=int, default=3840,
                         help="side of the scenes whose power-law levels are read (default: a ×16 bmi eval tile's)")
     parser.add_argument("--levels-crop-px", type=int, default=1024, help="side of their centre crop that is read")
+    parser.add_argument("--surface-px", type=int, default=256,
+                        help="side of the windows on one surface whose levels are read in the same scenes")
     args = parser.parse_args()
 
     def report(label: str, values: list[float]) -> None:
@@ -126,6 +128,34 @@ def _main() -> None:
     print("| mean (1 for a 1/f image) | " + " | ".join(f"{v:.2f}" for v in level.mean(axis=0)) + " |")
     print("| seeds' range | " + " | ".join(f"{a:.2f}–{b:.2f}" for a, b in zip(level.min(axis=0), level.max(axis=0)))
           + " |")
+
+    # windows on one surface: no depth step (neighbouring ranges within 1 %), so the texture alone is read, against
+    # 1/f noise read through the same windows (the estimator's own bias at the band's low end)
+    n = args.surface_px
+    band = (2.0 / n, 0.25)
+    surfaces = []
+    for seed in range(args.seeds):
+        scene = generate_scene(side, side, seed)
+        for r in range(0, side - n + 1, n):
+            for c in range(0, side - n + 1, n):
+                depth = scene.range_m[r:r + n, c:c + n]
+                step = max(np.abs(np.diff(depth, axis=0)).max(), np.abs(np.diff(depth, axis=1)).max())
+                if step < 0.01 * depth.min():
+                    surfaces.append(power_law_levels(scene.rgb[r:r + n, c:c + n], band, bins=6)[1])
+    from bmi_sdk.scenes.procedural import pink_noise
+
+    noise_reads = [power_law_levels(pink_noise((n, n), np.random.default_rng(seed)), band, bins=6) for seed in range(64)]
+    f_cpp, reference = noise_reads[0][0], np.mean([lv for _, lv in noise_reads], axis=0)
+    if not surfaces:
+        print(f"\nno {n}² px window of these scenes lies on one surface")
+        return
+    print()
+    print(f"| power × f² relative to its band mean, {n}² px windows on one surface ({len(surfaces)} windows of "
+          f"{args.seeds} {side}² px scenes) | " + " | ".join(f"{f:.4f}" for f in f_cpp) + " |")
+    print("|---|" + "---|" * len(f_cpp))
+    print("| 1/f noise (64 draws) | " + " | ".join(f"{v:.2f}" for v in reference) + " |")
+    print("| surfaces, mean | " + " | ".join(f"{v:.2f}" for v in np.mean(surfaces, axis=0)) + " |")
+    print("| surfaces / 1/f noise | " + " | ".join(f"{v:.2f}" for v in np.mean(surfaces, axis=0) / reference) + " |")
 
 
 if __name__ == "__main__":
