@@ -63,3 +63,18 @@ def test_power_law_levels_are_flat_for_power_law_noise_and_find_a_notch():
     assert np.all(np.abs(np.log(ratio[far] / np.median(ratio))) < np.log(1.12))
     with pytest.raises(ValueError, match="power_law_levels reads"):
         power_law_levels(np.zeros(16))
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--seeds", "0"], "--seeds must be at least 1"),
+    (["--surface-px", "-3"], "--surface-px must be at least 64"),
+    (["--crop-px", "100000"], "must not exceed 8192"),
+    (["--levels-scene-px", "512", "--levels-crop-px", "1024"], "--levels-scene-px must lie in"),
+])
+def test_the_statistics_command_refuses_options_that_draw_nothing_or_exhaust_memory(argv, message, monkeypatch, capsys):
+    from bmi_sdk.scenes import statistics
+
+    monkeypatch.setattr("sys.argv", ["statistics"] + argv)
+    with pytest.raises(SystemExit):
+        statistics._main()
+    assert message in capsys.readouterr().err

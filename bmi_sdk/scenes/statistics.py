@@ -78,6 +78,9 @@ def power_law_levels(image: np.ndarray, band_cpp: tuple[float, float] = LEVELS_B
 SCENE_SCALES = (1, 4, 16)
 """Scene scales measured by ``python -m bmi_sdk.scenes.statistics``: those ``bmi eval`` names (×1 its stress test)."""
 
+MAX_SCENE_PX = 8192
+"""The largest scene side the command line draws (about 2 GB at 8192² px)."""
+
 
 def _main() -> None:
     """Print α of procedural scenes: whole ones, and the centre crop of one drawn ×1, ×4, ×16 larger than the crop,
@@ -97,6 +100,19 @@ def _main() -> None:
     parser.add_argument("--surface-px", type=int, default=256,
                         help="side of the windows on one surface whose levels are read in the same scenes")
     args = parser.parse_args()
+    if args.seeds < 1:
+        parser.error(f"--seeds must be at least 1, got {args.seeds}")
+    for name in ("px", "crop_px", "levels_crop_px", "surface_px"):
+        if getattr(args, name) < 64:
+            parser.error(f"--{name.replace('_', '-')} must be at least 64 px, got {getattr(args, name)}")
+    # memory: a scene costs ~30 bytes per pixel (rgb, range and the drawing's buffers), ~2 GB at 8192² px
+    if args.px > MAX_SCENE_PX or args.crop_px * max(SCENE_SCALES) > MAX_SCENE_PX:
+        parser.error(f"--px and --crop-px × {max(SCENE_SCALES)} must not exceed {MAX_SCENE_PX} px, "
+                     f"got {args.px} and {args.crop_px}")
+    if not args.levels_crop_px <= args.levels_scene_px <= MAX_SCENE_PX:
+        parser.error(f"--levels-scene-px must lie in [--levels-crop-px, {MAX_SCENE_PX}], got {args.levels_scene_px}")
+    if args.surface_px > args.levels_scene_px:
+        parser.error(f"--surface-px must not exceed --levels-scene-px, got {args.surface_px}")
 
     def report(label: str, values: list[float]) -> None:
         print(f"| {label} | {np.mean(values):.2f} | {np.std(values):.2f} | {min(values):.2f}–{max(values):.2f} |")
