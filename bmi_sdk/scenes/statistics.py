@@ -131,48 +131,55 @@ def _main() -> None:
         report(f"centre {args.crop_px}² px of a scene drawn ×{scale} larger",
                [spectral_slope(crop(scale, seed)) for seed in range(args.seeds)])
 
-    side, keep = args.levels_scene_px, args.levels_crop_px
-    top = (side - keep) // 2
-    levels = [power_law_levels(generate_scene(side, side, seed).rgb[top:top + keep, top:top + keep], bins=8)
-              for seed in range(args.seeds)]
-    f_cpp = levels[0][0]
-    print()
-    print(f"| power × f² relative to its band mean: centre {keep}² px of {side}² px scenes ({args.seeds} seeds) | "
-          + " | ".join(f"{f:.4f}" for f in f_cpp) + " |")
-    print("|---|" + "---|" * len(f_cpp))
-    level = np.array([lv for _, lv in levels])
-    print("| mean (1 for a 1/f image) | " + " | ".join(f"{v:.2f}" for v in level.mean(axis=0)) + " |")
-    print("| seeds' range | " + " | ".join(f"{a:.2f}–{b:.2f}" for a, b in zip(level.min(axis=0), level.max(axis=0)))
-          + " |")
-
-    # windows on one surface: no depth step (neighbouring ranges within 1 %), so the texture alone is read, against
-    # 1/f noise read through the same windows (the estimator's own bias at the band's low end)
-    n = args.surface_px
-    band = (2.0 / n, 0.25)
-    surfaces = []
-    for seed in range(args.seeds):
-        scene = generate_scene(side, side, seed)
-        for r in range(0, side - n + 1, n):
-            for c in range(0, side - n + 1, n):
-                depth = scene.range_m[r:r + n, c:c + n]
-                step = max(np.abs(np.diff(depth, axis=0)).max(), np.abs(np.diff(depth, axis=1)).max())
-                if step < 0.01 * depth.min():
-                    surfaces.append(power_law_levels(scene.rgb[r:r + n, c:c + n], band, bins=6)[1])
+    # each large scene is drawn once: its centre crop's levels, and those of its windows on one surface (no depth
+    # step), read against 1/f noise through the same windows (the estimator's own bias at the band's low end)
     from bmi_sdk.scenes.procedural import pink_noise
 
-    noise_reads = [power_law_levels(pink_noise((n, n), np.random.default_rng(seed)), band, bins=6) for seed in range(64)]
-    f_cpp, reference = noise_reads[0][0], np.mean([lv for _, lv in noise_reads], axis=0)
+    side, keep, n = args.levels_scene_px, args.levels_crop_px, args.surface_px
+    top = (side - keep) // 2
+    band = (2.0 / n, 0.25)
+    crops, surfaces = [], []
+    for seed in range(args.seeds):
+        scene = generate_scene(side, side, seed)
+        crops.append(power_law_levels(scene.rgb[top:top + keep, top:top + keep], bins=8))
+        surfaces += [power_law_levels(scene.rgb[r:r + n, c:c + n], band, bins=6)[1]
+                     for r, c in _surface_windows(scene.range_m, n)]
+
+    def head(label: str, f_cpp: np.ndarray) -> None:
+        print(f"\n| {label} | " + " | ".join(f"{f:.4f}" for f in f_cpp) + " |")
+        print("|---|" + "---|" * len(f_cpp))
+
+    def row(label: str, values) -> None:
+        print(f"| {label} | " + " | ".join(values) + " |")
+
+    level = np.array([lv for _, lv in crops])
+    head(f"power × f² relative to its band mean: centre {keep}² px of {side}² px scenes ({args.seeds} seeds)",
+         crops[0][0])
+    row("mean (1 for a 1/f image)", (f"{v:.2f}" for v in level.mean(axis=0)))
+    row("seeds' range", (f"{a:.2f}–{b:.2f}" for a, b in zip(level.min(axis=0), level.max(axis=0))))
+
     if not surfaces:
         print(f"\nno {n}² px window of these scenes lies on one surface")
         return
-    print()
-    print(f"| power × f² relative to its band mean, {n}² px windows on one surface ({len(surfaces)} windows of "
-          f"{args.seeds} {side}² px scenes) | " + " | ".join(f"{f:.4f}" for f in f_cpp) + " |")
-    print("|---|" + "---|" * len(f_cpp))
-    print("| 1/f noise (64 draws) | " + " | ".join(f"{v:.2f}" for v in reference) + " |")
-    print("| surfaces, mean | " + " | ".join(f"{v:.2f}" for v in np.mean(surfaces, axis=0)) + " |")
-    print("| surfaces / 1/f noise | " + " | ".join(f"{v:.2f}" for v in np.mean(surfaces, axis=0) / reference) + " |")
+    noise_reads = [power_law_levels(pink_noise((n, n), np.random.default_rng(seed)), band, bins=6) for seed in range(64)]
+    reference = np.mean([lv for _, lv in noise_reads], axis=0)
+    surface_mean = np.mean(surfaces, axis=0)
+    head(f"power × f² relative to its band mean, {n}² px windows on one surface ({len(surfaces)} windows of "
+         f"{args.seeds} {side}² px scenes)", noise_reads[0][0])
+    row("1/f noise (64 draws)", (f"{v:.2f}" for v in reference))
+    row("surfaces, mean", (f"{v:.2f}" for v in surface_mean))
+    row("surfaces / 1/f noise", (f"{v:.2f}" for v in surface_mean / reference))
 
+
+def _surface_windows(range_m: np.ndarray, n: int):
+    """(row, col) of the non-overlapping n × n windows of ``range_m`` that lie on one surface: no step between
+    neighbouring pixels larger than 1 % of the window's nearest range."""
+    for r in range(0, range_m.shape[0] - n + 1, n):
+        for c in range(0, range_m.shape[1] - n + 1, n):
+            depth = range_m[r:r + n, c:c + n]
+            step = max(np.abs(np.diff(depth, axis=0)).max(), np.abs(np.diff(depth, axis=1)).max())
+            if step < 0.01 * depth.min():
+                yield r, c
 
 if __name__ == "__main__":
     _main()
