@@ -1,5 +1,5 @@
 """`bmi eval` (bmi_sdk.nn.evaluate, bmi_sdk.cli.eval): decoders through the registry, tiles as raw frames, scene
-scales, the breakdown by range band and depth edge (bmi_sdk.nn.eval_strata) and the sampled built cameras."""
+scales, the breakdown by range band, depth edge and signal (bmi_sdk.nn.eval_strata) and the sampled built cameras."""
 
 import math
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bmi_sdk.nn import evaluate
-from bmi_sdk.nn.eval_strata import EDGE_BANDS, StrataSums, depth_edges, edge_distance_px
+from bmi_sdk.nn.eval_strata import EDGE_BANDS, SIGNAL_BANDS, StrataSums, depth_edges, edge_distance_px
 from bmi_sdk.runtime.decoders import DECODERS, DEFAULT_DECODER, DecodedFrame
 from bmi_sdk.sensor import NoiseProfile
 
@@ -36,14 +36,15 @@ def test_edge_distance_is_the_euclidean_distance_to_the_nearest_edge_pixel():
     assert np.isinf(edge_distance_px(np.full((3, 3), 2.0))).all()
 
 
-def test_strata_sums_pool_pixels_into_range_and_edge_bands_with_hand_computed_numbers():
+def test_strata_sums_pool_pixels_into_range_edge_and_signal_bands_with_hand_computed_numbers():
     true = np.array([[1.0, 3.0, 5.0, 8.0, 2.0]])
     pred = np.array([[1.1, 3.0, 4.0, 8.0, np.nan]])  # the last pixel has no read: not scored
     sigma = np.array([[0.05, 0.5, 0.5, 1.0, 1.0]])
     edge = np.array([[0.0, 1.0, 9.0, 20.0, 0.0]])
+    signal = np.array([[0.01, 0.02, 0.049, 0.5, 0.0]])  # a band holds its lower bound, not its upper
     valid = np.ones_like(true, bool)
     sums = StrataSums()
-    sums.add(pred, true, valid, sigma, edge)
+    sums.add(pred, true, valid, sigma, edge, signal)
     out = sums.summary()
     rng = out["by_range"]
     # |error| / range: 0.1, 0, 0.2, 0 (sum 0.3); 5/4 = 1.25 is not < 1.25, so the 4–6 m pixel fails δ1
@@ -55,20 +56,25 @@ def test_strata_sums_pool_pixels_into_range_and_edge_bands_with_hand_computed_nu
     near, far = (out["by_edge"][b] for b in EDGE_BANDS)  # distances 0, 1 | 9, 20 against 8 px
     assert near["absrel"] == pytest.approx(0.05) and far["absrel"] == pytest.approx(0.1)
     assert near["pixel_share"] == far["pixel_share"] == 0.5
+    dark, dim, bright = (out["by_signal"][b] for b in SIGNAL_BANDS)  # 0.01 | 0.02, 0.049 | 0.5
+    assert [dark["pixel_share"], dim["pixel_share"], bright["pixel_share"]] == pytest.approx([0.25, 0.5, 0.25])
+    assert [dark["absrel"], dim["absrel"], bright["absrel"]] == pytest.approx([0.1, 0.1, 0.0])
+    assert [dark["error_share"], dim["error_share"], bright["error_share"]] == pytest.approx([1 / 3, 2 / 3, 0.0])
     # σ/read: 0.045 (confident), 0.167, 0.125, 0.125; z = 2, 0, −2, 0
     assert out["confident_coverage"] == pytest.approx(0.25)
     assert out["confident_absrel"] == pytest.approx(0.1)
     assert out["sigma_z_std"] == pytest.approx(math.sqrt(2)) and out["sigma_z_rms"] == pytest.approx(math.sqrt(2))
     # a second tile pools: the 4–6 m band now holds two pixels
-    sums.add(np.array([[5.0]]), np.array([[5.0]]), np.array([[True]]), None, np.array([[3.0]]))
+    sums.add(np.array([[5.0]]), np.array([[5.0]]), np.array([[True]]), None, np.array([[3.0]]), np.array([[0.3]]))
     assert sums.summary()["by_range"]["4–6 m"]["absrel"] == pytest.approx(0.1)
 
 
 def test_a_band_without_pixels_reads_nan_and_a_decoder_without_sigma_reports_no_coverage():
     sums = StrataSums()
-    sums.add(np.array([[1.0]]), np.array([[1.0]]), np.array([[True]]), None, np.array([[0.0]]))
+    sums.add(np.array([[1.0]]), np.array([[1.0]]), np.array([[True]]), None, np.array([[0.0]]), np.array([[0.1]]))
     out = sums.summary()
     assert math.isnan(out["by_range"]["> 6 m"]["absrel"]) and out["by_range"]["> 6 m"]["pixel_share"] == 0
+    assert math.isnan(out["by_signal"]["signal < 0.02"]["absrel"])
     assert "confident_coverage" not in out and "sigma_z_std" not in out
 
 
@@ -116,7 +122,8 @@ def test_a_tile_reaches_the_decoder_as_the_raw_frame_of_its_roi(flat_decoder):
     rows = evaluate.run_benchmark(None, bench, ["noise_0.02"], progress=False, decoders=(flat_decoder.kind,))
     assert [(r["condition"], r["decoder"], r["region"]) for r in rows] == [
         ("noise_0.02", "flat_test", "centre"), ("noise_0.02", "flat_test", "edge")]
-    assert all(r["scene_scale"] == 4.0 and set(r["by_range"]) and set(r["by_edge"]) == set(EDGE_BANDS) for r in rows)
+    assert all(r["scene_scale"] == 4.0 and set(r["by_range"]) and set(r["by_edge"]) == set(EDGE_BANDS)
+               and set(r["by_signal"]) == set(SIGNAL_BANDS) for r in rows)
     assert all(r["confident_coverage"] == 1.0 for r in rows)  # σ 0.1 m at a read of 2 m: σ/depth 0.05
     windows = bench.windows()
     for (frame, camera), (_, _, row0, col0) in zip(flat_decoder.frames, windows):
@@ -217,14 +224,15 @@ def test_the_tables_name_the_scale_and_hold_every_stratum():
     from bmi_sdk.cli.eval import eval_table, strata_table
 
     sums = StrataSums()
-    sums.add(np.array([[1.0, 3.0]]), np.array([[1.0, 3.3]]), np.ones((1, 2), bool), None, np.array([[0.0, 10.0]]))
+    sums.add(np.array([[1.0, 3.0]]), np.array([[1.0, 3.3]]), np.ones((1, 2), bool), None, np.array([[0.0, 10.0]]),
+             np.array([[0.01, 0.2]]))
     row = {"condition": "standard", "decoder": "classical", "region": "centre", "scene_scale": 1.0, "absrel": 0.05,
            **sums.summary()}
     bench = evaluate.Benchmark(tiles=1, tile_px=64)
     head = eval_table([row], bench)
     assert head["rows"][0][:4] == ["×1 (stress test)", "standard", "classical", "centre"]
     strata = strata_table([row], bench)
-    assert [r[4] for r in strata["rows"]] == [*row["by_range"], *row["by_edge"]]
+    assert [r[4] for r in strata["rows"]] == [*row["by_range"], *row["by_edge"], *row["by_signal"]]
 
 
 # -- built cameras drawn from the error prior, read with their fitted calibration ---------------------------------

@@ -143,20 +143,22 @@ def eval_table(rows: list[dict], bench) -> dict:
 
 
 def strata_table(rows: list[dict], bench) -> dict:
-    """The breakdown table: each row's pixels by true range band and by distance to a depth edge
-    (``nn.eval_strata``), pooled over a region's tiles."""
+    """The breakdown table: each row's pixels by true range band, by distance to a depth edge and by noiseless signal
+    at the sensor (``nn.eval_strata``), pooled over a region's tiles."""
     from bmi_sdk.nn.eval_strata import EDGE_LOG_STEP
 
     columns = ["scale", "condition", "decoder", "region", "stratum", *STRATUM_KEYS]
     out = []
     for r in rows:
-        for stratum, metrics in (*r["by_range"].items(), *r["by_edge"].items()):
+        for stratum, metrics in (*r["by_range"].items(), *r["by_edge"].items(), *r["by_signal"].items()):
             out.append([scale_name(r["scene_scale"]), r["condition"], r["decoder"], r["region"], stratum,
                         *(_cell(metrics[k]) for k in STRATUM_KEYS)])
-    return {"title": "Synthetic benchmark by range and by distance to a depth edge",
+    return {"title": "Synthetic benchmark by range, by distance to a depth edge and by signal",
             "columns": columns, "rows": out,
             "notes": f"Pixels pooled over a region's tiles; range bands of the true range; a depth edge is a pixel whose "
-                     f"true log range differs from a 4-neighbour's by more than {EDGE_LOG_STEP:g}; pixel_share and "
+                     f"true log range differs from a 4-neighbour's by more than {EDGE_LOG_STEP:g}; signal: the pixel's "
+                     "noiseless mean over colours at the sensor (relative illumination applied), a fraction of white; "
+                     "pixel_share and "
                      "error_share: the stratum's share of the scored pixels and of their summed |error|/range."}
 
 

@@ -1,4 +1,5 @@
-"""``bmi eval``'s breakdown of a decoder's depth error: by range band, by distance to a depth edge, and the σ's worth.
+"""``bmi eval``'s breakdown of a decoder's depth error: by range band, by distance to a depth edge, by signal level,
+and the σ's worth.
 
 Every pixel a row scores (valid, true range finite and > 0, read finite and > 0) falls in one range band of its
 *true* range (``RANGE_BANDS_M``: < 2, 2–4, 4–6, ≥ 6 m) and in one edge band (``EDGE_BANDS``: within
@@ -7,7 +8,10 @@ Every pixel a row scores (valid, true range finite and > 0, read finite and > 0)
 procedural scenes' own test counts as an occlusion edge; a slanted surface changes far less per pixel); both
 pixels of such a pair are edge pixels, and a pixel's distance to the nearest one is the Euclidean distance
 transform (``scipy.ndimage.distance_transform_edt``) of the tile's rendered window, so a step just outside the
-tile counts. A stratum's numbers pool its pixels over the tiles of a region (every pixel weighs the same; the
+tile counts. Each pixel also falls in one signal band (``SIGNAL_BANDS``) of its noiseless signal at the sensor: the
+mean over colours of the optical image (the scene blurred by the camera's kernels, relative illumination applied),
+as a fraction of the white level. The noise is the same at every signal in the benchmark's conditions, so the
+bands are bands of signal-to-noise ratio: at σ 0.005, < 4, 4–10 and ≥ 10. A stratum's numbers pool its pixels over the tiles of a region (every pixel weighs the same; the
 headline row averages per tile): AbsRel, RMSE, δ1, its share of the pixels and its share of the summed absolute
 relative error.
 
@@ -33,6 +37,8 @@ EDGE_LOG_STEP = 0.1
 EDGE_NEAR_PX = 8.0
 """Pixels at most this far (px, Euclidean) from a depth-edge pixel are "near an edge"."""
 EDGE_BANDS = ("≤ 8 px from an edge", "> 8 px from an edge")
+SIGNAL_BANDS = {"signal < 0.02": (-math.inf, 0.02), "signal 0.02–0.05": (0.02, 0.05), "signal ≥ 0.05": (0.05, math.inf)}
+"""Bands of a pixel's noiseless signal at the sensor (fraction of white; lower bound included, upper excluded)."""
 CONFIDENT_REL_SIGMA = 0.1
 """A pixel is confident where its reported 1σ is at most this fraction of its read depth."""
 
@@ -71,20 +77,21 @@ class StrataSums:
     """Running sums of the breakdown over any number of tiles (``add``), read as metrics by ``summary``."""
 
     def __init__(self):
-        self.bands = {name: np.zeros(4) for name in (*RANGE_BANDS_M, *EDGE_BANDS)}
+        self.bands = {name: np.zeros(4) for name in (*RANGE_BANDS_M, *EDGE_BANDS, *SIGNAL_BANDS)}
         self.total = np.zeros(4)
         self.confident = np.zeros(4)
         self.sigma_pixels = self.z_count = 0
         self.z_sum = self.z2_sum = 0.0
 
     def add(self, pred_m: np.ndarray, true_m: np.ndarray, valid: np.ndarray, sigma_m: np.ndarray | None,
-            edge_distance: np.ndarray) -> None:
+            edge_distance: np.ndarray, signal: np.ndarray) -> None:
         """One tile: its read ``pred_m``, true range ``true_m``, scored pixels ``valid`` (further narrowed to finite,
-        positive reads and truths), reported 1σ ``sigma_m`` (None: the decoder reports none) and each pixel's
-        ``edge_distance`` (``edge_distance_px``), all H × W."""
+        positive reads and truths), reported 1σ ``sigma_m`` (None: the decoder reports none), each pixel's
+        ``edge_distance`` (``edge_distance_px``) and its noiseless ``signal`` at the sensor (fraction of white), all
+        H × W."""
         with np.errstate(invalid="ignore"):
             ok = valid & np.isfinite(pred_m) & np.isfinite(true_m) & (pred_m > 0) & (true_m > 0)
-        p, t, d = (np.asarray(a, np.float64)[ok] for a in (pred_m, true_m, edge_distance))
+        p, t, d, g = (np.asarray(a, np.float64)[ok] for a in (pred_m, true_m, edge_distance, signal))
         self.total += _band_sums(p, t)
         for name, (lo, hi) in RANGE_BANDS_M.items():
             inside = (t >= lo) & (t < hi)
@@ -92,6 +99,9 @@ class StrataSums:
         near = d <= EDGE_NEAR_PX
         self.bands[EDGE_BANDS[0]] += _band_sums(p[near], t[near])
         self.bands[EDGE_BANDS[1]] += _band_sums(p[~near], t[~near])
+        for name, (lo, hi) in SIGNAL_BANDS.items():
+            inside = (g >= lo) & (g < hi)
+            self.bands[name] += _band_sums(p[inside], t[inside])
         if sigma_m is not None:
             s = np.asarray(sigma_m, np.float64)[ok]
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -105,7 +115,7 @@ class StrataSums:
             self.z_count += z.size
 
     def summary(self) -> dict:
-        """{"by_range": {band: metrics}, "by_edge": {band: metrics}} and, with a σ, ``confident_coverage``,
+        """{"by_range": {band: metrics}, "by_edge": {band: metrics}, "by_signal": {band: metrics}} and, with a σ, ``confident_coverage``,
         ``confident_absrel``, ``sigma_z_rms``, ``sigma_z_std``; metrics: pixel_share, error_share, absrel,
         rmse_m, delta1 (NaN where a band holds no pixel)."""
         def metrics(sums: np.ndarray) -> dict:
@@ -117,7 +127,8 @@ class StrataSums:
             return {**share, "absrel": rel / n, "rmse_m": math.sqrt(sq / n), "delta1": hits / n}
 
         out = {"by_range": {name: metrics(self.bands[name]) for name in RANGE_BANDS_M},
-               "by_edge": {name: metrics(self.bands[name]) for name in EDGE_BANDS}}
+               "by_edge": {name: metrics(self.bands[name]) for name in EDGE_BANDS},
+               "by_signal": {name: metrics(self.bands[name]) for name in SIGNAL_BANDS}}
         if self.sigma_pixels:
             out["confident_coverage"] = float(self.confident[0] / self.sigma_pixels)
             out["confident_absrel"] = float(self.confident[1] / self.confident[0]) if self.confident[0] else math.nan

@@ -7,8 +7,9 @@ optical system scores the very same content on each tile) whose centre is
 drawn with the seed: **centre** = θ ∈ [0°, 20°], **edge** = θ ∈ [52°, 58°]
 (its pixels span the 50–60° band; those beyond 60° are invalid). Metrics
 (``metrics``) are per tile on valid pixels, averaged over the tiles of a region;
-every row also breaks its depth error down by range band and by distance to a
-depth edge, with the confident coverage and the σ's honesty (``eval_strata``).
+every row also breaks its depth error down by range band, by distance to a
+depth edge and by the pixel's noiseless signal at the sensor, with the confident
+coverage and the σ's honesty (``eval_strata``).
 
 Scene scale: each tile is the centre of a scene drawn ``scene_scale`` × larger
 than the window, so its objects are that much larger against the tile. ``bmi eval``
@@ -451,7 +452,7 @@ def score_tiles(model, renders: list[dict], bench: Benchmark, sigma: float, into
     would a frame's DNG tag), and returns (AiF, depth, 1σ or None)."""
     into = {} if into is None else into
     geometry = lens_geometry(bench.lens)
-    t = bench.tile_px
+    t, m = bench.tile_px, bench.margin_px
     noise = NoiseProfile.additive(sigma)  # the camera's noise is known (its photon transfer); decoders may use it
     for k, item in enumerate(renders):
         raw = tile_raw(bench, item, k, sigma)
@@ -460,7 +461,8 @@ def score_tiles(model, renders: list[dict], bench: Benchmark, sigma: float, into
         valid &= np.isfinite(depth_m)
         tiles, strata = into.setdefault(item["region"], ([], StrataSums()))
         tiles.append(depth_metrics(depth_m, item["range_m"], valid) | image_metrics(aif_hwc, item["rgb"], valid))
-        strata.add(depth_m, item["range_m"], valid, depth_sigma_m, item["edge_distance_px"])
+        signal = item["optical_full"][m:m + t, m:m + t].mean(axis=2)
+        strata.add(depth_m, item["range_m"], valid, depth_sigma_m, item["edge_distance_px"], signal)
     return into
 
 
