@@ -458,11 +458,10 @@ def fit_sigma_model(nominal_map, seed: int = FIT_SEED, tiles: int = FIT_TILES) -
     return (float(a), float(b), float(c)), z_rms, int(e2.size)
 
 
-def full_frame_raw(nominal, geometry, psf_map=None) -> tuple[np.ndarray, np.ndarray, float]:
-    """(true range_m, raw frame, render wall s) of the benchmarks' full frame: the 6000×4500 procedural scene of
-    seed 7, rendered with relative illumination, at the standard noise (σ 0.005), with ``psf_map``'s kernels
-    (default: ``nominal``'s rotated tensor kernels; ``nominal`` must be ``psf_map``'s tensor)."""
-    from bmi_sdk.nn.data import STANDARD_SIGMA, simulate_raw
+def full_frame_optical(nominal, geometry, psf_map=None) -> tuple[np.ndarray, np.ndarray, float]:
+    """(true range_m, optical image, render wall s) of the benchmarks' full frame: the 6000×4500 procedural scene of
+    seed 7, rendered with ``psf_map``'s kernels (default: ``nominal``'s rotated tensor kernels; ``nominal`` must be
+    ``psf_map``'s tensor), relative illumination applied: the noiseless signal at the sensor (H × W × 3)."""
     from bmi_sdk.render import PsfMap, render_coded
     from bmi_sdk.scenes import generate_scene
     from bmi_sdk.sensor import relative_illumination
@@ -473,8 +472,15 @@ def full_frame_raw(nominal, geometry, psf_map=None) -> tuple[np.ndarray, np.ndar
     optical = render_coded(scene.rgb, scene.range_m, nominal, geometry, 0, 0,
                            psf_map=psf_map or PsfMap(nominal, geometry, mode="tensor"))
     optical *= relative_illumination(geometry, 0, 0, h, w)[..., None]
-    raw = simulate_raw(optical, STANDARD_SIGMA, np.random.default_rng(7))
-    return scene.range_m, raw, time.perf_counter() - t0
+    return scene.range_m, optical, time.perf_counter() - t0
+
+
+def full_frame_raw(nominal, geometry, psf_map=None) -> tuple[np.ndarray, np.ndarray, float]:
+    """(true range_m, raw frame, render wall s): ``full_frame_optical``'s frame at the standard noise (σ 0.005)."""
+    from bmi_sdk.nn.data import STANDARD_SIGMA, simulate_raw
+
+    range_m, optical, render_s = full_frame_optical(nominal, geometry, psf_map)
+    return range_m, simulate_raw(optical, STANDARD_SIGMA, np.random.default_rng(7)), render_s
 
 
 def _full_frame(nominal, geometry) -> str:

@@ -126,19 +126,24 @@ def _planes(network, stages, geometry) -> str:
 
 
 def _full_frame(network, stages, geometry) -> str:
-    """The benchmarks' full frame (``decoder.full_frame_raw``) rendered and decoded with the same kernels of every
-    (name, classical stage) of ``stages``: the classical read, and the evidence decoder's with the support read off,
-    as shipped and with its other point estimates."""
+    """The benchmarks' full frame (``decoder.full_frame_optical`` at σ 0.005) rendered and decoded with the same kernels
+    of every (name, classical stage) of ``stages``: the classical read, and the evidence decoder's with the support
+    read off, as shipped and with its other point estimates; then the shipped read's error by range, by distance to a
+    depth edge and by signal (``nn.eval_strata``, as ``bmi eval`` breaks a row down)."""
     from ..decode.volume import pixel_log_colour
     from ..model_io import raw_to_rgb
-    from ..nn.data import STANDARD_SIGMA
+    from ..nn.data import STANDARD_SIGMA, simulate_raw
+    from ..nn.eval_strata import StrataSums, edge_distance_px
     from ..sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, NoiseProfile
-    from .decoder import full_frame_raw
+    from .decoder import full_frame_optical
 
-    rows = []
+    rows, strata_rows = [], []
     for kernels, stage in stages:
         psf_map = stage.zones.psf_map
-        range_m, raw, _ = full_frame_raw(psf_map.tensor, geometry, psf_map)
+        range_m, optical, _ = full_frame_optical(psf_map.tensor, geometry, psf_map)
+        signal = optical.mean(axis=2)
+        raw = simulate_raw(optical, STANDARD_SIGMA, np.random.default_rng(7))
+        del optical
         t0 = time.perf_counter()
         result = stage.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry,
                               noise_profile=NoiseProfile.additive(STANDARD_SIGMA), aif=False)
@@ -149,7 +154,8 @@ def _full_frame(network, stages, geometry) -> str:
         log_rgb = pixel_log_colour(rgb)
         rows.append([kernels, "classical", *_row(result.depth_m, result.depth_sigma_m, range_m, result.valid),
                      f"{stage_s:.1f}"])
-        reads = [("evidence, support off", None), ("evidence, support as shipped", network.support)]
+        shipped = "evidence, support as shipped"
+        reads = [("evidence, support off", None), (shipped, network.support)]
         if network.support is not None:
             reads += [(f"evidence, support estimate {name}", support)
                       for name, support in _other_estimates(network.support)]
@@ -158,11 +164,20 @@ def _full_frame(network, stages, geometry) -> str:
             depth, sigma = _read(inv_grid, sig_grid, rgb, log_rgb, support, network.colour_sigma, stage.config)
             rows.append([kernels, name, *_row(depth, sigma, range_m, result.valid),
                          f"{time.perf_counter() - t0:.1f}"])
-        del result, rgb, log_rgb
+            if name == shipped:
+                strata = StrataSums()
+                strata.add(depth, range_m, result.valid, sigma, edge_distance_px(range_m), signal)
+                summary = strata.summary()
+                strata_rows += [[kernels, stratum, m["pixel_share"], m["error_share"], m["absrel"], m["delta1"]]
+                                for group in ("by_range", "by_edge", "by_signal")
+                                for stratum, m in summary[group].items()]
+        del result, rgb, log_rgb, signal
     header = ["kernels", "decoder", "AbsRel", "δ1", "std(error/σ)", "confident coverage",
               "s (stage, or read after it)"]
     return ("### The full 6000×4500 procedural frame (seed 7, σ 0.005; rendered and decoded with one kernel model; "
-            "stage s includes tracing kernels the PSF cache lacks)\n\n" + markdown_table(header, rows))
+            "stage s includes tracing kernels the PSF cache lacks)\n\n" + markdown_table(header, rows)
+            + "\n\n### The full frame's error by stratum (the evidence decoder as shipped)\n\n"
+            + markdown_table(["kernels", "stratum", "pixel share", "error share", "AbsRel", "δ1"], strata_rows))
 
 
 def run(full: bool = False) -> str:
