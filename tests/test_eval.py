@@ -254,3 +254,15 @@ def test_built_camera_sampled_reads_each_camera_with_its_fitted_calibration(flat
     assert fitted_camera.perturbation == sampled.fitted != sampled.truth
     truth, fitted = sampled.truth.to_vector(), sampled.fitted.to_vector()
     assert np.abs(fitted[3:5] - truth[3:5]).max() < 2.0  # decenter (µm) recovered to well within its 10-µm range
+
+
+def test_a_rows_absrel_carries_the_standard_error_of_its_mean_over_the_tiles():
+    sums = StrataSums()
+    sums.add(np.array([[1.0]]), np.array([[1.0]]), np.array([[True]]), None, np.array([[0.0]]), np.array([[0.1]]))
+    tiles = [{"absrel": 0.1}, {"absrel": 0.3}, {"absrel": float("nan")}]  # a tile without valid pixels is left out
+    bench = evaluate.Benchmark(tiles=3, tile_px=64)
+    (row,) = evaluate.region_rows({"centre": (tiles, sums)}, "standard", "classical", bench)
+    assert row["absrel"] == pytest.approx(0.2)
+    assert row["absrel_se"] == pytest.approx(0.1)  # sample std 0.1414 over √2 tiles
+    assert math.isnan(evaluate.tile_standard_error([0.2]))
+    assert math.isnan(evaluate.tile_standard_error([]))

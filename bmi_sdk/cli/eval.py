@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import math
 
-KEYS = ("absrel", "rmse_m", "delta1", "delta2", "delta3", "psnr_db", "ssim")
+KEYS = ("absrel", "absrel_se", "rmse_m", "delta1", "delta2", "delta3", "psnr_db", "ssim")
 SIGMA_KEYS = ("confident_coverage", "confident_absrel", "sigma_z_rms", "sigma_z_std")
 STRATUM_KEYS = ("pixel_share", "error_share", "absrel", "rmse_m", "delta1")
 
@@ -138,7 +138,9 @@ def eval_table(rows: list[dict], bench) -> dict:
                       *(_cell(r.get(k)) for k in (*KEYS, *SIGMA_KEYS))] for r in rows],
             "notes": f"{bench.tiles} tiles of {bench.tile_px}² px per field region (centre 0–20°, edge 50–60°), seed "
                      f"{bench.seed}; metrics per tile averaged over a region's tiles (built_camera_sampled: over its "
-                     "cameras' tiles too). confident_coverage: share of scored pixels with σ/depth ≤ 0.1, "
+                     "cameras' tiles too); absrel_se: the standard error of that mean over the tiles (their spread / √n), "
+                     "the benchmark's own sampling uncertainty. confident_coverage: share of scored pixels with "
+                     "σ/depth ≤ 0.1, "
                      "confident_absrel their AbsRel; sigma_z_std: std of error/σ (1: an honest σ)."}
 
 

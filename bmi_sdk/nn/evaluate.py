@@ -70,6 +70,7 @@ same σ (0.005), not against ``standard``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -468,10 +469,23 @@ def score_tiles(model, renders: list[dict], bench: Benchmark, sigma: float, into
 
 def region_rows(scores: dict, condition: str, decoder: str, bench: Benchmark, extra: dict | None = None) -> list[dict]:
     """One row per region of ``score_tiles``' ``scores``: {condition, decoder, region, scene_scale, the per-tile
-    metrics averaged over the region's tiles, the ``eval_strata`` breakdown, ``extra``}."""
+    metrics averaged over the region's tiles, ``absrel_se`` (``tile_standard_error`` of the AbsRel), the
+    ``eval_strata`` breakdown, ``extra``}."""
     return [{"condition": condition, "decoder": decoder, "region": region, "scene_scale": bench.scene_scale,
-             **mean_metrics(tiles), **strata.summary(), **(extra or {})}
+             **mean_metrics(tiles), "absrel_se": tile_standard_error([t["absrel"] for t in tiles]),
+             **strata.summary(), **(extra or {})}
             for region, (tiles, strata) in scores.items()]
+
+
+def tile_standard_error(values: list[float]) -> float:
+    """The standard error of a mean over tiles, s / √n (s the tiles' sample standard deviation, NaN tiles left
+    out): how far another draw of as many tiles would move the row, the benchmark's own sampling uncertainty. NaN
+    with fewer than two tiles."""
+    finite = np.asarray(values, np.float64)
+    finite = finite[np.isfinite(finite)]
+    if finite.size < 2:
+        return math.nan
+    return float(finite.std(ddof=1) / math.sqrt(finite.size))
 
 
 def score(model, renders: list[dict], bench: Benchmark, sigma: float, condition: str) -> list[dict]:
