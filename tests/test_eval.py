@@ -208,6 +208,24 @@ def test_eval_defaults_to_the_default_decoder_and_the_papers_scene_scale():
             _scales(_args("--scales", bad))
 
 
+def test_eval_refuses_tiles_and_scene_scales_that_would_not_fit_in_memory_before_drawing_anything(capsys, tmp_path):
+    from bmi_sdk.cli import main
+
+    record = tmp_path / "r.json"
+    for argv, named in ((["--tiles", "99999999999"], "--tiles/--tile-px 99999999999/192 needs about"),
+                        (["--tile-px", "100000"], "--tiles/--tile-px 12/100000 needs about"),
+                        (["--scales", "1,4,1e9"], "--scales 1,4,1e9 needs about"),
+                        (["--scene-scale", "inf"], "--scene-scale inf needs about")):
+        assert main(["eval", "--decoder", "classical", "--conditions", "standard", *argv, "--json", str(record)]) == 2
+        captured = capsys.readouterr()
+        assert named in captured.err and "GiB limit" in captured.err
+        assert "rendering" not in captured.err + captured.out and not record.exists()
+    # the bytes a run holds grow with the tiles and the tile's area; a scene with the square of its scale
+    small, more = evaluate.Benchmark(tiles=2), evaluate.Benchmark(tiles=4)
+    assert more.renders_bytes() == pytest.approx(2 * small.renders_bytes())
+    assert evaluate.Benchmark(scene_scale=8.0).scene_bytes() == pytest.approx(4 * small.scene_bytes() * 16)
+
+
 def test_eval_refuses_an_unknown_decoder_and_no_cameras(capsys):
     from bmi_sdk.cli import main
 

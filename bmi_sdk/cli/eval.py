@@ -72,6 +72,18 @@ def _scales(args) -> list[float]:
     return values
 
 
+def _check_memory(args, largest) -> None:
+    """Refuse, before drawing anything, a run whose tiles' renders or whose largest scene (``largest``: the benchmark
+    at its largest scene scale) would not fit in memory (``memory_budget``), naming the option that sized it."""
+    from bmi_sdk.memory_budget import check_allocation
+
+    check_allocation("--tiles/--tile-px", f"{args.tiles}/{args.tile_px}", largest.renders_bytes(),
+                     "fewer or smaller tiles")
+    scale_flag = "--scales" if args.scales is not None else "--scene-scale"
+    check_allocation(scale_flag, args.scales or args.scene_scale, largest.scene_bytes(),
+                     "a smaller scene scale or --tile-px")
+
+
 def _run(args) -> int:
     from dataclasses import replace
 
@@ -96,6 +108,7 @@ def _run(args) -> int:
     check_record_path(args.json, args.overwrite)
     bench = Benchmark(tiles=args.tiles, tile_px=args.tile_px, seed=args.seed, threads=args.threads,
                       scene_scale=scales[0])
+    _check_memory(args, replace(bench, scene_scale=max(scales)))
     conditions = [c.strip() for c in args.conditions.split(",")] if args.conditions else None
     config = classical_config(args, WINDOW_KNOBS)
     rows = []

@@ -101,6 +101,9 @@ from bmi_sdk.sensor import (
 )
 
 REGIONS = {"centre": (0.0, 20.0), "edge": (52.0, 58.0)}
+SCENE_DRAW_BYTES_PER_PX = 28
+"""Peak memory of drawing a procedural scene (``scenes.generate_scene``) per scene pixel: 112 MB at 1024² and 513 MB at
+4096² (``ru_maxrss``, 71 MB of it the imports), 26 B for each added pixel."""
 
 PAPER_SCENE_SCALE = 4.0
 """``bmi eval``'s scene scale: the seed paper's (a 640-px NYU image in ~12° of field, ~750 sensor px)."""
@@ -174,6 +177,19 @@ class Benchmark:
     @property
     def margin_px(self) -> int:
         return render_margin_px(self.lens)
+
+    def scene_bytes(self) -> float:
+        """Peak memory of drawing one tile's scene (``scene``): ``SCENE_DRAW_BYTES_PER_PX`` per pixel of a scene
+        ``scene_scale`` × the drawn window."""
+        side = (self.tile_px + 2 * SCENE_MARGIN_PX) * self.scene_scale
+        return SCENE_DRAW_BYTES_PER_PX * side * side
+
+    def renders_bytes(self) -> float:
+        """Memory of every tile's render, held while the decoders read them (``renders``): the float32 optical window
+        (tile + margin, 3 colours) and the tile's scene colour, range and edge distance."""
+        window = self.tile_px + 2 * self.margin_px
+        per_tile = 4 * (3 * window * window + 5 * self.tile_px * self.tile_px)
+        return float(len(REGIONS) * self.tiles * per_tile)
 
     def windows(self) -> list[tuple[str, int, int, int]]:
         """(region, tile index, row0, col0) of the rendered windows (tile + margin), seeded."""
