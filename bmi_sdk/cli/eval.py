@@ -151,10 +151,9 @@ def eval_table(rows: list[dict], bench) -> dict:
                       *(_cell(r.get(k)) for k in (*KEYS, *SIGMA_KEYS))] for r in rows],
             "notes": f"{bench.tiles} tiles of {bench.tile_px}² px per field region (centre 0–20°, edge 50–60°), seed "
                      f"{bench.seed}; metrics per tile averaged over a region's tiles (built_camera_sampled: over its "
-                     "cameras' tiles too); absrel_se: the standard error of that mean over the tiles (their spread / √n), "
-                     "the benchmark's own sampling uncertainty. confident_coverage: share of scored pixels with "
-                     "σ/depth ≤ 0.1, "
-                     "confident_absrel their AbsRel; sigma_z_std: std of error/σ (1: an honest σ)."}
+                     "cameras' tiles too); absrel_se: the standard error of that mean over the tiles (their spread "
+                     "/ √n), the benchmark's own sampling uncertainty. confident_coverage: share of scored pixels "
+                     "with σ/depth ≤ 0.1, confident_absrel their AbsRel; sigma_z_std: std of error/σ (1: an honest σ)."}
 
 
 def strata_table(rows: list[dict], bench) -> dict:
@@ -173,8 +172,8 @@ def strata_table(rows: list[dict], bench) -> dict:
             "notes": f"Pixels pooled over a region's tiles; range bands of the true range; a depth edge is a pixel whose "
                      f"true log range differs from a 4-neighbour's by more than {EDGE_LOG_STEP:g}; signal: the pixel's "
                      "noiseless mean over colours at the sensor (relative illumination applied), a fraction of white; "
-                     "pixel_share and "
-                     "error_share: the stratum's share of the scored pixels and of their summed |error|/range."}
+                     "pixel_share and error_share: the stratum's share of the scored pixels and of their summed "
+                     "|error|/range."}
 
 
 def _markdown(table: dict) -> str:

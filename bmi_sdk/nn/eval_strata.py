@@ -11,9 +11,9 @@ transform (``scipy.ndimage.distance_transform_edt``) of the tile's rendered wind
 tile counts. Each pixel also falls in one signal band (``SIGNAL_BANDS``) of its noiseless signal at the sensor: the
 mean over colours of the optical image (the scene blurred by the camera's kernels, relative illumination applied),
 as a fraction of the white level. The noise is the same at every signal in the benchmark's conditions, so the
-bands are bands of signal-to-noise ratio: at σ 0.005, < 4, 4–10 and ≥ 10. A stratum's numbers pool its pixels over the tiles of a region (every pixel weighs the same; the
-headline row averages per tile): AbsRel, RMSE, δ1, its share of the pixels and its share of the summed absolute
-relative error.
+bands are bands of signal-to-noise ratio: at σ 0.005, < 4, 4–10 and ≥ 10. A stratum's numbers pool its pixels
+over the tiles of a region (every pixel weighs the same; the headline row averages per tile): AbsRel, RMSE, δ1, its
+share of the pixels and its share of the summed absolute relative error.
 
 For a decoder that reports a 1σ:
 
@@ -115,9 +115,9 @@ class StrataSums:
             self.z_count += z.size
 
     def summary(self) -> dict:
-        """{"by_range": {band: metrics}, "by_edge": {band: metrics}, "by_signal": {band: metrics}} and, with a σ, ``confident_coverage``,
-        ``confident_absrel``, ``sigma_z_rms``, ``sigma_z_std``; metrics: pixel_share, error_share, absrel,
-        rmse_m, delta1 (NaN where a band holds no pixel)."""
+        """{"by_range": {band: metrics}, "by_edge": {band: metrics}, "by_signal": {band: metrics}} and, with a σ,
+        ``confident_coverage``, ``confident_absrel``, ``sigma_z_rms``, ``sigma_z_std``; metrics: pixel_share,
+        error_share, absrel, rmse_m, delta1 (NaN where a band holds no pixel)."""
         def metrics(sums: np.ndarray) -> dict:
             n, rel, sq, hits = sums
             share = {"pixel_share": n / self.total[0] if self.total[0] else math.nan,
