@@ -186,9 +186,9 @@ class Benchmark:
 
     def renders_bytes(self) -> float:
         """Memory of every tile's render, held while the decoders read them (``renders``): the float32 optical window
-        (tile + margin, 3 colours) and the tile's scene colour, range and edge distance."""
+        (tile + margin, 3 colours) and the tile's scene colour, range, edge distance and signal."""
         window = self.tile_px + 2 * self.margin_px
-        per_tile = 4 * (3 * window * window + 5 * self.tile_px * self.tile_px)
+        per_tile = 4 * (3 * window * window + 6 * self.tile_px * self.tile_px)
         return float(len(REGIONS) * self.tiles * per_tile)
 
     def windows(self) -> list[tuple[str, int, int, int]]:
@@ -248,9 +248,10 @@ class _WindowRenderer:
 
 
 def _render_window(state: dict, window: tuple) -> dict:
-    """Scene, optical image, position and distance to the nearest depth edge (``eval_strata.edge_distance_px``, over
-    the whole rendered window, so a step just outside the tile counts) of one benchmark window (region, tile index,
-    row0, col0)."""
+    """Scene, optical image, position, distance to the nearest depth edge (``eval_strata.edge_distance_px``, over
+    the whole rendered window, so a step just outside the tile counts) and the tile's noiseless signal at the sensor
+    (the optical image's mean over colours, for ``eval_strata``'s signal bands) of one benchmark window (region, tile
+    index, row0, col0)."""
     from bmi_sdk.render import render_coded
 
     bench, geometry = state["bench"], state["geometry"]
@@ -262,7 +263,8 @@ def _render_window(state: dict, window: tuple) -> dict:
     optical *= relative_illumination(geometry, row0, col0, size, size)[..., None]
     return {"region": region, "tile": i, "row0": row0 + m, "col0": col0 + m, "optical_full": optical,
             "rgb": rgb[m:-m, m:-m], "range_m": range_m[m:-m, m:-m],
-            "edge_distance_px": edge_distance_px(range_m)[m:-m, m:-m].astype(np.float32)}
+            "edge_distance_px": edge_distance_px(range_m)[m:-m, m:-m].astype(np.float32),
+            "signal": optical[m:-m, m:-m].mean(axis=2)}
 
 
 @dataclass(frozen=True)
@@ -469,7 +471,7 @@ def score_tiles(model, renders: list[dict], bench: Benchmark, sigma: float, into
     would a frame's DNG tag), and returns (AiF, depth, 1σ or None)."""
     into = {} if into is None else into
     geometry = lens_geometry(bench.lens)
-    t, m = bench.tile_px, bench.margin_px
+    t = bench.tile_px
     noise = NoiseProfile.additive(sigma)  # the camera's noise is known (its photon transfer); decoders may use it
     for k, item in enumerate(renders):
         raw = tile_raw(bench, item, k, sigma)
@@ -478,8 +480,7 @@ def score_tiles(model, renders: list[dict], bench: Benchmark, sigma: float, into
         valid &= np.isfinite(depth_m)
         tiles, strata = into.setdefault(item["region"], ([], StrataSums()))
         tiles.append(depth_metrics(depth_m, item["range_m"], valid) | image_metrics(aif_hwc, item["rgb"], valid))
-        signal = item["optical_full"][m:m + t, m:m + t].mean(axis=2)
-        strata.add(depth_m, item["range_m"], valid, depth_sigma_m, item["edge_distance_px"], signal)
+        strata.add(depth_m, item["range_m"], valid, depth_sigma_m, item["edge_distance_px"], item["signal"])
     return into
 
 
