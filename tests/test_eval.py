@@ -284,3 +284,35 @@ def test_a_rows_absrel_carries_the_standard_error_of_its_mean_over_the_tiles():
     assert row["absrel_se"] == pytest.approx(0.1)  # sample std 0.1414 over √2 tiles
     assert math.isnan(evaluate.tile_standard_error([0.2]))
     assert math.isnan(evaluate.tile_standard_error([]))
+
+
+def test_paired_differences_subtract_the_reference_tile_by_tile_and_cancel_the_spread_between_tiles():
+    from bmi_sdk.cli.eval import paired_table
+    from bmi_sdk.nn.eval_paired import paired_differences
+
+    # tiles of very different difficulty; the candidate reads each 0.01 (±0.001) better than the reference
+    ref = [0.05, 0.30, 0.12, float("nan")]
+    new = [0.039, 0.291, 0.11, 0.2]  # the 4th tile has no reference read: left out of the pair
+    base = {"scene_scale": 4.0, "condition": "standard", "region": "edge"}
+    rows = [base | {"decoder": "evidence", "tile_absrel": ref}, base | {"decoder": "trial", "tile_absrel": new},
+            base | {"decoder": "trial", "tile_absrel": new, "region": "centre"}]  # no reference row: no pair
+    (pair,) = paired_differences(rows, "evidence")
+    diffs = np.array([-0.011, -0.009, -0.01])
+    assert pair["decoder"] == "trial" and pair["reference"] == "evidence" and pair["tiles"] == 3
+    assert pair["absrel_diff"] == pytest.approx(-0.01)
+    assert pair["absrel_diff_se"] == pytest.approx(diffs.std(ddof=1) / math.sqrt(3))  # 0.00058
+    assert pair["better_share"] == 1.0
+    # the unpaired rows' own standard errors would not resolve the 0.01
+    assert evaluate.tile_standard_error(ref[:3]) > 0.07 > 7 * pair["absrel_diff_se"]
+    table = paired_table([pair], evaluate.Benchmark(tiles=4, tile_px=64))
+    assert table["rows"] == [["×4 (paper)", "standard", "edge", "trial", "evidence", 3, -0.01, 0.0006, 1.0]]
+    with pytest.raises(ValueError, match="same tiles"):
+        paired_differences([rows[0], rows[1] | {"tile_absrel": new[:2]}], "evidence")
+
+
+def test_eval_refuses_a_reference_that_is_not_a_decoder_run(capsys):
+    from bmi_sdk.cli import main
+
+    assert main(["eval", "--decoder", "classical", "--reference", "evidence", "--conditions", "standard"]) == 1
+    captured = capsys.readouterr()
+    assert "--reference evidence" in captured.err and "rendering" not in captured.err + captured.out

@@ -8,6 +8,7 @@ import math
 KEYS = ("absrel", "absrel_se", "rmse_m", "delta1", "delta2", "delta3", "psnr_db", "ssim")
 SIGMA_KEYS = ("confident_coverage", "confident_absrel", "sigma_z_rms", "sigma_z_std")
 STRATUM_KEYS = ("pixel_share", "error_share", "absrel", "rmse_m", "delta1")
+PAIRED_KEYS = ("tiles", "absrel_diff", "absrel_diff_se", "better_share")
 
 
 def register(subparsers) -> None:
@@ -47,6 +48,9 @@ def register(subparsers) -> None:
                    help="built_camera_sampled: cameras drawn from the calibration's error prior, each captured and "
                         "fitted (~35 s median, up to ~150 s each on 2 cores) and read with its fitted errors "
                         "(default %(default)s)")
+    p.add_argument("--reference", default=None, metavar="KIND",
+                   help="with two or more decoders: the decoder the others are compared with, tile by tile on the "
+                        "same tiles (a third table; default the first --decoder)")
     p.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
     add_classical_arguments(p, WINDOW_KNOBS)
     p.add_argument("--jsonl", action="store_true", help="print one JSON object per line per condition, decoder, "
@@ -89,12 +93,16 @@ def _run(args) -> int:
 
     from bmi_sdk.bench.record import check_record_path, write_record
     from bmi_sdk.cli.infer import WINDOW_KNOBS, changed_classical_flags, classical_config
+    from bmi_sdk.nn.eval_paired import paired_differences
     from bmi_sdk.nn.evaluate import Benchmark, run_benchmark
     from bmi_sdk.runtime.decoders import DECODERS, DEFAULT_DECODER, decoder_kind
     from bmi_sdk.scaleout import scheduler_address
 
     named = [d.strip() for given in args.decoder or [DEFAULT_DECODER] for d in given.split(",") if d.strip()]
     decoders = tuple(dict.fromkeys(decoder_kind(d) for d in named))
+    reference = args.reference if args.reference is not None else decoders[0]
+    if reference not in decoders:
+        raise ValueError(f"--reference {args.reference}: not one of the decoders run ({', '.join(decoders)})")
     changed = changed_classical_flags(args, WINDOW_KNOBS)
     if changed and not any(DECODERS[d].takes_config for d in decoders):
         raise ValueError(f"{', '.join(changed)} set(s) the classical decoder's knobs, and --decoder "
@@ -117,15 +125,17 @@ def _run(args) -> int:
             rows += run_benchmark(args.model, replace(bench, scheduler=scheduler, scene_scale=scale), conditions,
                                   args.fisheye_model, progress=not args.jsonl, decoders=decoders,
                                   classical_config=config, cameras=args.cameras)
+    tables = [eval_table(rows, bench), strata_table(rows, bench)]
+    pairs = paired_differences(rows, reference)
+    if pairs:
+        tables.append(paired_table(pairs, bench))
     if args.json:
-        write_record(args.json, [eval_table(rows, bench), strata_table(rows, bench)], overwrite=args.overwrite)
+        write_record(args.json, tables, overwrite=args.overwrite)
     if args.jsonl:
         for row in rows:
             print(json.dumps(row))
         return 0
-    print(_markdown(eval_table(rows, bench)))
-    print()
-    print(_markdown(strata_table(rows, bench)))
+    print("\n\n".join(_markdown(t) for t in tables))
     return 0
 
 
@@ -174,6 +184,21 @@ def strata_table(rows: list[dict], bench) -> dict:
                      "noiseless mean over colours at the sensor (relative illumination applied), a fraction of white; "
                      "pixel_share and error_share: the stratum's share of the scored pixels and of their summed "
                      "|error|/range."}
+
+
+def paired_table(pairs: list[dict], bench) -> dict:
+    """The paired comparison (``nn.eval_paired.paired_differences``): each decoder against the reference decoder on
+    the same tiles."""
+    columns = ["scale", "condition", "region", "decoder", "reference", *PAIRED_KEYS]
+    return {"title": f"Paired per-tile AbsRel difference from {pairs[0]['reference']}",
+            "columns": columns,
+            "rows": [[scale_name(p["scene_scale"]), p["condition"], p["region"], p["decoder"], p["reference"],
+                      *(_cell(p[k], 4) for k in PAIRED_KEYS)] for p in pairs],
+            "notes": f"Seed {bench.seed}: absrel_diff is the mean over the tiles of the decoder's AbsRel less the "
+                     "reference's on the same tile and noise draw, absrel_diff_se its standard error over the tiles "
+                     "(negative: the decoder reads better); better_share the share of tiles it reads better. The "
+                     "tile-to-tile spread both decoders share cancels, so a difference beyond 2 absrel_diff_se is "
+                     "resolved where the rows' own absrel_se would not resolve it."}
 
 
 def _markdown(table: dict) -> str:

@@ -486,10 +486,12 @@ def score_tiles(model, renders: list[dict], bench: Benchmark, sigma: float, into
 
 def region_rows(scores: dict, condition: str, decoder: str, bench: Benchmark, extra: dict | None = None) -> list[dict]:
     """One row per region of ``score_tiles``' ``scores``: {condition, decoder, region, scene_scale, the per-tile
-    metrics averaged over the region's tiles, ``absrel_se`` (``tile_standard_error`` of the AbsRel), the
-    ``eval_strata`` breakdown, ``extra``}."""
+    metrics averaged over the region's tiles, ``absrel_se`` (``tile_standard_error`` of the AbsRel),
+    ``tile_absrel`` (each tile's AbsRel in scoring order, for ``eval_paired``), the ``eval_strata`` breakdown,
+    ``extra``}."""
     return [{"condition": condition, "decoder": decoder, "region": region, "scene_scale": bench.scene_scale,
              **mean_metrics(tiles), "absrel_se": tile_standard_error([t["absrel"] for t in tiles]),
+             "tile_absrel": [t["absrel"] for t in tiles],
              **strata.summary(), **(extra or {})}
             for region, (tiles, strata) in scores.items()]
 
