@@ -72,6 +72,60 @@ def test_tapered_model_is_the_expected_periodogram_of_a_blurred_1_over_f2_field(
     assert misfit(unsmoothed).max() > 1.5
 
 
+def test_the_exact_model_is_the_expected_periodogram_down_to_dcs_neighbours():
+    """Monte Carlo as above, the field's 1/f² floored at one bin of the exact model's oversampled grid (1/256
+    cycles/px), so the window's lowest frequencies carry the prior's full power and its mean removal matters. The
+    exact expected periodogram matches the mean periodogram on every bin but DC (p95 within 5 %), DC's eight
+    neighbours included; the taper-smoothed model, which does not hold the mean's removal, misses those by > 20 %
+    (which is why the likelihood leaves them out of it, ``rfft_multiplicity``)."""
+    from scipy import fft as sfft
+
+    from bmi_sdk.decode.evidence import expected_periodogram, hann_taper, power_law_prior, window_spectra
+
+    psf_map = PsfMap(lens_tensor("bmi_monocentric"), GEOMETRY, mode="tensor")
+    kernel = psf_map.kernels(0.0, 0.0, np.array([int(np.argmin(np.abs(psf_map.tensor.depth_m - 0.8)))]))[1, 0]
+    n, k = 512, kernel.shape[0]
+    f = sfft.fftfreq(n)
+    otf = np.zeros((n, n))
+    otf[:k, :k] = kernel
+    otf = sfft.fft2(np.roll(otf, (-(k // 2), -(k // 2)), (0, 1)))
+    rng = np.random.default_rng(4)
+    spectra = []
+    for _ in range(16):
+        field = sfft.ifft2(sfft.fft2(rng.standard_normal((n, n))) * np.sqrt(power_law_prior(f, f, 1 / 256)) * otf).real
+        spectra.append(window_spectra(field[::2, ::2].astype(np.float32), 32, 16, hann_taper(32))[0])
+    mean = np.concatenate(spectra).mean(axis=0)
+    bins = np.ones(mean.shape, bool)
+    bins[0, 0] = False
+    dc_neighbours = (rfft_multiplicity(32) == 0) & bins
+
+    def misfit(model):
+        ratio = np.log(mean[bins] / model[bins])
+        return np.abs(ratio - np.median(ratio)), np.abs(np.log(mean[dc_neighbours] / model[dc_neighbours])
+                                                        - np.median(ratio))
+
+    exact_all, exact_dc = misfit(expected_periodogram(kernel[None], 32)[0])
+    assert np.percentile(exact_all, 95) < 0.05 and exact_dc.max() < 0.08
+    assert misfit(folded_model(kernel[None], 32)[0])[1].max() > 0.2
+
+
+def test_a_block_part_renumbers_its_zone_reads_within_the_selected_windows():
+    from bmi_sdk.decode.classical import block_part
+
+    spectra = [np.arange(5.0)[:, None] * np.ones((5, 3))] * 4
+    noise = [np.arange(5.0)] * 4
+    clipped = [np.array([False, True, False, False, True])] * 4
+    reads = [("a", np.array([0, 1, 2]), np.array([1.0, 0.5, 0.25])), ("b", np.array([2, 3, 4]), np.array([0.75, 1, 1])),
+             ("c", np.array([1]), np.array([0.5]))]
+    mask = np.array([True, False, True, False, True])
+    part_spectra, part_noise, part_clipped, part_reads = block_part(mask, spectra, noise, clipped, reads)
+    assert part_spectra[0][:, 0].tolist() == part_noise[3].tolist() == [0.0, 2.0, 4.0]
+    assert part_clipped[0].tolist() == [False, False, True]
+    assert [(z, i.tolist(), w.tolist()) for z, i, w in part_reads] == [("a", [0, 1], [1.0, 0.25]),
+                                                                      ("b", [1, 2], [0.75, 1.0])]  # c: none left
+    assert block_part(np.ones(5, bool), spectra, noise, clipped, reads)[3] is reads
+
+
 @pytest.mark.parametrize("depth_m", [1.7, 3.4])
 def test_the_laplace_sigma_is_the_spread_of_the_estimate_on_data_drawn_from_the_model(depth_m):
     """Monte Carlo: 1/f² Gaussian fields blurred by one of the candidates' kernels, a Bayer plane with white noise,
@@ -386,6 +440,25 @@ def test_a_textured_plane_decodes_within_five_percent(nominal_decoder, depth_m, 
     assert out.stats["blocks_run"] == 1 and out.stats["noise_source"] == "profile"
     assert out.stats["noise_sigma"] == pytest.approx(0.005, rel=0.01)
     assert out.aif.shape == (160, 160, 3) and np.all(np.isfinite(out.aif))
+
+
+@pytest.mark.parametrize("depth_m, field_deg", [(1.0, 0.0), (4.0, 50.0)])
+def test_a_textured_plane_scored_with_the_exact_model_decodes_within_five_percent(depth_m, field_deg):
+    """The same planes with every window scored by the exact expected periodogram (``exact_model_below`` 1), and
+    with half the windows by it (the gate between the two models at the frame's median signal): each reads the
+    plane as well, so neither model nor the split between them biases depth."""
+    raw, row0, col0, psf_map, _ = _plane_frame(depth_m, field_deg, texture="pink")
+    planes = raw.astype(np.float64) / WHITE
+    for gate in (1.0, float(np.median(planes))):
+        decoder = ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig(exact_model_below=gate))
+        out = decoder.decode(raw, BLACK, WHITE, GEOMETRY, row0, col0, noise_profile=NoiseProfile.additive(0.005))
+        absrel = np.mean(np.abs(out.depth_m[out.valid] - depth_m) / depth_m)
+        assert out.valid.all() and absrel < 0.05, (gate, absrel)
+        assert np.all(np.isfinite(out.depth_sigma_m)) and np.all(out.depth_sigma_m > 0)
+    with pytest.raises(ValueError, match="exact_model_below"):
+        ClassicalConfig(exact_model_below=-0.1)
+    with pytest.raises(ValueError, match="exact_model_below"):
+        ClassicalConfig(exact_model_below=float("nan"))
 
 
 def test_a_lens_s_far_plane_is_read_with_the_camera_s_exact_kernels(nominal_decoder):

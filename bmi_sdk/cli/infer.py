@@ -45,6 +45,8 @@ CLASSICAL_FLAGS = {
                                  "the picture when the file has none)"),
     "pool_sigma_px": (number(0), "radius over which each window's evidence pools its like-coloured neighbours' (0: each "
                              "window alone; docs/decoder.md, method step 4b)"),
+    "exact_model_below": (number(0, 1), "windows whose mean signal, a fraction of white, is below this are scored with "
+                                        "the exact expected periodogram (0: none; docs/decoder.md, method step 2)"),
 }
 """The ``decode.ClassicalConfig`` fields ``bmi infer --decoder classical`` takes as flags (``--window-px`` …): their
 checked type (``_options``: a bad value is refused by argparse, naming the option and the valid range) and help; each default is the dataclass's own. Any other decoder refuses a changed value."""

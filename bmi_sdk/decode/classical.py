@@ -119,6 +119,8 @@ class ClassicalConfig:
     noise_sigma: float | None = None  # a given constant σ (units of full scale) overrides the frame's noise
     noise_model: str = "profile"  # the frame's NoiseProfile, else estimated from the picture (``frame_noise``)
     window_model: str = "tapered"  # the evidence model with the taper's smoothing (``evidence.folded_model``)
+    exact_model_below: float = 0.0  # windows whose mean signal (fraction of white) is below this are scored with
+    #                                 the exact expected periodogram (``evidence.expected_periodogram``); 0: none
     threads: int | None = None  # blocks read at once (default: all cores; 1 on a one-thread Dask worker)
 
     def __post_init__(self):
@@ -139,6 +141,8 @@ class ClassicalConfig:
                 self.theta_step_deg > 0 and float(self.theta_step_deg / ZONE_STEP_DEG).is_integer()):
             raise ValueError(f"theta_step_deg must be a positive multiple of the zone step {ZONE_STEP_DEG}°, "
                              f"got {self.theta_step_deg}")
+        if not 0.0 <= self.exact_model_below <= 1.0:
+            raise ValueError(f"exact_model_below must lie in [0, 1] (a fraction of white), got {self.exact_model_below}")
         if self.window_model not in WINDOW_MODELS:
             raise ValueError(f"window_model must be one of {WINDOW_MODELS}, got {self.window_model!r}")
         if self.noise_model not in NOISE_MODELS:
@@ -301,24 +305,35 @@ class ClassicalDecoder:
             noise_vars = [noise.variance(w[1]) for w in windows]
             clipped = ([windows_touching(clipped_padded[p][ps], n, sp) for p in range(4)] if clipped_padded is not None
                        else [np.zeros(nr * nc, bool)] * 4)
-            t1 = time.perf_counter()
-            coarse_models = [self.zones.models(z, coarse) for z, _, _ in reads]
-            t2 = time.perf_counter()
-            coarse_nll = self._field_nll(spectra, reads, coarse_models, noise_vars, taper_energy, clipped)
+            kernels_s = 0.0
+            # windows scored with the exact expected periodogram (dark ones, ``exact_model_below``) and the rest, each
+            # group's β grid placed by its own windows and coarse models; without a gate, one group of every window
+            groups = [(mask, exact) for mask, exact in window_groups(windows, cfg.exact_model_below) if mask.any()]
+            coarse_nll = np.empty((nr * nc, len(coarse)))
+            coarse_models = {}
+            for mask, exact in groups:
+                g_spectra, g_noise, g_clipped, g_reads = block_part(mask, spectra, noise_vars, clipped, reads)
+                tm = time.perf_counter()
+                coarse_models[exact] = [self.zones.models(z, coarse, exact) for z, _, _ in g_reads]
+                kernels_s += time.perf_counter() - tm
+                coarse_nll[mask] = self._field_nll(g_spectra, g_reads, coarse_models[exact], g_noise, taper_energy,
+                                                   g_clipped)
             best = np.unique(coarse[np.argmin(coarse_nll, axis=1)])
             reach = np.arange(-cfg.coarse_step, cfg.coarse_step + 1)
             which = np.unique(np.clip(best[:, None] + reach[None, :], 0, n_cand - 1))
             # the fine pass scores only what the coarse pass has not, on the coarse pass's β grid, so that both
             # passes' NLLs are one curve (a grid placed by other candidates moves NLLs by tenths of a nat)
             fine = np.setdiff1d(which, coarse)
-            t3 = time.perf_counter()
-            models = [self.zones.models(z, fine) for z, _, _ in reads] if len(fine) else []
-            t4 = time.perf_counter()
             nll = np.empty((nr * nc, len(which)))
             nll[:, np.isin(which, coarse)] = coarse_nll[:, np.isin(coarse, which)]
             if len(fine):
-                nll[:, np.isin(which, fine)] = self._field_nll(spectra, reads, models, noise_vars, taper_energy,
-                                                               clipped, coarse_models)
+                for mask, exact in groups:
+                    g_spectra, g_noise, g_clipped, g_reads = block_part(mask, spectra, noise_vars, clipped, reads)
+                    tm = time.perf_counter()
+                    models = [self.zones.models(z, fine, exact) for z, _, _ in g_reads]
+                    kernels_s += time.perf_counter() - tm
+                    nll[np.flatnonzero(mask)[:, None], np.flatnonzero(np.isin(which, fine))[None, :]] = self._field_nll(
+                        g_spectra, g_reads, models, g_noise, taper_energy, g_clipped, coarse_models[exact])
             depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
             return {"evidence": (coarse_nll - coarse_nll.min(axis=1, keepdims=True)).reshape(nr, nc, -1),
                     "clipped": int(np.logical_or.reduce(clipped).sum()),
@@ -328,8 +343,7 @@ class ClassicalDecoder:
                                if pooling else None),
                     "colour": window_colour([w[1] for w in windows]).reshape(nr, nc, 3) if pooling else None,
                     "full": window_reads * n_cand, "done": window_reads * (len(coarse) + len(fine)),
-                    "evidence_s": (t1 - t0) + (t3 - t2) + (time.perf_counter() - t4),
-                    "kernels_s": (t2 - t1) + (t4 - t3)}
+                    "evidence_s": time.perf_counter() - t0 - kernels_s, "kernels_s": kernels_s}
 
         skipped = windows_clipped = 0
         bar = None
@@ -517,6 +531,30 @@ class ClassicalDecoder:
                 wanted.setdefault(ZoneKernels.zone_at(geometry, row0 + centre_row, col0 + centre_col),
                                   set()).update(aif_cands.tolist())
         return {zone: np.array(sorted(idx)) for zone, idx in sorted(wanted.items())}
+
+
+def window_groups(windows: list, exact_below: float) -> list[tuple[np.ndarray, bool]]:
+    """[(window mask, exact)]: which of a block's windows (``evidence.window_spectra`` of the four planes) are scored
+    with the exact expected periodogram (``evidence.expected_periodogram``: exact True) and which with the tapered
+    model. A window is exact when its mean signal, the mean of R, G (the two G planes' mean) and B as a fraction of
+    white, is below ``exact_below`` (0: none is)."""
+    r, g1, g2, b = (np.asarray(w[1], np.float64) for w in windows)
+    dark = (r + 0.5 * (g1 + g2) + b) / 3.0 < exact_below
+    return [(~dark, False), (dark, True)]
+
+
+def block_part(mask: np.ndarray, spectra: list, noise_vars: list, clipped: list, reads: list
+               ) -> tuple[list, list, list, list]:
+    """(spectra, noise variances, clipped flags, zone reads) of a block's windows ``mask`` selects, the reads'
+    window indices renumbered within the selection (``ZoneKernels.field_reads``); the block itself when it selects
+    every window."""
+    if mask.all():
+        return spectra, noise_vars, clipped, reads
+    pick = lambda planes: [np.asarray(p)[mask] for p in planes]  # noqa: E731
+    position = np.cumsum(mask) - 1
+    part_reads = [(zone, position[idx[mask[idx]]], weight[mask[idx]]) for zone, idx, weight in reads
+                  if mask[idx].any()]
+    return pick(spectra), pick(noise_vars), pick(clipped), part_reads
 
 
 def window_grid_shape(config: ClassicalConfig, height: int, width: int) -> tuple[int, int]:

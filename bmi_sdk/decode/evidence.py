@@ -121,6 +121,99 @@ def folded_model(kernels: np.ndarray, n_plane: int, slope: float = 2.0) -> np.nd
     return np.asarray(folded[..., :, :n_plane // 2 + 1], np.float64)
 
 
+EXACT_OVERSAMPLE = 4
+"""``expected_periodogram``'s frequency grid is this many times finer than the window's DFT bins."""
+
+
+def expected_periodogram(kernels: np.ndarray, n_plane: int, slope: float = 2.0,
+                         oversample: int = EXACT_OVERSAMPLE) -> np.ndarray:
+    """(..., n_plane, n_plane // 2 + 1) expected periodogram of a Hann-tapered plane window whose taper-weighted
+    mean is removed, per Σt², under the plane spectrum M = Σ_aliases |K|² S: ``folded_model`` without its
+    approximations at the lowest frequencies.
+
+    ``window_spectra`` computes Y(ω) = X_t(ω) − μ T(ω), X_t the tapered window's DFT, T the taper's and
+    μ = Σ t x / T(0). With r the plane's autocovariance (the inverse transform of M), a_t the taper's
+    autocorrelation and u = t ⊛ r on the window's samples,
+
+        E|X_t(ω)|² = Σ_L a_t(L) r(L) e^(−iωL),   E[X_t(ω) μ] = DFT(t u)(ω) / T(0),   E[μ²] = Σ t u / T(0)²,
+        E|Y(ω)|² = E|X_t|² − 2 Re(E[X_t μ] conj T(ω)) + E[μ²] |T(ω)|²:
+
+    the first term the taper's smoothing (all ``folded_model`` holds), the others the mean's removal, which takes
+    power from the bins next to DC. Every lag of a window is shorter than the window, so after r the sums are
+    transforms of the window's size. M is sampled on a grid ``oversample`` times finer than the window's bins
+    (r then holds lags to ``oversample`` / 2 windows before it wraps), and S's floor f0 is one bin of that
+    grid at full resolution, so the prior reaches below the window's lowest frequency (``folded_model`` floors
+    at one window bin). A Monte Carlo periodogram matches it bin by bin, DC's neighbours included
+    (``tests/test_decode.py``).
+    """
+    k = kernels.shape[-1]
+    n_os = n_plane * oversample
+    n_full = 2 * n_os
+    if k > 2 * n_plane:
+        raise ValueError(f"a {k}-px kernel does not fit a {2 * n_plane}-px window")
+    if oversample < 2:
+        raise ValueError(f"oversample must be >= 2 (the autocovariance's lags reach a window), got {oversample}")
+    padded = np.zeros(kernels.shape[:-2] + (n_full, n_full))
+    padded[..., :k, :k] = kernels
+    otf = sfft.rfft2(padded)                                                # a shift only changes phase
+    power = (otf.real ** 2 + otf.imag ** 2) * _prior_half(n_full, slope)
+    # the plane samples every second pixel: its autocovariance at lag L is the full field's at 2L (the fold of
+    # the aliases in frequency), up to a constant factor that the prior level absorbs
+    lags = np.r_[0:2 * n_plane:2, n_full - 2 * (n_plane - 1):n_full:2]    # 2L for L = 0 … n−1, −(n−1) … −1
+    autocov = sfft.irfft2(power, s=(n_full, n_full))                       # R(l), l mod n_full
+    r = autocov[..., lags[:, None], lags[None, :]]                          # (..., 2n−1, 2n−1) r(L)
+    taper, taper_corr = _taper_lags(n_plane)
+    # E|X_t|²: the lags folded onto the window's bins (L and L ± n meet at ω = 2πk/n)
+    folded = r * taper_corr
+    folded = folded[..., :n_plane, :] + np.pad(folded[..., n_plane:, :], _pad_front(folded.ndim, -2))
+    folded = folded[..., :, :n_plane] + np.pad(folded[..., :, n_plane:], _pad_front(folded.ndim, -1))
+    smoothed = sfft.rfft2(folded).real
+    # u = t ⊛ r on the window: a circular convolution on a 2n grid holds every lag −(n−1) … n−1 unwrapped
+    r_circ = np.zeros(r.shape[:-2] + (2 * n_plane, 2 * n_plane))
+    circ = np.r_[0:n_plane, n_plane + 1:2 * n_plane]
+    r_circ[..., circ[:, None], circ[None, :]] = r
+    taper_pad = np.zeros((2 * n_plane, 2 * n_plane))
+    taper_pad[:n_plane, :n_plane] = taper
+    u = sfft.irfft2(sfft.rfft2(r_circ) * sfft.rfft2(taper_pad), s=r_circ.shape[-2:])[..., :n_plane, :n_plane]
+    tu = taper * u
+    taper_ft = sfft.rfft2(taper)
+    t0 = float(taper.sum())
+    cross = sfft.rfft2(tu) / t0                                            # E[X_t μ]
+    mean_power = tu.sum(axis=(-2, -1))[..., None, None] / t0 ** 2            # E[μ²]
+    expected = smoothed - 2.0 * (cross * np.conj(taper_ft)).real + mean_power * np.abs(taper_ft) ** 2
+    return expected / float((taper ** 2).sum())
+
+
+@lru_cache(maxsize=8)
+def _prior_half(n_full: int, slope: float) -> np.ndarray:
+    """S on the rfft half of the n_full grid, floored at one of its bins; zero at DC and at the three
+    frequencies that fold onto a plane's DC (a constant field, which the window's mean removal takes out)."""
+    f = sfft.fftfreq(n_full)
+    prior = power_law_prior(f, f[:n_full // 2 + 1], 1.0 / n_full, slope)
+    prior[[0, 0, n_full // 2, n_full // 2], [0, n_full // 2, 0, n_full // 2]] = 0.0
+    return prior
+
+
+def _pad_front(ndim: int, axis: int) -> list[tuple[int, int]]:
+    """np.pad widths that add one zero at the front of ``axis``: the negative lags −(n−1) … −1 land on n−(n−1) …
+    n−1 when folded modulo n, after lag 0's slot."""
+    widths = [(0, 0)] * ndim
+    widths[axis] = (1, 0)
+    return widths
+
+
+@lru_cache(maxsize=8)
+def _taper_lags(n_plane: int) -> tuple[np.ndarray, np.ndarray]:
+    """(t, a_t): the n_plane Hann taper and its autocorrelation a_t(L) = Σ_j t_j t_(j+L) at the lags of
+    ``expected_periodogram`` (0 … n−1, then −(n−1) … −1 on each axis)."""
+    taper = hann_taper(n_plane).astype(np.float64)
+    pad = np.zeros((2 * n_plane, 2 * n_plane))
+    pad[:n_plane, :n_plane] = taper
+    corr = sfft.irfft2(np.abs(sfft.rfft2(pad)) ** 2, s=pad.shape)           # lags mod 2n, none wrapped
+    lags = np.r_[0:n_plane, n_plane + 1:2 * n_plane]
+    return taper, corr[lags[:, None], lags[None, :]]
+
+
 def _full_from_half(half: np.ndarray, n: int) -> np.ndarray:
     """(..., n, n) the whole 2-D spectrum of a real signal from its rfft half (..., n, n//2+1): P(−f) = P(f)."""
     rest = half[..., :, 1:n - n // 2][..., :, ::-1]                         # columns n//2+1 .. n−1

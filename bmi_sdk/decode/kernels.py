@@ -14,7 +14,7 @@ import threading
 import numpy as np
 
 from .bayer import PLANE_CHANNELS
-from .evidence import folded_model
+from .evidence import expected_periodogram, folded_model
 
 ZONE_STEP_DEG = 0.5
 
@@ -35,7 +35,7 @@ class ZoneKernels:
         self.slopes = tuple(float(a) for a in slopes)
         self.window_px = window_px
         self._kernels: dict[tuple, np.ndarray] = {}
-        self._models: dict[tuple, np.ndarray] = {}
+        self._models: dict[tuple, np.ndarray] = {}  # (θ, φ, candidate, exact) → (C, slopes, n, m)
         self.kernel_sets_computed = 0
         self._count_lock = threading.Lock()  # around ``kernel_sets_computed``
         self._zone_locks: dict[tuple, threading.RLock] = {}
@@ -112,18 +112,20 @@ class ZoneKernels:
                         self.kernel_sets_computed += len(missing)
         return np.stack([self._kernels[zone + (int(j),)] for j in which], axis=1)
 
-    def models(self, zone: tuple[float, float], which: np.ndarray) -> np.ndarray:
-        """(planes, slopes, len(which), n, n//2+1) folded model power of each Bayer plane (``evidence``)."""
+    def models(self, zone: tuple[float, float], which: np.ndarray, exact: bool = False) -> np.ndarray:
+        """(planes, slopes, len(which), n, n//2+1) model power of each Bayer plane (``evidence``): the taper-smoothed
+        ``folded_model``, or with ``exact`` the ``expected_periodogram`` (the mean's removal held as well)."""
         which = np.atleast_1d(np.asarray(which, dtype=int))
         n_plane = self.window_px // 2
-        if any(zone + (int(j),) not in self._models for j in which):
+        model = expected_periodogram if exact else folded_model
+        if any(zone + (int(j), exact) not in self._models for j in which):
             with self._zone_lock(zone):
-                missing = [int(j) for j in which if zone + (int(j),) not in self._models]
+                missing = [int(j) for j in which if zone + (int(j), exact) not in self._models]
                 if missing:
                     k = self.kernels(zone, np.asarray(missing))                       # (C, m, K, K)
-                    per_channel = np.stack([[folded_model(k[c], n_plane, a) for a in self.slopes]
+                    per_channel = np.stack([[model(k[c], n_plane, a) for a in self.slopes]
                                             for c in range(k.shape[0])])               # (C, A, m, n, n/2+1)
                     for n, j in enumerate(missing):
-                        self._models[zone + (j,)] = per_channel[:, :, n].astype(np.float32)
-        stacked = np.stack([self._models[zone + (int(j),)] for j in which], axis=2)  # (C, A, D, n, m)
+                        self._models[zone + (j, exact)] = per_channel[:, :, n].astype(np.float32)
+        stacked = np.stack([self._models[zone + (int(j), exact)] for j in which], axis=2)  # (C, A, D, n, m)
         return stacked[list(PLANE_CHANNELS)]
