@@ -13,7 +13,8 @@ classical stage and the evidence decoder, twice: rendered and decoded with the r
 benchmark tiles' model) and with the design camera's exact kernels (what the simulated device renders and
 ``bmi infer`` decodes with). ``--full`` also reads the benchmarks' full 6000×4500 procedural frame
 (seed 7, σ 0.005: ``decoder.full_frame_raw``), rendered and decoded with each of the two kernel models, with the
-support read off, as shipped and with its other point estimates, beside the classical read of the same stage.
+support read off, as shipped and with its other point estimates, beside the classical read of the same stage, and
+with the tapered model in every window against the exact model in the dark ones (error and the stage's seconds).
 """
 
 from __future__ import annotations
@@ -128,8 +129,13 @@ def _planes(network, stages, geometry) -> str:
 def _full_frame(network, stages, geometry) -> str:
     """The benchmarks' full frame (``decoder.full_frame_optical`` at σ 0.005) rendered and decoded with the same kernels
     of every (name, classical stage) of ``stages``: the classical read, and the evidence decoder's with the support
-    read off, as shipped and with its other point estimates; then the shipped read's error by range, by distance to a
+    read off, as shipped and with its other point estimates; where the stage scores dark windows with the exact model
+    (``ClassicalConfig.exact_model_below``), both reads again with the tapered model in every window and the stage's
+    seconds each way; then the shipped read's error by range, by distance to a
     depth edge and by signal (``nn.eval_strata``, as ``bmi eval`` breaks a row down)."""
+    from dataclasses import replace
+
+    from ..decode import ClassicalDecoder
     from ..decode.volume import pixel_log_colour
     from ..model_io import raw_to_rgb
     from ..nn.data import STANDARD_SIGMA, simulate_raw
@@ -150,7 +156,6 @@ def _full_frame(network, stages, geometry) -> str:
         stage_s = time.perf_counter() - t0
         inv_grid, sig_grid = network.read_decode(result)
         rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
-        del raw
         log_rgb = pixel_log_colour(rgb)
         rows.append([kernels, "classical", *_row(result.depth_m, result.depth_sigma_m, range_m, result.valid),
                      f"{stage_s:.1f}"])
@@ -171,7 +176,18 @@ def _full_frame(network, stages, geometry) -> str:
                 strata_rows += [[kernels, stratum, m["pixel_share"], m["error_share"], m["absrel"], m["delta1"]]
                                 for group in ("by_range", "by_edge", "by_signal")
                                 for stratum, m in summary[group].items()]
-        del result, rgb, log_rgb, signal
+        if stage.config.exact_model_below > 0:  # the exact model's gate, as shipped against off: error and cost
+            off = ClassicalDecoder.for_psf_map(psf_map, replace(stage.config, exact_model_below=0.0))
+            t0 = time.perf_counter()
+            result = off.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry,
+                                noise_profile=NoiseProfile.additive(STANDARD_SIGMA), aif=False)
+            off_s = time.perf_counter() - t0
+            depth, sigma = _read(*network.read_decode(result), rgb, log_rgb, network.support, network.colour_sigma,
+                                 off.config)
+            rows += [[kernels, f"{name}, tapered model in every window", *_row(d, sd, range_m, result.valid),
+                      f"{off_s:.1f}"] for name, d, sd in (("classical", result.depth_m, result.depth_sigma_m),
+                                                         ("evidence", depth, sigma))]
+        del result, raw, rgb, log_rgb, signal
     header = ["kernels", "decoder", "AbsRel", "δ1", "std(error/σ)", "confident coverage",
               "s (stage, or read after it)"]
     return ("### The full 6000×4500 procedural frame (seed 7, σ 0.005; rendered and decoded with one kernel model; "
