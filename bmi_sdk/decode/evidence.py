@@ -153,15 +153,16 @@ def expected_periodogram(kernels: np.ndarray, n_plane: int, slope: float = 2.0,
         raise ValueError(f"a {k}-px kernel does not fit a {2 * n_plane}-px window")
     if oversample < 2:
         raise ValueError(f"oversample must be >= 2 (the autocovariance's lags reach a window), got {oversample}")
-    padded = np.zeros(kernels.shape[:-2] + (n_full, n_full))
-    padded[..., :k, :k] = kernels
-    otf = sfft.rfft2(padded)                                                # a shift only changes phase
-    power = (otf.real ** 2 + otf.imag ** 2) * _prior_half(n_full, slope)
+    # the kernel's rfft2 on the n_full grid, its k non-zero rows transformed first (a shift only changes phase);
+    # float32 holds |K|² to ~1e-7 of its peak, the precision the sums below need in float64
+    otf = sfft.fft(sfft.rfft(np.asarray(kernels, np.float32), n=n_full, axis=-1), n=n_full, axis=-2)
+    power = (otf.real.astype(np.float64) ** 2 + otf.imag.astype(np.float64) ** 2) * _prior_half(n_full, slope)
     # the plane samples every second pixel: its autocovariance at lag L is the full field's at 2L (the fold of
-    # the aliases in frequency), up to a constant factor that the prior level absorbs
+    # the aliases in frequency), up to a constant factor that the prior level absorbs; R = F⁻¹[power] is taken
+    # at those lags only: rows first, then the columns of the rows kept
     lags = np.r_[0:2 * n_plane:2, n_full - 2 * (n_plane - 1):n_full:2]    # 2L for L = 0 … n−1, −(n−1) … −1
-    autocov = sfft.irfft2(power, s=(n_full, n_full))                       # R(l), l mod n_full
-    r = autocov[..., lags[:, None], lags[None, :]]                          # (..., 2n−1, 2n−1) r(L)
+    rows = sfft.ifft(power, axis=-2)[..., lags, :]
+    r = sfft.irfft(rows, n=n_full, axis=-1)[..., lags]                      # (..., 2n−1, 2n−1) r(L)
     taper, taper_corr = _taper_lags(n_plane)
     # E|X_t|²: the lags folded onto the window's bins (L and L ± n meet at ω = 2πk/n)
     folded = r * taper_corr
