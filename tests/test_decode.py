@@ -36,11 +36,10 @@ def test_fold_is_the_spectrum_of_the_four_bayer_planes():
     assert np.allclose(planes, folded / 4, rtol=1e-10, atol=1e-9)
 
 
-def test_tapered_model_is_the_expected_periodogram_of_a_blurred_1_over_f2_field():
-    """Monte Carlo: a Gaussian field with the prior's 1/f² spectrum, blurred by the camera's near kernel (0.8 m,
-    on axis: its OTF oscillates about once per bin of a 64-px window), sampled as a Bayer plane and cut into
-    Hann windows. The mean periodogram matches the taper-smoothed model bin by bin (p95 within 5 %); the
-    unsmoothed spectrum misses by up to an order of magnitude near the OTF's zeros."""
+def _near_kernel_periodogram(floor_cycles: float, fields: int) -> tuple[np.ndarray, np.ndarray]:
+    """(kernel, mean periodogram): Gaussian fields with a 1/f² spectrum floored at ``floor_cycles``, blurred by the
+    camera's near kernel (0.8 m on axis: its OTF oscillates about once per bin of a 64-px window), sampled as a
+    Bayer plane and cut into Hann windows of 32 samples, stride 16; the windows' mean periodogram."""
     from scipy import fft as sfft
 
     from bmi_sdk.decode.evidence import hann_taper, power_law_prior, window_spectra
@@ -54,10 +53,24 @@ def test_tapered_model_is_the_expected_periodogram_of_a_blurred_1_over_f2_field(
     otf = sfft.fft2(np.roll(otf, (-(k // 2), -(k // 2)), (0, 1)))
     rng = np.random.default_rng(4)
     spectra = []
-    for _ in range(8):
-        field = sfft.ifft2(sfft.fft2(rng.standard_normal((n, n))) * np.sqrt(power_law_prior(f, f, 1 / 64)) * otf).real
+    for _ in range(fields):
+        field = sfft.ifft2(sfft.fft2(rng.standard_normal((n, n))) * np.sqrt(power_law_prior(f, f, floor_cycles))
+                           * otf).real
         spectra.append(window_spectra(field[::2, ::2].astype(np.float32), 32, 16, hann_taper(32))[0])
-    mean = np.concatenate(spectra).mean(axis=0)
+    return kernel, np.concatenate(spectra).mean(axis=0)
+
+
+def test_tapered_model_is_the_expected_periodogram_of_a_blurred_1_over_f2_field():
+    """Monte Carlo: a Gaussian field with the prior's 1/f² spectrum (floored at one window bin), blurred by the
+    camera's near kernel, sampled as a Bayer plane and cut into Hann windows (``_near_kernel_periodogram``). The
+    mean periodogram matches the taper-smoothed model bin by bin (p95 within 5 %); the unsmoothed spectrum misses
+    by up to an order of magnitude near the OTF's zeros."""
+    from scipy import fft as sfft
+
+    from bmi_sdk.decode.evidence import power_law_prior
+
+    kernel, mean = _near_kernel_periodogram(1 / 64, 8)
+    k = kernel.shape[0]
     used = rfft_multiplicity(32) > 0
 
     def misfit(model):
@@ -78,23 +91,9 @@ def test_the_exact_model_is_the_expected_periodogram_down_to_dcs_neighbours():
     exact expected periodogram matches the mean periodogram on every bin but DC (p95 within 5 %), DC's eight
     neighbours included; the taper-smoothed model, which does not hold the mean's removal, misses those by > 20 %
     (which is why the likelihood leaves them out of it, ``rfft_multiplicity``)."""
-    from scipy import fft as sfft
+    from bmi_sdk.decode.evidence import expected_periodogram
 
-    from bmi_sdk.decode.evidence import expected_periodogram, hann_taper, power_law_prior, window_spectra
-
-    psf_map = PsfMap(lens_tensor("bmi_monocentric"), GEOMETRY, mode="tensor")
-    kernel = psf_map.kernels(0.0, 0.0, np.array([int(np.argmin(np.abs(psf_map.tensor.depth_m - 0.8)))]))[1, 0]
-    n, k = 512, kernel.shape[0]
-    f = sfft.fftfreq(n)
-    otf = np.zeros((n, n))
-    otf[:k, :k] = kernel
-    otf = sfft.fft2(np.roll(otf, (-(k // 2), -(k // 2)), (0, 1)))
-    rng = np.random.default_rng(4)
-    spectra = []
-    for _ in range(16):
-        field = sfft.ifft2(sfft.fft2(rng.standard_normal((n, n))) * np.sqrt(power_law_prior(f, f, 1 / 256)) * otf).real
-        spectra.append(window_spectra(field[::2, ::2].astype(np.float32), 32, 16, hann_taper(32))[0])
-    mean = np.concatenate(spectra).mean(axis=0)
+    kernel, mean = _near_kernel_periodogram(1 / 256, 16)
     bins = np.ones(mean.shape, bool)
     bins[0, 0] = False
     dc_neighbours = (rfft_multiplicity(32) == 0) & bins
@@ -107,23 +106,6 @@ def test_the_exact_model_is_the_expected_periodogram_down_to_dcs_neighbours():
     exact_all, exact_dc = misfit(expected_periodogram(kernel[None], 32)[0])
     assert np.percentile(exact_all, 95) < 0.05 and exact_dc.max() < 0.08
     assert misfit(folded_model(kernel[None], 32)[0])[1].max() > 0.2
-
-
-def test_a_block_part_renumbers_its_zone_reads_within_the_selected_windows():
-    from bmi_sdk.decode.classical import block_part
-
-    spectra = [np.arange(5.0)[:, None] * np.ones((5, 3))] * 4
-    noise = [np.arange(5.0)] * 4
-    clipped = [np.array([False, True, False, False, True])] * 4
-    reads = [("a", np.array([0, 1, 2]), np.array([1.0, 0.5, 0.25])), ("b", np.array([2, 3, 4]), np.array([0.75, 1, 1])),
-             ("c", np.array([1]), np.array([0.5]))]
-    mask = np.array([True, False, True, False, True])
-    part_spectra, part_noise, part_clipped, part_reads = block_part(mask, spectra, noise, clipped, reads)
-    assert part_spectra[0][:, 0].tolist() == part_noise[3].tolist() == [0.0, 2.0, 4.0]
-    assert part_clipped[0].tolist() == [False, False, True]
-    assert [(z, i.tolist(), w.tolist()) for z, i, w in part_reads] == [("a", [0, 1], [1.0, 0.25]),
-                                                                      ("b", [1, 2], [0.75, 1.0])]  # c: none left
-    assert block_part(np.ones(5, bool), spectra, noise, clipped, reads)[3] is reads
 
 
 @pytest.mark.parametrize("depth_m", [1.7, 3.4])
