@@ -308,11 +308,11 @@ class ClassicalDecoder:
             kernels_s = 0.0
             # windows scored with the exact expected periodogram (dark ones, ``exact_model_below``) and the rest, each
             # group's β grid placed by its own windows and coarse models; without a gate, one group of every window
-            groups = [(mask, exact) for mask, exact in window_groups(windows, cfg.exact_model_below) if mask.any()]
+            groups = [(mask, exact, block_part(mask, spectra, noise_vars, clipped, reads))
+                      for mask, exact in window_groups(windows, cfg.exact_model_below) if mask.any()]
             coarse_nll = np.empty((nr * nc, len(coarse)))
             coarse_models = {}
-            for mask, exact in groups:
-                g_spectra, g_noise, g_clipped, g_reads = block_part(mask, spectra, noise_vars, clipped, reads)
+            for mask, exact, (g_spectra, g_noise, g_clipped, g_reads) in groups:
                 tm = time.perf_counter()
                 coarse_models[exact] = [self.zones.models(z, coarse, exact) for z, _, _ in g_reads]
                 kernels_s += time.perf_counter() - tm
@@ -327,8 +327,7 @@ class ClassicalDecoder:
             nll = np.empty((nr * nc, len(which)))
             nll[:, np.isin(which, coarse)] = coarse_nll[:, np.isin(coarse, which)]
             if len(fine):
-                for mask, exact in groups:
-                    g_spectra, g_noise, g_clipped, g_reads = block_part(mask, spectra, noise_vars, clipped, reads)
+                for mask, exact, (g_spectra, g_noise, g_clipped, g_reads) in groups:
                     tm = time.perf_counter()
                     models = [self.zones.models(z, fine, exact) for z, _, _ in g_reads]
                     kernels_s += time.perf_counter() - tm

@@ -163,7 +163,7 @@ def expected_periodogram(kernels: np.ndarray, n_plane: int, slope: float = 2.0,
     lags = np.r_[0:2 * n_plane:2, n_full - 2 * (n_plane - 1):n_full:2]    # 2L for L = 0 … n−1, −(n−1) … −1
     rows = sfft.ifft(power, axis=-2)[..., lags, :]
     r = sfft.irfft(rows, n=n_full, axis=-1)[..., lags]                      # (..., 2n−1, 2n−1) r(L)
-    taper, taper_corr = _taper_lags(n_plane)
+    taper, taper_corr, taper_pad_ft, taper_ft = _taper_lags(n_plane)
     # E|X_t|²: the lags folded onto the window's bins (L and L ± n meet at ω = 2πk/n)
     folded = r * taper_corr
     folded = folded[..., :n_plane, :] + np.pad(folded[..., n_plane:, :], _pad_front(folded.ndim, -2))
@@ -173,11 +173,8 @@ def expected_periodogram(kernels: np.ndarray, n_plane: int, slope: float = 2.0,
     r_circ = np.zeros(r.shape[:-2] + (2 * n_plane, 2 * n_plane))
     circ = np.r_[0:n_plane, n_plane + 1:2 * n_plane]
     r_circ[..., circ[:, None], circ[None, :]] = r
-    taper_pad = np.zeros((2 * n_plane, 2 * n_plane))
-    taper_pad[:n_plane, :n_plane] = taper
-    u = sfft.irfft2(sfft.rfft2(r_circ) * sfft.rfft2(taper_pad), s=r_circ.shape[-2:])[..., :n_plane, :n_plane]
+    u = sfft.irfft2(sfft.rfft2(r_circ) * taper_pad_ft, s=r_circ.shape[-2:])[..., :n_plane, :n_plane]
     tu = taper * u
-    taper_ft = sfft.rfft2(taper)
     t0 = float(taper.sum())
     cross = sfft.rfft2(tu) / t0                                            # E[X_t μ]
     mean_power = tu.sum(axis=(-2, -1))[..., None, None] / t0 ** 2            # E[μ²]
@@ -204,15 +201,17 @@ def _pad_front(ndim: int, axis: int) -> list[tuple[int, int]]:
 
 
 @lru_cache(maxsize=8)
-def _taper_lags(n_plane: int) -> tuple[np.ndarray, np.ndarray]:
-    """(t, a_t): the n_plane Hann taper and its autocorrelation a_t(L) = Σ_j t_j t_(j+L) at the lags of
-    ``expected_periodogram`` (0 … n−1, then −(n−1) … −1 on each axis)."""
+def _taper_lags(n_plane: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(t, a_t, rfft2 of t zero-padded to 2n, rfft2 of t): the n_plane Hann taper, its autocorrelation
+    a_t(L) = Σ_j t_j t_(j+L) at the lags of ``expected_periodogram`` (0 … n−1, then −(n−1) … −1 on each axis) and
+    the taper's transforms that function multiplies by."""
     taper = hann_taper(n_plane).astype(np.float64)
     pad = np.zeros((2 * n_plane, 2 * n_plane))
     pad[:n_plane, :n_plane] = taper
-    corr = sfft.irfft2(np.abs(sfft.rfft2(pad)) ** 2, s=pad.shape)           # lags mod 2n, none wrapped
+    pad_ft = sfft.rfft2(pad)
+    corr = sfft.irfft2(np.abs(pad_ft) ** 2, s=pad.shape)                   # lags mod 2n, none wrapped
     lags = np.r_[0:n_plane, n_plane + 1:2 * n_plane]
-    return taper, corr[lags[:, None], lags[None, :]]
+    return taper, corr[lags[:, None], lags[None, :]], pad_ft, sfft.rfft2(taper)
 
 
 def _full_from_half(half: np.ndarray, n: int) -> np.ndarray:
