@@ -189,6 +189,40 @@ def test_a_turned_pupil_polynomial_equals_the_pointwise_sum_at_the_turned_points
             assert np.abs(values - expected)[inside].max() <= 1e-11 * max(1.0, np.abs(expected[inside]).max())
 
 
+@pytest.mark.parametrize("field_deg, depth_m, offset_px", [(60.0, 0.7, (0.3, -0.4)), (0.0, math.inf, (0.0, 0.0))])
+def test_the_psf_equals_a_float64_debye_sum_over_the_whole_pupil_grid(field_deg, depth_m, offset_px):
+    """psf_from_pupil transforms only the pupil's transmitting rectangle, in complex64 with the phase's whole waves
+    taken off first. The reference: P = T·a·exp(−2πiW) in complex128 on the whole grid (T from np.gradient and
+    np.hypot), the Debye sum as float64 complex exponentials at every sub-sample, the pixel box as an explicit
+    average of the intensity's Fourier series. W spans 28 (60°, 0.7 m) and 81 waves (on axis, ∞)."""
+    from bmi_sdk.optics.psf import _pixel_operator
+
+    fit = fit_pupil(MONO, field_deg, depth_m, 0.5876)
+    kernel_px, oversample, guard, pitch_mm = 9, 5, 1.25, 2e-3
+    got = psf_from_pupil(fit, kernel_px, 2.0, oversample, guard, offset_px=offset_px)
+    lam_mm = fit.wavelength_um * 1e-3
+    d_l = lam_mm / (guard * kernel_px * pitch_mm)
+    n_l, n_m = (2 * int(np.ceil(h / d_l)) + 1 for h in (fit.l_half, fit.m_half))
+    l_off, m_off = ((np.arange(n) - n // 2) * d_l for n in (n_l, n_m))
+    w = fit.evaluate("w_waves", fit.l_centre + l_off, fit.m_centre + m_off)
+    assert np.ptp(w) > 20  # whole waves: the float32 phase would lose ~1e-5 rad without taking them off
+    transmit = np.maximum(fit.evaluate("amplitude", fit.l_centre + l_off, fit.m_centre + m_off), 0.0)
+    for name in fit.apertures:
+        q = fit.evaluate(name, fit.l_centre + l_off, fit.m_centre + m_off)
+        transmit *= np.clip(0.5 + (1.0 - q) / (np.hypot(*np.gradient(q)) + 1e-12), 0.0, 1.0)
+    pupil = transmit * np.exp(-2j * np.pi * w)
+    x = (np.arange(kernel_px * oversample) - kernel_px * oversample // 2) * pitch_mm / oversample
+    k = 2 * np.pi / lam_mm
+    ex = np.exp(1j * k * np.outer(x + offset_px[0] * pitch_mm, l_off))
+    ey = np.exp(1j * k * np.outer(x + offset_px[1] * pitch_mm, m_off))
+    intensity = np.abs(ex @ pupil @ ey.T).T ** 2
+    op = _pixel_operator(kernel_px, oversample)
+    expected = np.maximum(op @ intensity @ op.T, 0.0)
+    expected /= expected.sum()
+    assert got.pupil_samples == (n_l, n_m)
+    assert np.abs(got.kernel - expected).max() <= 2e-6 * expected.max()
+
+
 def test_the_moment_based_pupil_fit_equals_a_weighted_least_squares_solve():
     """``_fit_batched`` builds each entry's normal equations from moments and one batched product; the reference is
     numpy's lstsq on the explicit weighted monomial basis, per entry and per fitted column."""
