@@ -96,15 +96,11 @@ def _centred_phase_matrix(n_sub: int, step_mm: float, n_pupil: int, d_l: float, 
     return out
 
 
-def _phase_matrix(n_sub: int, step_mm: float, n_pupil: int, d_l: float, lam_mm: float,
-                  shift_mm: float = 0.0) -> np.ndarray:
-    """exp(ik (x_m + ``shift_mm``) l_j): the centred matrix times the shift's phase per pupil column (a spot off its
-    pixel centre has its own shift, so only the centred part is worth keeping)."""
-    centred = _centred_phase_matrix(n_sub, step_mm, n_pupil, d_l, lam_mm)
-    if shift_mm == 0.0:
-        return centred
-    column_phase = np.exp(1j * (2 * np.pi / lam_mm) * shift_mm * _centred_samples(n_pupil, d_l))
-    return centred * column_phase.astype(np.complex64)[None, :]
+def _shift_phase(shift_mm: float, pupil_offsets: np.ndarray, lam_mm: float) -> np.ndarray:
+    """exp(ik ``shift_mm`` l_j) per pupil offset (complex64): moving the sub-sample positions by a shift multiplies
+    each pupil column of the transform by it, so a spot off its pixel centre keeps the shared centred matrix and
+    turns its (smaller) pupil instead."""
+    return np.exp(1j * (2 * np.pi / lam_mm) * shift_mm * pupil_offsets).astype(np.complex64)
 
 
 def _rotated_pupil(fit: PupilFit, u_off: np.ndarray, v_off: np.ndarray, rotation_deg: float) -> "_Pupil":
@@ -214,9 +210,14 @@ def psf_from_pupil(fit: PupilFit, kernel_px: int, pitch_um: float = 2.0, oversam
         pupil = pupil_function(fit, fit.l_centre + l_off, fit.m_centre + m_off, aperture_l_scale)
     n_sub = kernel_px * oversample
     step_mm = pitch_mm / oversample  # pixel centres are samples
-    ex = _phase_matrix(n_sub, step_mm / scale, n_l, d_l, lam_mm, offset_px[0] * pitch_mm / scale)  # (n_sub, n_l)
-    ey = _phase_matrix(n_sub, step_mm / scale, n_m, d_l, lam_mm, offset_px[1] * pitch_mm / scale).T
-    field = ex[:, pupil.rows] @ pupil.values @ ey[pupil.cols, :]  # [x, y]
+    ex = _centred_phase_matrix(n_sub, step_mm / scale, n_l, d_l, lam_mm)[:, pupil.rows]  # (n_sub, lit L)
+    ey = _centred_phase_matrix(n_sub, step_mm / scale, n_m, d_l, lam_mm)[:, pupil.cols].T  # (lit M, n_sub)
+    shifted = pupil.values
+    if offset_px[0] != 0.0:
+        shifted = shifted * _shift_phase(offset_px[0] * pitch_mm / scale, l_off[pupil.rows], lam_mm)[:, None]
+    if offset_px[1] != 0.0:
+        shifted = shifted * _shift_phase(offset_px[1] * pitch_mm / scale, m_off[pupil.cols], lam_mm)[None, :]
+    field = ex @ shifted @ ey  # [x, y]
     parts = field.view(np.float32).astype(np.float64)  # [x, (re, im) interleaved]: one float64 copy
     parts *= parts
     intensity = (parts[:, 0::2] + parts[:, 1::2]).T  # [y, x]
