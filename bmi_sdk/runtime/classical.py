@@ -130,9 +130,8 @@ def warm_kernels(camera: BuiltCamera, config: ClassicalConfig = ClassicalConfig(
                  workers: int = 1, progress: bool = False) -> dict:
     """Trace ahead of a capture every kernel a frame's decode can read, into the disk cache (``bmi psf warm``).
 
-    A camera's first full frame otherwise spends most of its time tracing (~55 s of a 96 s command for the
-    design, ~65 s of 106 s for a built lens, on this 2-core machine; docs/benchmarks.md, ``bmi bench frame``);
-    its later frames, and any process after a warm-up, read the kernels. ``roi`` = (row0, col0, height, width)
+    A camera's first full frame otherwise spends most of its time tracing (docs/benchmarks.md, ``bmi bench
+    frame``); its later frames, and any process after a warm-up, read the kernels. ``roi`` = (row0, col0, height, width)
     of the sensor (default the whole sensor). The zones are those ``ClassicalDecoder.frame_zones`` lists, every
     candidate of the evidence and the AiF's, so any scene's decode finds them. ``workers`` > 1 traces zones in
     that many single-threaded processes, a θ ring per job (each writes its own zones' shards). Returns what was done: zones,
