@@ -163,10 +163,10 @@ def _full_frame(network, stages, geometry) -> str:
         for name, support in reads:
             t0 = time.perf_counter()
             depth, sigma = _read(inv_grid, sig_grid, rgb, log_rgb, support, network.colour_sigma, stage.config)
-            rows.append([kernels, name, *_row(depth, sigma, range_m, result.valid),
-                         f"{time.perf_counter() - t0:.1f}"])
+            metrics = _row(depth, sigma, range_m, result.valid)
+            rows.append([kernels, name, *metrics, f"{time.perf_counter() - t0:.1f}"])
             if name == shipped:
-                shipped_absrel = _row(depth, sigma, range_m, result.valid)[0]
+                shipped_absrel = metrics[0]
                 strata = StrataSums()
                 strata.add(depth, range_m, result.valid, sigma, edge_distance_px(range_m), signal)
                 summary = strata.summary()
