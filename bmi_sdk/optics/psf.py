@@ -145,7 +145,7 @@ def _complex_pupil(w_waves: np.ndarray, amplitude: np.ndarray, apertures) -> _Pu
     return _Pupil(pupil, rows, cols)
 
 
-def pupil_function(fit: PupilFit, l_grid: np.ndarray, m_grid: np.ndarray, aperture_l_scale: float = 1.0) -> _Pupil:
+def _separable_pupil(fit: PupilFit, l_grid: np.ndarray, m_grid: np.ndarray, aperture_l_scale: float = 1.0) -> _Pupil:
     """Complex pupil P(L, M) on a separable grid (len(l_grid), len(m_grid)), as its transmitting rectangle.
 
     ``aperture_l_scale`` < 1 compresses only the apertures along L (the
@@ -207,7 +207,7 @@ def psf_from_pupil(fit: PupilFit, kernel_px: int, pitch_um: float = 2.0, oversam
     if rotation_deg % 360.0 != 0.0:
         pupil = _rotated_pupil(fit, l_off, m_off, rotation_deg)
     else:
-        pupil = pupil_function(fit, fit.l_centre + l_off, fit.m_centre + m_off, aperture_l_scale)
+        pupil = _separable_pupil(fit, fit.l_centre + l_off, fit.m_centre + m_off, aperture_l_scale)
     n_sub = kernel_px * oversample
     step_mm = pitch_mm / oversample  # pixel centres are samples
     ex = _centred_phase_matrix(n_sub, step_mm / scale, n_l, d_l, lam_mm)[:, pupil.rows]  # (n_sub, lit L)
