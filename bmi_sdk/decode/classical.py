@@ -63,6 +63,7 @@ from ..sensor import NoiseProfile, relative_illumination
 from .aif import wiener_blend
 from .bayer import clipped_samples, estimate_noise_sigma, normalised_planes
 from .candidates import Candidates, inverse_depth_candidates
+from .clipped import choose_clipped_planes, clipped_plane_curves, clipped_weights
 from .evidence import Evidence, hann_taper, plane_nll, taper_variance_inflation, window_spectra, windows_touching
 from .kernels import ZONE_STEP_DEG, ZoneKernels
 from .pooling import pool_evidence, window_colour
@@ -86,6 +87,8 @@ def frame_noise(config: "ClassicalConfig", planes: np.ndarray, profile: NoisePro
     return NoiseProfile(0.0, max(estimate_noise_sigma(planes), 1e-4) ** 2), "estimated"
 
 
+MAX_CLIPPED_RAMP_SAMPLES = 64.0
+"""The widest ramp around clipped samples ``ClassicalConfig`` takes (plane samples; two 64-px windows)."""
 NOISE_SIGMA_MAX = 0.5
 """The largest constant raw noise σ (units of full scale) a ``ClassicalConfig`` takes: a σ of half the sensor's
 range drowns any signal it can hold, and every window then reads its prior: one depth everywhere, every pixel
@@ -121,6 +124,11 @@ class ClassicalConfig:
     window_model: str = "tapered"  # the evidence model with the taper's smoothing (``evidence.folded_model``)
     exact_model_below: float = 0.0  # windows whose mean signal (fraction of white) is below this are scored with
     #                                 the exact expected periodogram (``evidence.expected_periodogram``); 0: none
+    clipped_planes_per_frame: int = 4096  # a frame scores at most this many (window, plane) pairs holding samples
+    #                                       at the white level with those samples left out (``clipped``); the rest,
+    #                                       and every pair at 0, give no evidence
+    clipped_ramp_samples: float = 8.0  # plane samples over which such a window's taper rises from 0 at a clipped
+    #                                    sample (``clipped.clipped_weights``)
     threads: int | None = None  # blocks read at once (default: all cores; 1 on a one-thread Dask worker)
 
     def __post_init__(self):
@@ -143,6 +151,13 @@ class ClassicalConfig:
                              f"got {self.theta_step_deg}")
         if not 0.0 <= self.exact_model_below <= 1.0:
             raise ValueError(f"exact_model_below must lie in [0, 1] (a fraction of white), got {self.exact_model_below}")
+        if isinstance(self.clipped_planes_per_frame, bool) or not isinstance(self.clipped_planes_per_frame, int) \
+                or self.clipped_planes_per_frame < 0:
+            raise ValueError(f"clipped_planes_per_frame must be a whole number >= 0, got "
+                             f"{self.clipped_planes_per_frame!r}")
+        if not 0.0 <= self.clipped_ramp_samples <= MAX_CLIPPED_RAMP_SAMPLES:
+            raise ValueError(f"clipped_ramp_samples must lie in [0, {MAX_CLIPPED_RAMP_SAMPLES}] (plane samples), got "
+                             f"{self.clipped_ramp_samples}")
         if self.window_model not in WINDOW_MODELS:
             raise ValueError(f"window_model must be one of {WINDOW_MODELS}, got {self.window_model!r}")
         if self.noise_model not in NOISE_MODELS:
@@ -273,6 +288,11 @@ class ClassicalDecoder:
         taper = hann_taper(n)
         taper_energy = float((taper ** 2).sum())
         grid_rows, grid_cols = window_grid_shape(cfg, height, width)
+        chosen = weights_padded = None
+        if clipped_padded is not None and cfg.clipped_planes_per_frame:
+            weights_padded = np.stack([clipped_weights(c, cfg.clipped_ramp_samples) for c in clipped_padded])
+            chosen = choose_clipped_planes(clipped_padded, weights_padded, n, sp, (grid_rows, grid_cols), taper,
+                                           cfg.clipped_planes_per_frame)
         inv = np.full((grid_rows, grid_cols), np.nan)
         sig = np.full((grid_rows, grid_cols), np.nan)
         cand_inv = self.candidates.inv_depth_per_m
@@ -306,6 +326,19 @@ class ClassicalDecoder:
             clipped = ([windows_touching(clipped_padded[p][ps], n, sp) for p in range(4)] if clipped_padded is not None
                        else [np.zeros(nr * nc, bool)] * 4)
             kernels_s = 0.0
+            masked_nll, masked = np.zeros((nr * nc, n_cand)), np.zeros((4, nr * nc), bool)
+            block_chosen = None if chosen is None else chosen[:, br:br + nr, bc:bc + nc].reshape(4, -1)
+            if block_chosen is not None and block_chosen.any():
+                def views(x):
+                    return [np.lib.stride_tricks.sliding_window_view(x[p][ps], (n, n))[::sp, ::sp].reshape(-1, n, n)
+                            for p in range(4)]
+
+                every = np.arange(n_cand)
+                scored_nll, masked = clipped_plane_curves(views(padded), views(weights_padded), block_chosen, taper,
+                                                          lambda z: self.zones.kernels(z, every), reads, cfg.slopes,
+                                                          noise)
+                if masked.any():
+                    masked_nll = scored_nll
             # windows scored with the exact expected periodogram (dark ones, ``exact_model_below``) and the rest, each
             # group's β grid placed by its own windows and coarse models; without a gate, one group of every window
             groups = [(mask, exact, block_part(mask, spectra, noise_vars, clipped, reads))
@@ -318,6 +351,7 @@ class ClassicalDecoder:
                 kernels_s += time.perf_counter() - tm
                 coarse_nll[mask] = self._field_nll(g_spectra, g_reads, coarse_models[exact], g_noise, taper_energy,
                                                    g_clipped)
+            coarse_nll += masked_nll[:, coarse]
             best = np.unique(coarse[np.argmin(coarse_nll, axis=1)])
             reach = np.arange(-cfg.coarse_step, cfg.coarse_step + 1)
             which = np.unique(np.clip(best[:, None] + reach[None, :], 0, n_cand - 1))
@@ -333,10 +367,11 @@ class ClassicalDecoder:
                     kernels_s += time.perf_counter() - tm
                     nll[np.flatnonzero(mask)[:, None], np.flatnonzero(np.isin(which, fine))[None, :]] = self._field_nll(
                         g_spectra, g_reads, models, g_noise, taper_energy, g_clipped, coarse_models[exact])
+                nll[:, np.isin(which, fine)] += masked_nll[:, fine]
             depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
             return {"evidence": (coarse_nll - coarse_nll.min(axis=1, keepdims=True)).reshape(nr, nc, -1),
-                    "clipped": int(np.logical_or.reduce(clipped).sum()),
-                    "blind": np.logical_and.reduce(clipped).reshape(nr, nc),
+                    "clipped": int(np.logical_or.reduce(clipped).sum()), "masked": int(masked.any(axis=0).sum()),
+                    "blind": np.logical_and.reduce([c & ~m for c, m in zip(clipped, masked)]).reshape(nr, nc),
                     "inv": 1.0 / depth_b, "sig": sigma_b * self.laplace_inflation,
                     "curves": (whole_curves(coarse, coarse_nll, which, nll, n_cand).reshape(nr, nc, -1)
                                if pooling else None),
@@ -344,7 +379,7 @@ class ClassicalDecoder:
                     "full": window_reads * n_cand, "done": window_reads * (len(coarse) + len(fine)),
                     "evidence_s": time.perf_counter() - t0 - kernels_s, "kernels_s": kernels_s}
 
-        skipped = windows_clipped = 0
+        skipped = windows_clipped = windows_masked = 0
         bar = None
         if progress:
             from tqdm import tqdm
@@ -359,6 +394,7 @@ class ClassicalDecoder:
             cells = slice(br, br + nr), slice(bc, bc + nc)
             evidence[cells] = read["evidence"]
             windows_clipped += read["clipped"]
+            windows_masked += read["masked"]
             blind[cells] = read["blind"]
             inv[cells] = read["inv"]
             sig[cells] = read["sig"]
@@ -416,6 +452,7 @@ class ClassicalDecoder:
                  "candidates_depth_m": [round(float(d), 4) for d in self.candidates.depth_m],
                  "blocks_run": len(blocks) - skipped, "blocks_skipped": skipped,
                  "windows_with_clipped_samples": windows_clipped,
+                 "windows_scored_without_clipped_samples": windows_masked,
                  "windows_without_evidence": int(blind.sum()),
                  "candidate_evaluations": evaluations["done"],
                  "candidate_evaluations_exhaustive": evaluations["full"],

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
 from scipy import fft as sfft
@@ -103,6 +104,13 @@ def folded_model(kernels: np.ndarray, n_plane: int, slope: float = 2.0) -> np.nd
     model has zeros the data cannot show, and near candidates are wrongly penalised. The integral is
     evaluated on a grid ``TAPER_OVERSAMPLE`` times finer than the bins.
     """
+    return _smoothed_model(_plane_spectrum_ft(kernels, n_plane, slope), _hann_window_ft(n_plane), n_plane)
+
+
+def _plane_spectrum_ft(kernels: np.ndarray, n_plane: int, slope: float = 2.0) -> np.ndarray:
+    """(..., n_os, n_os // 2 + 1) rfft2 of the plane spectrum M = Σ_aliases |K|² S of ``kernels`` (..., K, K) on the
+    grid ``TAPER_OVERSAMPLE`` times finer than an ``n_plane`` window's bins, DC zeroed (the window's mean is
+    removed): the part of ``folded_model`` that does not depend on the taper."""
     k = kernels.shape[-1]
     os_ = TAPER_OVERSAMPLE
     n_os = n_plane * os_
@@ -116,9 +124,20 @@ def folded_model(kernels: np.ndarray, n_plane: int, slope: float = 2.0) -> np.nd
     power = (otf.real ** 2 + otf.imag ** 2) * power_law_prior(f, f[:n_full // 2 + 1], 1.0 / (2 * n_plane), slope)
     folded = fold_power(_full_from_half(power, n_full), n_os)              # (..., n_os, n_os) the plane's spectrum
     folded[..., 0, 0] = 0.0  # the window's mean is removed
-    folded = sfft.irfft2(sfft.rfft2(folded) * _spectral_window_ft(n_plane, os_), s=(n_os, n_os))
-    folded = folded[..., ::os_, ::os_]
-    return np.asarray(folded[..., :, :n_plane // 2 + 1], np.float64)
+    return sfft.rfft2(folded)
+
+
+def _smoothed_model(spectrum_ft: np.ndarray, window_ft: np.ndarray, n_plane: int) -> np.ndarray:
+    """(..., n_plane, n_plane // 2 + 1) float64: a plane spectrum (``_plane_spectrum_ft``) convolved with a taper's
+    spectral window (``_hann_window_ft``, unit sum) and sampled at the window's rfft bins."""
+    n_os = n_plane * TAPER_OVERSAMPLE
+    product = spectrum_ft * window_ft
+    # only every TAPER_OVERSAMPLE-th row of the inverse transform is kept: that is the inverse transform of the rows
+    # folded onto n_plane (aliasing in reverse), over TAPER_OVERSAMPLE
+    folded = product.reshape(product.shape[:-2] + (TAPER_OVERSAMPLE, n_plane, product.shape[-1])).sum(axis=-3)
+    rows = sfft.ifft(folded, axis=-2) * (1.0 / TAPER_OVERSAMPLE)
+    smoothed = sfft.irfft(rows, n=n_os, axis=-1)[..., ::TAPER_OVERSAMPLE]
+    return np.asarray(smoothed[..., :, :n_plane // 2 + 1], np.float64)
 
 
 EXACT_OVERSAMPLE = 4
@@ -129,22 +148,34 @@ def expected_periodogram(kernels: np.ndarray, n_plane: int, slope: float = 2.0,
                          oversample: int = EXACT_OVERSAMPLE) -> np.ndarray:
     """(..., n_plane, n_plane // 2 + 1) expected periodogram of a Hann-tapered plane window whose taper-weighted
     mean is removed, per Σt², under the plane spectrum M = Σ_aliases |K|² S: ``folded_model`` without its
-    approximations at the lowest frequencies.
+    approximations at the lowest frequencies (``plane_autocovariance``, then ``tapered_periodogram``). A Monte Carlo
+    periodogram matches it bin by bin, DC's neighbours included (``tests/test_decode.py``)."""
+    return tapered_periodogram(plane_autocovariance(kernels, n_plane, slope, oversample), _hann_terms(n_plane))
 
-    ``window_spectra`` computes Y(ω) = X_t(ω) − μ T(ω), X_t the tapered window's DFT, T the taper's and
-    μ = Σ t x / T(0). With r the plane's autocovariance (the inverse transform of M), a_t the taper's
-    autocorrelation and u = t ⊛ r on the window's samples,
 
-        E|X_t(ω)|² = Σ_L a_t(L) r(L) e^(−iωL),   E[X_t(ω) μ] = DFT(t u)(ω) / T(0),   E[μ²] = Σ t u / T(0)²,
-        E|Y(ω)|² = E|X_t|² − 2 Re(E[X_t μ] conj T(ω)) + E[μ²] |T(ω)|²:
+class PlaneCovariance(NamedTuple):
+    """A plane's autocovariance r(L) at the lags of an n × n window, on a 2n × 2n grid (lag L at index L mod 2n,
+    |L| < n; index n holds 0), and its rfft2: what ``tapered_periodogram`` needs of a kernel."""
 
-    the first term the taper's smoothing (all ``folded_model`` holds), the others the mean's removal, which takes
-    power from the bins next to DC. Every lag of a window is shorter than the window, so after r the sums are
-    transforms of the window's size. M is sampled on a grid ``oversample`` times finer than the window's bins
-    (r then holds lags to ``oversample`` / 2 windows before it wraps), and S's floor f0 is one bin of that
-    grid at full resolution, so the prior reaches below the window's lowest frequency (``folded_model`` floors
-    at one window bin). A Monte Carlo periodogram matches it bin by bin, DC's neighbours included
-    (``tests/test_decode.py``).
+    r: np.ndarray      # (..., 2n, 2n)
+    r_ft: np.ndarray   # (..., 2n, n + 1)
+
+
+def _circular_lags(n_plane: int) -> np.ndarray:
+    """Indices on a 2n grid of the lags 0 … n−1, −(n−1) … −1 (index n, lag ±n, skipped)."""
+    return np.r_[0:n_plane, n_plane + 1:2 * n_plane]
+
+
+def plane_autocovariance(kernels: np.ndarray, n_plane: int, slope: float = 2.0,
+                         oversample: int = EXACT_OVERSAMPLE) -> PlaneCovariance:
+    """``PlaneCovariance`` of a Bayer plane under the plane spectrum M = Σ_aliases |K|² S of ``kernels`` (..., K, K),
+    at the lags of an n = ``n_plane`` window: the part of ``tapered_periodogram``'s model that does not depend on
+    the taper (a block's clipped windows share it).
+
+    M is sampled on a grid ``oversample`` times finer than the window's bins (r then holds lags to ``oversample`` /
+    2 windows before it wraps), and S's floor f0 is one bin of that grid at full resolution, so the prior reaches
+    below the window's lowest frequency (``folded_model`` floors at one window bin). DC and the frequencies that
+    fold onto it are left out: a constant, which the window's mean removal takes out under any taper.
     """
     k = kernels.shape[-1]
     n_os = n_plane * oversample
@@ -162,18 +193,38 @@ def expected_periodogram(kernels: np.ndarray, n_plane: int, slope: float = 2.0,
     # at those lags only: rows first, then the columns of the rows kept
     lags = np.r_[0:2 * n_plane:2, n_full - 2 * (n_plane - 1):n_full:2]    # 2L for L = 0 … n−1, −(n−1) … −1
     rows = sfft.ifft(power, axis=-2)[..., lags, :]
-    r = sfft.irfft(rows, n=n_full, axis=-1)[..., lags]                      # (..., 2n−1, 2n−1) r(L)
-    taper, taper_corr, taper_pad_ft, taper_ft = _taper_lags(n_plane)
-    # E|X_t|²: the lags folded onto the window's bins (L and L ± n meet at ω = 2πk/n)
-    folded = r * taper_corr
-    folded = folded[..., :n_plane, :] + np.pad(folded[..., n_plane:, :], _pad_front(folded.ndim, -2))
-    folded = folded[..., :, :n_plane] + np.pad(folded[..., :, n_plane:], _pad_front(folded.ndim, -1))
-    smoothed = sfft.rfft2(folded).real
-    # u = t ⊛ r on the window: a circular convolution on a 2n grid holds every lag −(n−1) … n−1 unwrapped
+    r = sfft.irfft(rows, n=n_full, axis=-1)[..., lags]
+    # on a 2n grid, lag L at index L mod 2n (index n, lag ±n, is beyond every window's lags: 0)
     r_circ = np.zeros(r.shape[:-2] + (2 * n_plane, 2 * n_plane))
-    circ = np.r_[0:n_plane, n_plane + 1:2 * n_plane]
+    circ = _circular_lags(n_plane)
     r_circ[..., circ[:, None], circ[None, :]] = r
-    u = sfft.irfft2(sfft.rfft2(r_circ) * taper_pad_ft, s=r_circ.shape[-2:])[..., :n_plane, :n_plane]
+    return PlaneCovariance(r_circ, sfft.rfft2(r_circ))
+
+
+def tapered_periodogram(covariance: PlaneCovariance, terms: "TaperTerms") -> np.ndarray:
+    """(..., n, n // 2 + 1) expected periodogram, per Σt², of an n × n plane window tapered by a taper t (any: the
+    Hann taper, or one zeroed at clipped samples, ``masked_window``; ``terms`` = ``taper_terms(t)``) whose
+    taper-weighted mean is removed, for a plane of autocovariance r (``plane_autocovariance``).
+
+    ``window_spectra`` computes Y(ω) = X_t(ω) − μ T(ω), X_t the tapered window's DFT, T the taper's and
+    μ = Σ t x / T(0). With a_t the taper's autocorrelation and u = t ⊛ r on the window's samples,
+
+        E|X_t(ω)|² = Σ_L a_t(L) r(L) e^(−iωL),   E[X_t(ω) μ] = DFT(t u)(ω) / T(0),   E[μ²] = Σ t u / T(0)²,
+        E|Y(ω)|² = E|X_t|² − 2 Re(E[X_t μ] conj T(ω)) + E[μ²] |T(ω)|²:
+
+    the first term the taper's smoothing (all ``folded_model`` holds), the others the mean's removal, which takes
+    power from the bins next to DC under the Hann taper and from every bin under a taper with holes (its transform
+    is broad). Every lag of a window is shorter than the window, so the sums are transforms of the window's size.
+    """
+    taper, taper_corr, pad_ft, taper_ft = terms
+    n_plane = taper.shape[-1]
+    # E|X_t|²: the lags folded onto the window's bins (L and L ± n meet at ω = 2πk/n; on the 2n grid, indices j and
+    # j ± n)
+    product = covariance.r * taper_corr
+    folded = product.reshape(product.shape[:-2] + (2, n_plane, 2, n_plane)).sum(axis=(-4, -2))
+    smoothed = sfft.rfft2(folded).real
+    # u = t ⊛ r on the window: a circular convolution on the 2n grid holds every lag −(n−1) … n−1 unwrapped
+    u = sfft.irfft2(covariance.r_ft * pad_ft, s=(2 * n_plane, 2 * n_plane))[..., :n_plane, :n_plane]
     tu = taper * u
     t0 = float(taper.sum())
     cross = sfft.rfft2(tu) / t0                                            # E[X_t μ]
@@ -200,18 +251,30 @@ def _pad_front(ndim: int, axis: int) -> list[tuple[int, int]]:
     return widths
 
 
-@lru_cache(maxsize=8)
-def _taper_lags(n_plane: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(t, a_t, rfft2 of t zero-padded to 2n, rfft2 of t): the n_plane Hann taper, its autocorrelation
-    a_t(L) = Σ_j t_j t_(j+L) at the lags of ``expected_periodogram`` (0 … n−1, then −(n−1) … −1 on each axis) and
-    the taper's transforms that function multiplies by."""
-    taper = hann_taper(n_plane).astype(np.float64)
+TaperTerms = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+"""(t, a_t on the 2n grid, rfft2 of t zero-padded to 2n, rfft2 of t): what ``tapered_periodogram`` needs of an n × n
+taper."""
+
+
+def taper_terms(taper: np.ndarray) -> TaperTerms:
+    """``TaperTerms`` of an n × n taper: the taper (float64), its autocorrelation a_t(L) = Σ_j t_j t_(j+L) on the 2n
+    grid of ``PlaneCovariance`` (lag L at index L mod 2n; none wraps, and index n is 0) and the transforms
+    ``tapered_periodogram`` multiplies by."""
+    taper = np.asarray(taper, np.float64)
+    n_plane = taper.shape[-1]
     pad = np.zeros((2 * n_plane, 2 * n_plane))
     pad[:n_plane, :n_plane] = taper
     pad_ft = sfft.rfft2(pad)
-    corr = sfft.irfft2(np.abs(pad_ft) ** 2, s=pad.shape)                   # lags mod 2n, none wrapped
-    lags = np.r_[0:n_plane, n_plane + 1:2 * n_plane]
-    return taper, corr[lags[:, None], lags[None, :]], pad_ft, sfft.rfft2(taper)
+    corr = sfft.irfft2(np.abs(pad_ft) ** 2, s=pad.shape)
+    corr[n_plane, :] = 0.0  # lag ±n: zero up to rounding, and beyond every window's lags
+    corr[:, n_plane] = 0.0
+    return taper, corr, pad_ft, sfft.rfft2(taper)
+
+
+@lru_cache(maxsize=8)
+def _hann_terms(n_plane: int) -> TaperTerms:
+    """``taper_terms`` of the n_plane Hann taper (memoised; callers only read them)."""
+    return taper_terms(hann_taper(n_plane))
 
 
 def _full_from_half(half: np.ndarray, n: int) -> np.ndarray:
@@ -222,13 +285,14 @@ def _full_from_half(half: np.ndarray, n: int) -> np.ndarray:
 
 
 @lru_cache(maxsize=8)
-def _spectral_window_ft(n_plane: int, oversample: int) -> np.ndarray:
-    """rfft2 of the Hann taper's spectral window |DTFT t|² (unit sum) on the n·oversample grid: multiplying a
-    spectrum's rfft2 by it convolves the spectrum with the window (circularly; the window decays as 1/f⁶)."""
-    n_os = n_plane * oversample
-    taper = np.zeros((n_os, n_os))
-    taper[:n_plane, :n_plane] = hann_taper(n_plane)
-    window = np.abs(sfft.fft2(taper)) ** 2
+def _hann_window_ft(n_plane: int) -> np.ndarray:
+    """rfft2 of the n_plane Hann taper's spectral window |DTFT t|² (unit sum) on the grid ``TAPER_OVERSAMPLE`` times
+    finer than its bins: multiplying a spectrum's rfft2 by it convolves the spectrum with the window (circularly; the
+    window decays as 1/f⁶). Memoised."""
+    n_os = n_plane * TAPER_OVERSAMPLE
+    pad = np.zeros((n_os, n_os))
+    pad[:n_plane, :n_plane] = hann_taper(n_plane)
+    window = np.abs(sfft.fft2(pad)) ** 2
     return sfft.rfft2(window / window.sum())
 
 
