@@ -70,6 +70,7 @@ def variants() -> list[tuple[str, object]]:
             ("hard holes (ramp 0)", replace(base, clipped_ramp_samples=0.0)),
             ("ramp 4 samples", replace(base, clipped_ramp_samples=4.0)),
             ("ramp 12 samples", replace(base, clipped_ramp_samples=12.0)),
+            ("ramp 16 samples", replace(base, clipped_ramp_samples=16.0)),
             ("at most 64 pairs a frame", replace(base, clipped_planes_per_frame=64)),
             ("at most 256 pairs a frame", replace(base, clipped_planes_per_frame=256))]
 
