@@ -63,7 +63,7 @@ from ..sensor import NoiseProfile, relative_illumination
 from .aif import wiener_blend
 from .bayer import clipped_samples, estimate_noise_sigma, normalised_planes
 from .candidates import Candidates, inverse_depth_candidates
-from .clipped import choose_clipped_planes, clipped_plane_curves, clipped_weights
+from .clipped import ClippedPairs, choose_clipped_planes, clipped_weights
 from .evidence import Evidence, hann_taper, plane_nll, taper_variance_inflation, window_spectra, windows_touching
 from .kernels import ZONE_STEP_DEG, ZoneKernels
 from .pooling import pool_evidence, window_colour
@@ -124,7 +124,7 @@ class ClassicalConfig:
     window_model: str = "tapered"  # the evidence model with the taper's smoothing (``evidence.folded_model``)
     exact_model_below: float = 0.0  # windows whose mean signal (fraction of white) is below this are scored with
     #                                 the exact expected periodogram (``evidence.expected_periodogram``); 0: none
-    clipped_planes_per_frame: int = 4096  # a frame scores at most this many (window, plane) pairs holding samples
+    clipped_planes_per_frame: int = 2048  # a frame scores at most this many (window, plane) pairs holding samples
     #                                       at the white level with those samples left out (``clipped``); the rest,
     #                                       and every pair at 0, give no evidence
     clipped_ramp_samples: float = 8.0  # plane samples over which such a window's taper rises from 0 at a clipped
@@ -326,19 +326,16 @@ class ClassicalDecoder:
             clipped = ([windows_touching(clipped_padded[p][ps], n, sp) for p in range(4)] if clipped_padded is not None
                        else [np.zeros(nr * nc, bool)] * 4)
             kernels_s = 0.0
-            masked_nll, masked = np.zeros((nr * nc, n_cand)), np.zeros((4, nr * nc), bool)
             block_chosen = None if chosen is None else chosen[:, br:br + nr, bc:bc + nc].reshape(4, -1)
+            pairs = None
             if block_chosen is not None and block_chosen.any():
                 def views(x):
                     return [np.lib.stride_tricks.sliding_window_view(x[p][ps], (n, n))[::sp, ::sp].reshape(-1, n, n)
                             for p in range(4)]
 
-                every = np.arange(n_cand)
-                scored_nll, masked = clipped_plane_curves(views(padded), views(weights_padded), block_chosen, taper,
-                                                          lambda z: self.zones.kernels(z, every), reads, cfg.slopes,
-                                                          noise)
-                if masked.any():
-                    masked_nll = scored_nll
+                pairs = ClippedPairs(views(padded), views(weights_padded), block_chosen, taper, self.zones.kernels,
+                                     reads, cfg.slopes, noise)
+            masked = np.zeros((4, nr * nc), bool) if pairs is None else pairs.scored
             # windows scored with the exact expected periodogram (dark ones, ``exact_model_below``) and the rest, each
             # group's β grid placed by its own windows and coarse models; without a gate, one group of every window
             groups = [(mask, exact, block_part(mask, spectra, noise_vars, clipped, reads))
@@ -351,7 +348,8 @@ class ClassicalDecoder:
                 kernels_s += time.perf_counter() - tm
                 coarse_nll[mask] = self._field_nll(g_spectra, g_reads, coarse_models[exact], g_noise, taper_energy,
                                                    g_clipped)
-            coarse_nll += masked_nll[:, coarse]
+            if pairs is not None:
+                coarse_nll += pairs.nll(coarse)
             best = np.unique(coarse[np.argmin(coarse_nll, axis=1)])
             reach = np.arange(-cfg.coarse_step, cfg.coarse_step + 1)
             which = np.unique(np.clip(best[:, None] + reach[None, :], 0, n_cand - 1))
@@ -367,7 +365,8 @@ class ClassicalDecoder:
                     kernels_s += time.perf_counter() - tm
                     nll[np.flatnonzero(mask)[:, None], np.flatnonzero(np.isin(which, fine))[None, :]] = self._field_nll(
                         g_spectra, g_reads, models, g_noise, taper_energy, g_clipped, coarse_models[exact])
-                nll[:, np.isin(which, fine)] += masked_nll[:, fine]
+                if pairs is not None:
+                    nll[:, np.isin(which, fine)] += pairs.nll(fine)
             depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
             return {"evidence": (coarse_nll - coarse_nll.min(axis=1, keepdims=True)).reshape(nr, nc, -1),
                     "clipped": int(np.logical_or.reduce(clipped).sum()), "masked": int(masked.any(axis=0).sum()),

@@ -14,7 +14,7 @@ saturated highlight, keeps its evidence.
 
 Each such (window, plane) has its own taper, so its model is made for it alone from the zone's plane
 autocovariances (``evidence.plane_autocovariance``, once per block): a few transforms of the window's size per
-candidate, about 7 ms per window and plane for 28 candidates on one core. Only blocks that hold clipped samples
+candidate, about 6–7 ms per window and plane for 28 candidates on one core. Only blocks that hold clipped samples
 pay it, and a frame scores at most ``ClassicalConfig.clipped_planes_per_frame`` pairs this way
 (``choose_clipped_planes``): an over-exposed frame's every window may hold a clipped sample.
 """
@@ -42,7 +42,8 @@ def clipped_weights(clipped: np.ndarray, ramp_samples: float) -> np.ndarray:
     brightest, and their unclipped neighbours are bright too, so a hard hole's rim is a sharp step in the tapered
     window that the model (holes independent of the image) does not hold, and the window reads sharper, so
     farther, than it is. ``ClassicalConfig.clipped_ramp_samples`` (8 samples, 16 px) was chosen on ``bmi bench
-    clipped``'s scenes."""
+    clipped``'s scenes and the default decoder's reads of clipped `bmi eval` tiles (docs/benchmarks.md, "Clipped
+    samples")."""
     if not clipped.any():
         return np.ones(clipped.shape, np.float32)
     if ramp_samples <= 0:
@@ -108,42 +109,57 @@ def choose_clipped_planes(clipped_padded: np.ndarray, weights_padded: np.ndarray
     return chosen
 
 
-def clipped_plane_curves(plane_windows: list, weight_windows: list, chosen: np.ndarray, taper: np.ndarray,
-                         kernels_of, reads: list, slopes: tuple, noise) -> tuple[np.ndarray, np.ndarray]:
-    """((windows, D) NLL summed over the planes of each window that ``chosen`` (planes, windows) names, the window
-    scored under its taper times its samples' ``clipped_weights`` (module doc; ``choose_clipped_planes`` picks the
-    pairs), and (planes, windows) which pairs it scored.
+class ClippedPairs:
+    """A block's (window, plane) pairs scored from their unclipped samples (module doc; ``choose_clipped_planes``
+    picks them): each pair's window spectrum and noise under its own taper, then its NLL at any candidates
+    (``nll``), as the block's coarse and fine passes ask for them.
 
     ``plane_windows`` / ``weight_windows``: per plane, the (windows, n, n) samples and clipped weights of the
-    block's windows (``window_spectra``'s grid); ``kernels_of(zone)``: (channels, D, K, K) kernels of every
-    candidate at a zone; ``reads``: the block's zone reads (``ZoneKernels.field_reads``: zone, window indices,
-    weights); ``slopes``: the prior slopes, profiled as ``ClassicalDecoder._block_nll`` does; ``noise``: the frame's
-    ``NoiseProfile``.
+    block's windows (``window_spectra``'s grid); ``chosen``: (planes, windows) the pairs to score; ``kernels_of(zone,
+    which)``: (channels, len(which), K, K) kernels of candidates ``which`` at a zone; ``reads``: the block's zone
+    reads (``ZoneKernels.field_reads``: zone, window indices, weights); ``slopes``: the prior slopes, profiled as
+    ``ClassicalDecoder._block_nll`` does; ``noise``: the frame's ``NoiseProfile``. ``scored``: (planes, windows)
+    which pairs give evidence (a chosen pair whose weighted taper keeps too little gives none).
     """
-    n_windows = chosen.shape[1]
-    n_plane = taper.shape[0]
-    total: np.ndarray | None = None
-    scored = np.zeros(chosen.shape, bool)
-    autocovariances: dict = {}
-    for p, w in zip(*np.nonzero(chosen)):
-        masked_taper = taper * weight_windows[p][w]
-        masked = masked_window(plane_windows[p][w], masked_taper, taper)
-        if masked is None:  # on the share's edge, where the frame's float32 sums chose it
-            continue
-        power, energy, mean_signal = masked
-        terms = taper_terms(masked_taper)
-        for zone, idx, weight in reads:
-            hit = np.flatnonzero(idx == w)
-            if not len(hit):
+
+    def __init__(self, plane_windows: list, weight_windows: list, chosen: np.ndarray, taper: np.ndarray, kernels_of,
+                 reads: list, slopes: tuple, noise):
+        self.n_windows = chosen.shape[1]
+        self.n_plane = taper.shape[0]
+        self.kernels_of, self.reads, self.slopes = kernels_of, reads, tuple(slopes)
+        self.scored = np.zeros(chosen.shape, bool)
+        self.pairs = []
+        for p, w in zip(*np.nonzero(chosen)):
+            masked_taper = taper * weight_windows[p][w]
+            masked = masked_window(plane_windows[p][w], masked_taper, taper)
+            if masked is None:  # on the share's edge, where the frame's float32 sums chose it
                 continue
-            key = (zone, PLANE_CHANNELS[p])
-            if key not in autocovariances:
-                k = kernels_of(zone)[PLANE_CHANNELS[p]]
-                autocovariances[key] = [plane_autocovariance(k, n_plane, a) for a in slopes]
-            nll = np.min([plane_nll(power[None].astype(np.float32), tapered_periodogram(r, terms),
-                                    noise.variance(mean_signal), energy)[0] for r in autocovariances[key]], axis=0)
-            if total is None:
-                total = np.zeros((n_windows, len(nll)))
-            total[w] += weight[hit[0]] * nll
-            scored[p, w] = True
-    return (np.zeros((n_windows, 0)) if total is None else total), scored
+            power, energy, mean_signal = masked
+            self.pairs.append((int(p), int(w), power[None].astype(np.float32), energy,
+                               float(noise.variance(mean_signal)), taper_terms(masked_taper)))
+            self.scored[p, w] = True
+        self._grid_models: dict = {}
+
+    def nll(self, which: np.ndarray) -> np.ndarray:
+        """(windows, len(which)) NLL of candidates ``which`` summed over each window's scored pairs (0 for a window
+        with none). The first call's models place each pair's β grid for every later call, as the coarse pass's
+        models place the fine pass's (``evidence.plane_nll``), so that the passes' NLLs form one curve."""
+        total = np.zeros((self.n_windows, len(which)))
+        autocovariances: dict = {}
+        for p, w, power, energy, noise_var, terms in self.pairs:
+            for zone, idx, weight in self.reads:
+                hit = np.flatnonzero(idx == w)
+                if not len(hit):
+                    continue
+                key = (zone, PLANE_CHANNELS[p])
+                if key not in autocovariances:
+                    k = self.kernels_of(zone, which)[PLANE_CHANNELS[p]]
+                    autocovariances[key] = [plane_autocovariance(k, self.n_plane, a) for a in self.slopes]
+                best = None
+                for a, r in enumerate(autocovariances[key]):
+                    model = tapered_periodogram(r, terms)
+                    grid = self._grid_models.setdefault((p, w, zone, a), model)
+                    nll = plane_nll(power, model, noise_var, energy, grid_model=grid)[0]
+                    best = nll if best is None else np.minimum(best, nll)
+                total[w] += weight[hit[0]] * best
+        return total
