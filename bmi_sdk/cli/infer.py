@@ -47,6 +47,9 @@ CLASSICAL_FLAGS = {
                              "window alone; docs/decoder.md, method step 4b)"),
     "exact_model_below": (number(0, 1), "windows whose mean signal, a fraction of white, is below this are scored with "
                                         "the exact expected periodogram (0: none; docs/decoder.md, method step 2)"),
+    "clipped_planes_per_frame": (whole(0, 65536), "(window, colour plane) pairs holding samples at the white level "
+                                                  "scored from their other samples, at most, about 6 ms of one core "
+                                                  "each (0: such planes give no evidence; docs/decoder.md, step 2)"),
 }
 """The ``decode.ClassicalConfig`` fields ``bmi infer --decoder classical`` takes as flags (``--window-px`` …): their
 checked type (``_options``: a bad value is refused by argparse, naming the option and the valid range) and help; each default is the dataclass's own. Any other decoder refuses a changed value."""

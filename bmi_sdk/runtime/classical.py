@@ -30,7 +30,10 @@ def classical_peak_bytes(config: ClassicalConfig, height_px: int = 0, width_px: 
     thread), the kernel models (4 planes × slopes × candidates × n × (n/2 + 1) float32), the reflected planes
     (4 × (H/2 + n + stride/2) × (W/2 + n + stride/2) float32, stacked), the window grid's curves and pooled curves
     (grid × candidates float32, five copies while pooling), the pooling's padded grid (reach 2 pool_sigma / stride
-    windows each side) and the per-pixel maps (~40 bytes a pixel)."""
+    windows each side), the per-pixel maps (~40 bytes a pixel) and, where clipped samples are scored
+    (``clipped_planes_per_frame`` > 0), the planes' clipped flags and weights (4 × 5 bytes a padded plane sample)
+    and each thread's block of clipped pairs (up to 4 × ``block_windows``² of them, ~96 n² bytes each:
+    ``decode.clipped.ClippedPairs``)."""
     n = config.window_px // 2
     m = n // 2 + 1
     depths = config.candidates
@@ -45,7 +48,9 @@ def classical_peak_bytes(config: ClassicalConfig, height_px: int = 0, width_px: 
     reach = 2.0 * config.pool_sigma_px / config.stride_px
     pool = (rows + 2 * reach + 1) * (cols + 2 * reach + 1) * (depths + 4) * 4 if config.pool_sigma_px > 0 else 0
     pixels = 40 * height_px * width_px
-    return float(taper + blocks + models + planes + grid + pool + pixels)
+    clipped = (5 * planes / 8 + threads * min(config.clipped_planes_per_frame, 4 * config.block_windows ** 2) * 96 * n * n
+               if config.clipped_planes_per_frame else 0)
+    return float(taper + blocks + models + planes + grid + pool + pixels + clipped)
 
 
 def check_classical_memory(config: ClassicalConfig, height_px: int = 0, width_px: int = 0) -> None:
