@@ -36,13 +36,13 @@ def test_fold_is_the_spectrum_of_the_four_bayer_planes():
     assert np.allclose(planes, folded / 4, rtol=1e-10, atol=1e-9)
 
 
-def _near_kernel_periodogram(floor_cycles: float, fields: int) -> tuple[np.ndarray, np.ndarray]:
-    """(kernel, mean periodogram): Gaussian fields with a 1/f² spectrum floored at ``floor_cycles``, blurred by the
-    camera's near kernel (0.8 m on axis: its OTF oscillates about once per bin of a 64-px window), sampled as a
-    Bayer plane and cut into Hann windows of 32 samples, stride 16; the windows' mean periodogram."""
+def _near_kernel_planes(floor_cycles: float, fields: int) -> tuple[np.ndarray, list]:
+    """(kernel, planes): Gaussian fields with a 1/f² spectrum floored at ``floor_cycles``, blurred by the camera's
+    near kernel (0.8 m on axis: its OTF oscillates about once per bin of a 64-px window), each sampled as a Bayer
+    plane (256² of a 512² field)."""
     from scipy import fft as sfft
 
-    from bmi_sdk.decode.evidence import hann_taper, power_law_prior, window_spectra
+    from bmi_sdk.decode.evidence import power_law_prior
 
     psf_map = PsfMap(lens_tensor("bmi_monocentric"), GEOMETRY, mode="tensor")
     kernel = psf_map.kernels(0.0, 0.0, np.array([int(np.argmin(np.abs(psf_map.tensor.depth_m - 0.8)))]))[1, 0]
@@ -52,11 +52,20 @@ def _near_kernel_periodogram(floor_cycles: float, fields: int) -> tuple[np.ndarr
     otf[:k, :k] = kernel
     otf = sfft.fft2(np.roll(otf, (-(k // 2), -(k // 2)), (0, 1)))
     rng = np.random.default_rng(4)
-    spectra = []
+    planes = []
     for _ in range(fields):
         field = sfft.ifft2(sfft.fft2(rng.standard_normal((n, n))) * np.sqrt(power_law_prior(f, f, floor_cycles))
                            * otf).real
-        spectra.append(window_spectra(field[::2, ::2].astype(np.float32), 32, 16, hann_taper(32))[0])
+        planes.append(field[::2, ::2])
+    return kernel, planes
+
+
+def _near_kernel_periodogram(floor_cycles: float, fields: int) -> tuple[np.ndarray, np.ndarray]:
+    """(kernel, mean periodogram) of ``_near_kernel_planes`` cut into Hann windows of 32 samples, stride 16."""
+    from bmi_sdk.decode.evidence import hann_taper, window_spectra
+
+    kernel, planes = _near_kernel_planes(floor_cycles, fields)
+    spectra = [window_spectra(plane.astype(np.float32), 32, 16, hann_taper(32))[0] for plane in planes]
     return kernel, np.concatenate(spectra).mean(axis=0)
 
 
@@ -115,34 +124,17 @@ def test_a_window_with_clipped_samples_left_out_has_its_masked_tapers_expected_p
     ``clipped_weights``, the mean removed under it) matches the exact expected periodogram under that taper on every
     bin but DC (p95 within 5 %). The Hann taper's model, and a hard hole's, miss it by more: a taper with holes
     passes power from the field's strong low frequencies, and the mean's removal, into every bin."""
-    from scipy import fft as sfft
-
     from bmi_sdk.decode.clipped import clipped_weights, masked_window
-    from bmi_sdk.decode.evidence import (
-        hann_taper,
-        plane_autocovariance,
-        power_law_prior,
-        taper_terms,
-        tapered_periodogram,
-    )
+    from bmi_sdk.decode.evidence import hann_taper, plane_autocovariance, taper_terms, tapered_periodogram
 
-    psf_map = PsfMap(lens_tensor("bmi_monocentric"), GEOMETRY, mode="tensor")
-    kernel = psf_map.kernels(0.0, 0.0, np.array([int(np.argmin(np.abs(psf_map.tensor.depth_m - 0.8)))]))[1, 0]
-    n, k = 512, kernel.shape[0]
-    f = sfft.fftfreq(n)
-    otf = np.zeros((n, n))
-    otf[:k, :k] = kernel
-    otf = sfft.fft2(np.roll(otf, (-(k // 2), -(k // 2)), (0, 1)))
+    kernel, planes = _near_kernel_planes(1 / 256, 16)
     yy, xx = np.mgrid[:32, :32]
     clipped = (yy - 12) ** 2 + (xx - 20) ** 2 < 3 ** 2
     clipped[25, 6] = clipped[4, 9] = True
     taper = hann_taper(32)
     masked_taper = taper * clipped_weights(clipped, 8.0).astype(np.float64)
-    rng = np.random.default_rng(4)
     powers, energies = [], []
-    for _ in range(16):
-        field = sfft.ifft2(sfft.fft2(rng.standard_normal((n, n))) * np.sqrt(power_law_prior(f, f, 1 / 256)) * otf).real
-        plane = field[::2, ::2]
+    for plane in planes:
         for r in range(0, 256 - 32 + 1, 16):
             for c in range(0, 256 - 32 + 1, 16):
                 power, energy, _ = masked_window(plane[r:r + 32, c:c + 32], masked_taper, taper)
