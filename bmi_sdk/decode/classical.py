@@ -12,9 +12,11 @@ Steps (each in its own module):
    zones of a θ grid around its own θ, for a built camera whose kernels change within a block's 2°
    of field. Blocks whose pixels all lie outside the image circle are skipped. A frame's blocks are read
    on ``threads`` threads at once, each block's FFTs on one (the same result as one thread, bit for bit).
-3. ``evidence``: a plane's windows holding a sample at the white level get no evidence from that
-   plane (a censored sample fits no noise model; the report counts them), and windows clipped in
-   every plane take their neighbours' 1/d (``fill_blind_windows``). A coarse pass over every
+3. ``evidence``: a plane's windows holding a sample at the white level are scored from their other
+   samples, under their taper ramped to zero at the clipped ones (a censored sample fits no noise
+   model; ``clipped``, up to ``clipped_planes_per_frame`` pairs a frame; the report counts them); a
+   plane left with too little of its taper gives no evidence, and windows left with none in every
+   plane take their neighbours' 1/d (``fill_blind_windows``). A coarse pass over every
    ``coarse_step``-th candidate; the fine pass scores, for
    the whole block, the union of every window's best coarse candidate ± one coarse step, less the
    candidates the coarse pass scored (their scores are reused: both passes share the coarse pass's
