@@ -6,10 +6,10 @@ the plain likelihood (``evidence``) gives such a window none of that plane's evi
 the window is the blurred image plus noise, exactly as in an unclipped window: clipping happens at the sensor,
 after the blur. Leaving the clipped samples out is a change of taper: t' = t · g, g 0 at each clipped sample and
 rising smoothly to 1 over ``ClassicalConfig.clipped_ramp_samples`` around it (``clipped_weights``; a ramp, not a
-hard hole, because clipping is not missing at random). The model of the tapered window's periodogram changes with the taper:
-the exact expected periodogram under t' (``masked_window``, ``evidence.tapered_periodogram``; a taper with holes
-has a broad transform, through which the window's mean removal reaches every bin, which the taper-smoothed model
-leaves out). So a bright surface whose noise pushes a few samples over white, or a window reaching the rim of a
+hard hole, because clipping is not missing at random). The model of the tapered window's periodogram changes with
+the taper: the exact expected periodogram under t' (``masked_window``, ``evidence.tapered_periodogram``; a taper
+with holes has a broad transform, through which the window's mean removal reaches every bin, which the
+taper-smoothed model leaves out). So a bright surface whose noise pushes a few samples over white, or a window reaching the rim of a
 saturated highlight, keeps its evidence.
 
 Each such (window, plane) has its own taper, so its model is made for it alone from the zone's plane
@@ -32,6 +32,8 @@ MIN_UNCLIPPED_TAPER_SHARE = 0.25
 """A window's plane keeps evidence when its taper, weighted down at and around clipped samples (``clipped_weights``),
 keeps at least this share of its energy Σt² (``masked_window``); with less, most of what the window saw is censored
 or next to a censored sample, and it gives none."""
+
+
 def clipped_weights(clipped: np.ndarray, ramp_samples: float) -> np.ndarray:
     """(H, W) float32 weights of a plane's samples, given its ``clipped`` flags (H × W bool): 0 at each clipped
     sample, rising as sin² over ``ramp_samples`` of distance (Euclidean, in samples) from the nearest one, 1
@@ -74,7 +76,7 @@ def masked_window(window: np.ndarray, taper: np.ndarray, full_taper: np.ndarray)
 
 def choose_clipped_planes(clipped_padded: np.ndarray, weights_padded: np.ndarray, n_plane: int, stride_plane: int,
                           grid_shape: tuple[int, int], taper: np.ndarray, most: int) -> np.ndarray:
-    """(planes, rows, cols) bool: the (plane, window) pairs of a frame's window grid that ``clipped_plane_curves``
+    """(planes, rows, cols) bool: the (plane, window) pairs of a frame's window grid that ``ClippedPairs``
     scores. ``clipped_padded`` / ``weights_padded``: (planes, H', W') clipped flags and their ``clipped_weights`` on
     the padded planes, window (r, c) reading [r·stride, r·stride + n) × [c·stride, c·stride + n) (``window_spectra``'s
     grid).

@@ -104,13 +104,6 @@ def folded_model(kernels: np.ndarray, n_plane: int, slope: float = 2.0) -> np.nd
     model has zeros the data cannot show, and near candidates are wrongly penalised. The integral is
     evaluated on a grid ``TAPER_OVERSAMPLE`` times finer than the bins.
     """
-    return _smoothed_model(_plane_spectrum_ft(kernels, n_plane, slope), _hann_window_ft(n_plane), n_plane)
-
-
-def _plane_spectrum_ft(kernels: np.ndarray, n_plane: int, slope: float = 2.0) -> np.ndarray:
-    """(..., n_os, n_os // 2 + 1) rfft2 of the plane spectrum M = Σ_aliases |K|² S of ``kernels`` (..., K, K) on the
-    grid ``TAPER_OVERSAMPLE`` times finer than an ``n_plane`` window's bins, DC zeroed (the window's mean is
-    removed): the part of ``folded_model`` that does not depend on the taper."""
     k = kernels.shape[-1]
     os_ = TAPER_OVERSAMPLE
     n_os = n_plane * os_
@@ -124,19 +117,12 @@ def _plane_spectrum_ft(kernels: np.ndarray, n_plane: int, slope: float = 2.0) ->
     power = (otf.real ** 2 + otf.imag ** 2) * power_law_prior(f, f[:n_full // 2 + 1], 1.0 / (2 * n_plane), slope)
     folded = fold_power(_full_from_half(power, n_full), n_os)              # (..., n_os, n_os) the plane's spectrum
     folded[..., 0, 0] = 0.0  # the window's mean is removed
-    return sfft.rfft2(folded)
-
-
-def _smoothed_model(spectrum_ft: np.ndarray, window_ft: np.ndarray, n_plane: int) -> np.ndarray:
-    """(..., n_plane, n_plane // 2 + 1) float64: a plane spectrum (``_plane_spectrum_ft``) convolved with a taper's
-    spectral window (``_hann_window_ft``, unit sum) and sampled at the window's rfft bins."""
-    n_os = n_plane * TAPER_OVERSAMPLE
-    product = spectrum_ft * window_ft
-    # only every TAPER_OVERSAMPLE-th row of the inverse transform is kept: that is the inverse transform of the rows
-    # folded onto n_plane (aliasing in reverse), over TAPER_OVERSAMPLE
-    folded = product.reshape(product.shape[:-2] + (TAPER_OVERSAMPLE, n_plane, product.shape[-1])).sum(axis=-3)
-    rows = sfft.ifft(folded, axis=-2) * (1.0 / TAPER_OVERSAMPLE)
-    smoothed = sfft.irfft(rows, n=n_os, axis=-1)[..., ::TAPER_OVERSAMPLE]
+    product = sfft.rfft2(folded) * _hann_window_ft(n_plane)
+    # only every os_-th row of the inverse transform is kept: that is the inverse transform of the rows folded onto
+    # n_plane (aliasing in reverse), over os_
+    product = product.reshape(product.shape[:-2] + (os_, n_plane, product.shape[-1])).sum(axis=-3)
+    rows = sfft.ifft(product, axis=-2) * (1.0 / os_)
+    smoothed = sfft.irfft(rows, n=n_os, axis=-1)[..., ::os_]
     return np.asarray(smoothed[..., :, :n_plane // 2 + 1], np.float64)
 
 
@@ -159,11 +145,6 @@ class PlaneCovariance(NamedTuple):
 
     r: np.ndarray      # (..., 2n, 2n)
     r_ft: np.ndarray   # (..., 2n, n + 1)
-
-
-def _circular_lags(n_plane: int) -> np.ndarray:
-    """Indices on a 2n grid of the lags 0 … n−1, −(n−1) … −1 (index n, lag ±n, skipped)."""
-    return np.r_[0:n_plane, n_plane + 1:2 * n_plane]
 
 
 def plane_autocovariance(kernels: np.ndarray, n_plane: int, slope: float = 2.0,
@@ -196,7 +177,7 @@ def plane_autocovariance(kernels: np.ndarray, n_plane: int, slope: float = 2.0,
     r = sfft.irfft(rows, n=n_full, axis=-1)[..., lags]
     # on a 2n grid, lag L at index L mod 2n (index n, lag ±n, is beyond every window's lags: 0)
     r_circ = np.zeros(r.shape[:-2] + (2 * n_plane, 2 * n_plane))
-    circ = _circular_lags(n_plane)
+    circ = np.r_[0:n_plane, n_plane + 1:2 * n_plane]
     r_circ[..., circ[:, None], circ[None, :]] = r
     return PlaneCovariance(r_circ, sfft.rfft2(r_circ))
 
@@ -241,14 +222,6 @@ def _prior_half(n_full: int, slope: float) -> np.ndarray:
     prior = power_law_prior(f, f[:n_full // 2 + 1], 1.0 / n_full, slope)
     prior[[0, 0, n_full // 2, n_full // 2], [0, n_full // 2, 0, n_full // 2]] = 0.0
     return prior
-
-
-def _pad_front(ndim: int, axis: int) -> list[tuple[int, int]]:
-    """np.pad widths that add one zero at the front of ``axis``: the negative lags −(n−1) … −1 land on n−(n−1) …
-    n−1 when folded modulo n, after lag 0's slot."""
-    widths = [(0, 0)] * ndim
-    widths[axis] = (1, 0)
-    return widths
 
 
 TaperTerms = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
