@@ -108,6 +108,19 @@ def test_simulate_refuses_a_depth_map_that_would_render_a_wrong_frame(capsys, tm
     assert line.startswith(f"bmi simulate: error: --depth {tmp_path / 'd.npy'}: ") and expected in line
 
 
+@pytest.mark.parametrize("level", [np.nan, -0.5, np.inf, 1e7, 3e38])
+def test_simulate_refuses_a_float_scene_outside_its_levels(capsys, tmp_path, level):
+    rgb = np.full((64, 64, 3), 0.5, np.float32)
+    rgb[10, 10, 1] = level
+    np.save(tmp_path / "rgb.npy", rgb)
+    np.save(tmp_path / "d.npy", np.full((64, 64), 2.0, np.float32))
+    line = _refusal(capsys, ["simulate", "--rgb", str(tmp_path / "rgb.npy"), "--depth", str(tmp_path / "d.npy"),
+                             "--out", str(tmp_path / "s.dng")])
+    assert line.startswith(f"bmi simulate: error: --rgb {tmp_path / 'rgb.npy'}: linear RGB must be finite and "
+                           "within [0, 1e+06]")
+    assert not (tmp_path / "s.dng").exists()
+
+
 def test_simulate_depth_that_is_not_a_npy_array_is_named(capsys, tmp_path):
     np.save(tmp_path / "rgb.npy", np.full((64, 64, 3), 0.5, np.float32))
     (tmp_path / "x.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))

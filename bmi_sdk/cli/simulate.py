@@ -14,6 +14,11 @@ from pathlib import Path
 
 from ._options import SEED, OptionError, number, whole
 
+MAX_SCENE_LEVEL = 1e6
+"""The brightest linear level a float .npy scene may hold, in units of the sensor's white: a highlight (a lamp, a
+glint, the sky in a window) is brighter than white and clips at the sensor after the blur, which spreads it over
+its neighbours; 10⁶ bounds it well inside float32 through the blur and the noise model."""
+
 
 def _load_rgb(path: str):
     import cv2
@@ -32,8 +37,9 @@ def _load_rgb(path: str):
         if rgb.ndim != 3 or rgb.shape[2] != 3 or not np.issubdtype(rgb.dtype, np.floating):
             raise OptionError(f"--rgb {path}: a .npy scene must be float H×W×3 linear RGB, got {rgb.dtype} "
                               f"{rgb.shape}", "--rgb")
-        if rgb.size == 0 or not np.all(np.isfinite(rgb)) or rgb.min() < 0 or rgb.max() > 1:
-            raise OptionError(f"--rgb {path}: linear RGB must be finite and within [0, 1]", "--rgb")
+        if rgb.size == 0 or not np.all(np.isfinite(rgb)) or rgb.min() < 0 or rgb.max() > MAX_SCENE_LEVEL:
+            raise OptionError(f"--rgb {path}: linear RGB must be finite and within [0, {MAX_SCENE_LEVEL:g}] (1 is "
+                              "the sensor's white; brighter highlights clip at the sensor)", "--rgb")
         return rgb.astype(np.float32)
     img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
     if img is None or img.ndim != 3 or img.shape[2] not in (3, 4) or img.dtype not in (np.uint8, np.uint16):
