@@ -1,0 +1,132 @@
+"""`bmi bench reflectance`: reflectance edges on a plane (two paints on one wall), read by the decoders.
+
+The likelihood (docs/decoder.md, step 2) models a window as one stationary texture under one prior level. A window
+across a reflectance edge holds two textures of different means and a step between them, whose power lies on one
+line of the spectrum; no single level fits both sides and the step, and the read moves. This measures by how much,
+where a user meets it: a 1/f²-textured plane (``decoder.plane_texture`` "pink", the texture whose statistics the
+likelihood assumes), 256² px at φ 30°, σ 0.005, rendered and decoded with the design camera's exact kernels (the
+simulated device's and ``bmi infer``'s path), painted ``STEP_FACTOR`` × darker on its left half (one edge) or on a
+``STRIPE_PX`` stripe down its middle (two edges closer than a window: no window on the stripe sees one paint), beside
+the same plane unpainted (the control). Per painting, field angle, range and decoder (the default evidence decoder and
+the classical one): AbsRel and the median of read / true range within ``EDGE_BAND_PX`` of an edge, and AbsRel beyond
+``AWAY_PX``, the mean over ``SEEDS`` texture and noise draws (``--full``: ``FULL_SEEDS``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import markdown_table, register_target
+
+STEP_FACTOR = 0.2
+"""The darker half's reflectance against the lighter's: a dark paint beside a light one."""
+SIZE_PX = 256
+STRIPE_PX = 48
+EDGE_BAND_PX = 32  # half the evidence window: every window whose centre lies in this band straddles the edge
+AWAY_PX = 64  # a window's width: windows centred beyond it see one side only
+FIELDS_DEG = (5.0, 55.0)
+RANGES_M = (2.0, 4.0, 6.5)
+SEEDS = (3, 4)
+FULL_SEEDS = (3, 4, 5, 6, 7, 8)
+
+
+PAINTINGS = {"one edge": (-SIZE_PX, 0), f"a {STRIPE_PX}-px stripe": (-STRIPE_PX // 2, STRIPE_PX // 2)}
+"""Painted columns of each painting, [start, stop) relative to the plane's centre column."""
+
+
+def painted_scene(seed: int, painted: tuple[int, int], step_factor: float) -> np.ndarray:
+    """(SIZE_PX + 2 margins)² × 3 linear RGB: the 1/f² plane texture of ``seed``, the columns ``painted`` (relative to
+    the centre) × ``step_factor``."""
+    from .decoder import PLANE_MARGIN_PX, plane_texture
+
+    size = SIZE_PX + 2 * PLANE_MARGIN_PX
+    rgb = plane_texture(size, "pink", np.random.default_rng(seed))
+    start, stop = (max(0, size // 2 + c) for c in painted)
+    rgb[:, start:stop] *= np.float32(step_factor)
+    return rgb
+
+
+def band_masks(painted: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(near an edge, away from every edge): SIZE_PX² masks of the pixels within ``EDGE_BAND_PX`` columns of an edge
+    of the ``painted`` columns inside the plane, and beyond ``AWAY_PX`` of all of them."""
+    columns = np.arange(SIZE_PX) + 0.5 - SIZE_PX / 2
+    edges = [c for c in painted if -SIZE_PX / 2 < c < SIZE_PX / 2]
+    distance = np.min([np.abs(columns - c) for c in edges], axis=0)
+    near = np.broadcast_to(distance <= EDGE_BAND_PX, (SIZE_PX, SIZE_PX))
+    away = np.broadcast_to(distance >= AWAY_PX, (SIZE_PX, SIZE_PX))
+    return near, away
+
+
+def _reads(raw, row0: int, col0: int, stages: dict, network) -> dict:
+    """{decoder: depth_m} of one raw window, by the classical stage and by the evidence decoder (its support read and
+    upsampling as ``runtime.evidence.decode_evidence`` runs them)."""
+    from ..decode.volume import pixel_log_colour
+    from ..lenses import lens_geometry
+    from ..model_io import raw_to_rgb
+    from ..nn.data import STANDARD_SIGMA
+    from ..sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, NoiseProfile
+    from .evidence import _read
+
+    geometry = lens_geometry("bmi_monocentric")
+    noise = NoiseProfile.additive(STANDARD_SIGMA)
+    decode = lambda stage: stage.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0,  # noqa: E731
+                                        noise_profile=noise, aif=False)
+    result = decode(stages["evidence"])
+    inv_grid, sig_grid = network.read_decode(result)
+    rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
+    evidence, _ = _read(inv_grid, sig_grid, rgb, pixel_log_colour(rgb), network.support, network.colour_sigma,
+                        stages["evidence"].config)
+    return {"evidence (default)": evidence, "classical": decode(stages["classical"]).depth_m}
+
+
+def _band_stats(depth: np.ndarray, range_m: float, mask: np.ndarray) -> tuple[float, float]:
+    """(AbsRel, median read / true) over ``mask``'s finite reads."""
+    read = depth[mask & np.isfinite(depth)]
+    return float(np.mean(np.abs(read - range_m) / range_m)), float(np.median(read / range_m))
+
+
+def run(full: bool = False) -> str:
+    from ..built_camera import BuiltCamera
+    from ..decode import ClassicalConfig, ClassicalDecoder
+    from ..lenses import lens_geometry
+    from ..runtime.evidence import EvidenceNetwork
+    from ..runtime.model import select_model
+    from .decoder import PLANE_MARGIN_PX, window_raw
+
+    camera = BuiltCamera("bmi_monocentric")
+    psf_map = camera.psf_map(disk_cache=True)
+    geometry = lens_geometry("bmi_monocentric")
+    network = EvidenceNetwork(select_model("bmi_monocentric", "evidence"), threads=2)
+    stages = {"evidence": ClassicalDecoder.for_psf_map(psf_map, network.stage_config()),
+              "classical": ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig())}
+    seeds = FULL_SEEDS if full else SEEDS
+    size = SIZE_PX + 2 * PLANE_MARGIN_PX
+    rows = []
+    for painting, painted in PAINTINGS.items():
+        near, away = band_masks(painted)
+        for field_deg in FIELDS_DEG:
+            for range_m in RANGES_M:
+                range_map = np.full((size, size), range_m, np.float32)
+                stats: dict = {}
+                for seed in seeds:
+                    for scene, factor in (("painted", STEP_FACTOR), ("control", 1.0)):
+                        raw, row0, col0 = window_raw(painted_scene(seed, painted, factor), range_map, psf_map.tensor,
+                                                     geometry, field_deg, 30.0, seed, psf_map)
+                        for name, depth in _reads(raw, row0, col0, stages, network).items():
+                            for band, mask in (("near", near), ("away", away)):
+                                stats.setdefault((name, scene, band), []).append(_band_stats(depth, range_m, mask))
+                for name in ("evidence (default)", "classical"):
+                    mean = {key: np.mean(stats[(name,) + key], axis=0) for key in
+                            (("painted", "near"), ("painted", "away"), ("control", "near"))}
+                    rows.append([painting, f"{field_deg:g}°", f"{range_m:g} m", name,
+                                 float(mean[("painted", "near")][0]), float(mean[("painted", "near")][1]),
+                                 float(mean[("painted", "away")][0]), float(mean[("control", "near")][0])])
+    header = ["painting", "θ", "range", "decoder", f"AbsRel ≤ {EDGE_BAND_PX} px from an edge",
+              "median read / true there", f"AbsRel ≥ {AWAY_PX} px from every edge", "unpainted: AbsRel, same pixels"]
+    return (f"### Reflectance edges ({STEP_FACTOR:g}× darker paint) on a 1/f² plane ({SIZE_PX}² px, φ 30°, σ 0.005, "
+            f"exact kernels; mean over {len(seeds)} texture and noise draws)\n\n" + markdown_table(header, rows))
+
+
+def register(subparsers) -> None:
+    register_target(subparsers, "reflectance", "a reflectance edge on a plane: the decoders' read across it "
+                    "against the same plane without it", __doc__, "Reflectance edges", run)
