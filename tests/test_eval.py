@@ -64,9 +64,30 @@ def test_strata_sums_pool_pixels_into_range_edge_and_signal_bands_with_hand_comp
     assert out["confident_coverage"] == pytest.approx(0.25)
     assert out["confident_absrel"] == pytest.approx(0.1)
     assert out["sigma_z_std"] == pytest.approx(math.sqrt(2)) and out["sigma_z_rms"] == pytest.approx(math.sqrt(2))
+    assert out["sigma_z_within_1"] == pytest.approx(0.5)  # |z| = 2, 0, 2, 0
     # a second tile pools: the 4–6 m band now holds two pixels
     sums.add(np.array([[5.0]]), np.array([[5.0]]), np.array([[True]]), None, np.array([[3.0]]), np.array([[0.3]]))
     assert sums.summary()["by_range"]["4–6 m"]["absrel"] == pytest.approx(0.1)
+
+
+def test_sigma_within_one_tells_a_wide_sigma_with_wrong_tails_from_an_honest_one():
+    """An honest Gaussian σ holds 68.3 % of the errors within 1σ and z std 1. A σ five times too wide beside 2 % of
+    pixels read 35 true σ off also has z std near 1, but nearly every pixel within 1σ: the share tells them apart."""
+    from bmi_sdk.nn.eval_strata import HONEST_WITHIN_1
+
+    rng = np.random.default_rng(5)
+    true = np.full((400, 400), 4.0)
+    sigma = np.full(true.shape, 0.2)
+    error = rng.normal(0.0, 0.2, true.shape)
+    ones, zeros = np.ones(true.shape, bool), np.zeros(true.shape)
+    honest, faked = StrataSums(), StrataSums()
+    honest.add(true + error, true, ones, sigma, zeros, zeros + 0.5)
+    tails = rng.random(true.shape) < 0.02
+    faked.add(true + np.where(tails, 35 * 0.2, error), true, ones, 5 * sigma, zeros, zeros + 0.5)
+    h, f = honest.summary(), faked.summary()
+    assert h["sigma_z_std"] == pytest.approx(1.0, abs=0.01) and h["sigma_z_within_1"] == pytest.approx(HONEST_WITHIN_1,
+                                                                                                         abs=0.005)
+    assert f["sigma_z_std"] == pytest.approx(1.0, abs=0.1) and f["sigma_z_within_1"] > 0.95
 
 
 def test_a_band_without_pixels_reads_nan_and_a_decoder_without_sigma_reports_no_coverage():
@@ -75,7 +96,7 @@ def test_a_band_without_pixels_reads_nan_and_a_decoder_without_sigma_reports_no_
     out = sums.summary()
     assert math.isnan(out["by_range"]["> 6 m"]["absrel"]) and out["by_range"]["> 6 m"]["pixel_share"] == 0
     assert math.isnan(out["by_signal"]["signal < 0.02"]["absrel"])
-    assert "confident_coverage" not in out and "sigma_z_std" not in out
+    assert "confident_coverage" not in out and "sigma_z_std" not in out and "sigma_z_within_1" not in out
 
 
 # -- tiles as frames, decoders from the registry -------------------------------------------------------------------

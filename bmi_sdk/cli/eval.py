@@ -6,7 +6,7 @@ import json
 import math
 
 KEYS = ("absrel", "absrel_se", "rmse_m", "delta1", "delta2", "delta3", "psnr_db", "ssim")
-SIGMA_KEYS = ("confident_coverage", "confident_absrel", "sigma_z_rms", "sigma_z_std")
+SIGMA_KEYS = ("confident_coverage", "confident_absrel", "sigma_z_rms", "sigma_z_std", "sigma_z_within_1")
 STRATUM_KEYS = ("pixel_share", "error_share", "absrel", "rmse_m", "delta1")
 PAIRED_KEYS = ("tiles", "absrel_diff", "absrel_diff_se", "better_share")
 
@@ -163,7 +163,8 @@ def eval_table(rows: list[dict], bench) -> dict:
                      f"{bench.seed}; metrics per tile averaged over a region's tiles (built_camera_sampled: over its "
                      "cameras' tiles too); absrel_se: the standard error of that mean over the tiles (their spread "
                      "/ √n), the benchmark's own sampling uncertainty. confident_coverage: share of scored pixels "
-                     "with σ/depth ≤ 0.1, confident_absrel their AbsRel; sigma_z_std: std of error/σ (1: an honest σ)."}
+                     "with σ/depth ≤ 0.1, confident_absrel their AbsRel; sigma_z_std: std of error/σ (1: an honest σ); "
+                     "sigma_z_within_1: share of pixels with |error/σ| ≤ 1 (0.683: an honest σ; near 1: too wide)."}
 
 
 def strata_table(rows: list[dict], bench) -> dict:

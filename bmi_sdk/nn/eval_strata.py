@@ -20,7 +20,10 @@ For a decoder that reports a 1σ:
 * **confident coverage**: the share of the scored pixels whose reported σ / read depth ≤ ``CONFIDENT_REL_SIGMA``
   (0.1), as ``report.json``'s; with the AbsRel of those pixels (``confident_absrel``);
 * **σ honesty**: z = (read − true) / σ over the scored pixels; ``sigma_z_std`` is its standard deviation (1 for an
-  honest σ, ≫ 1 confidently wrong, ≪ 1 too wide) and ``sigma_z_rms`` its RMS.
+  honest σ, ≫ 1 confidently wrong, ≪ 1 too wide) and ``sigma_z_rms`` its RMS. Both are sums of squares, so a few
+  confidently wrong pixels (an occluding rim read as the background behind it) can hold them near 1 while the σ is
+  far too wide everywhere else; ``sigma_z_within_1``, the share of pixels with |z| ≤ 1, reads the typical pixel
+  instead (``HONEST_WITHIN_1`` for an honest Gaussian σ; near 1 where the σ is too wide).
 """
 
 from __future__ import annotations
@@ -41,6 +44,8 @@ SIGNAL_BANDS = {"signal < 0.02": (-math.inf, 0.02), "signal 0.02–0.05": (0.02,
 """Bands of a pixel's noiseless signal at the sensor (fraction of white; lower bound included, upper excluded)."""
 CONFIDENT_REL_SIGMA = 0.1
 """A pixel is confident where its reported 1σ is at most this fraction of its read depth."""
+HONEST_WITHIN_1 = math.erf(1 / math.sqrt(2))
+"""The share of a Gaussian's draws within one σ of its mean (0.683): ``sigma_z_within_1`` of an honest σ."""
 
 
 def depth_edges(range_m: np.ndarray, log_step: float = EDGE_LOG_STEP) -> np.ndarray:
@@ -80,7 +85,7 @@ class StrataSums:
         self.bands = {name: np.zeros(4) for name in (*RANGE_BANDS_M, *EDGE_BANDS, *SIGNAL_BANDS)}
         self.total = np.zeros(4)
         self.confident = np.zeros(4)
-        self.sigma_pixels = self.z_count = 0
+        self.sigma_pixels = self.z_count = self.z_within_1 = 0
         self.z_sum = self.z2_sum = 0.0
 
     def add(self, pred_m: np.ndarray, true_m: np.ndarray, valid: np.ndarray, sigma_m: np.ndarray | None,
@@ -112,11 +117,13 @@ class StrataSums:
             self.sigma_pixels += p.size
             self.z_sum += float(z.sum())
             self.z2_sum += float((z ** 2).sum())
+            self.z_within_1 += int(np.count_nonzero(np.abs(z) <= 1.0))
             self.z_count += z.size
 
     def summary(self) -> dict:
         """{"by_range": {band: metrics}, "by_edge": {band: metrics}, "by_signal": {band: metrics}} and, with a σ,
-        ``confident_coverage``, ``confident_absrel``, ``sigma_z_rms``, ``sigma_z_std``; metrics: pixel_share,
+        ``confident_coverage``, ``confident_absrel``, ``sigma_z_rms``, ``sigma_z_std``, ``sigma_z_within_1``; metrics:
+        pixel_share,
         error_share, absrel, rmse_m, delta1 (NaN where a band holds no pixel)."""
         def metrics(sums: np.ndarray) -> dict:
             n, rel, sq, hits = sums
@@ -136,4 +143,5 @@ class StrataSums:
             mean = self.z_sum / count
             out["sigma_z_rms"] = math.sqrt(self.z2_sum / count)
             out["sigma_z_std"] = math.sqrt(max(self.z2_sum / count - mean ** 2, 0.0))
+            out["sigma_z_within_1"] = self.z_within_1 / count if self.z_count else math.nan
         return out
