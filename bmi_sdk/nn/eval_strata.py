@@ -122,9 +122,8 @@ class StrataSums:
 
     def summary(self) -> dict:
         """{"by_range": {band: metrics}, "by_edge": {band: metrics}, "by_signal": {band: metrics}} and, with a σ,
-        ``confident_coverage``, ``confident_absrel``, ``sigma_z_rms``, ``sigma_z_std``, ``sigma_z_within_1``; metrics:
-        pixel_share,
-        error_share, absrel, rmse_m, delta1 (NaN where a band holds no pixel)."""
+        ``confident_coverage``, ``confident_absrel``, ``sigma_z_rms``, ``sigma_z_std``, ``sigma_z_within_1``;
+        metrics: pixel_share, error_share, absrel, rmse_m, delta1 (NaN where a band holds no pixel)."""
         def metrics(sums: np.ndarray) -> dict:
             n, rel, sq, hits = sums
             share = {"pixel_share": n / self.total[0] if self.total[0] else math.nan,
