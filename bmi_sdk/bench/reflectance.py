@@ -57,9 +57,13 @@ def band_masks(painted: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     return near, away
 
 
-def _reads(raw, row0: int, col0: int, stages: dict, network) -> dict:
-    """{decoder: depth_m} of one raw window, by the classical stage and by the evidence decoder (its support read and
-    upsampling as ``runtime.evidence.decode_evidence`` runs them)."""
+DECODER_NAMES = ("evidence (default)", "classical")
+
+
+def decoder_reads(raw, row0: int, col0: int, stages: dict, network) -> dict:
+    """{``DECODER_NAMES`` entry: depth_m} of one raw window of the design camera at σ 0.005: the evidence decoder
+    (``stages["evidence"]``, the network's classical stage, then its support read and upsampling as
+    ``runtime.evidence.decode_evidence`` runs them) and the classical decoder (``stages["classical"]``)."""
     from ..decode.volume import pixel_log_colour
     from ..lenses import lens_geometry
     from ..model_io import raw_to_rgb
@@ -76,7 +80,7 @@ def _reads(raw, row0: int, col0: int, stages: dict, network) -> dict:
     rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
     evidence, _ = _read(inv_grid, sig_grid, rgb, pixel_log_colour(rgb), network.support, network.colour_sigma,
                         stages["evidence"].config)
-    return {"evidence (default)": evidence, "classical": decode(stages["classical"]).depth_m}
+    return dict(zip(DECODER_NAMES, (evidence, decode(stages["classical"]).depth_m)))
 
 
 def _band_stats(depth: np.ndarray, range_m: float, mask: np.ndarray) -> tuple[float, float]:
@@ -112,10 +116,10 @@ def run(full: bool = False) -> str:
                     for scene, factor in (("painted", STEP_FACTOR), ("control", 1.0)):
                         raw, row0, col0 = window_raw(painted_scene(seed, painted, factor), range_map, psf_map.tensor,
                                                      geometry, field_deg, 30.0, seed, psf_map)
-                        for name, depth in _reads(raw, row0, col0, stages, network).items():
+                        for name, depth in decoder_reads(raw, row0, col0, stages, network).items():
                             for band, mask in (("near", near), ("away", away)):
                                 stats.setdefault((name, scene, band), []).append(_band_stats(depth, range_m, mask))
-                for name in ("evidence (default)", "classical"):
+                for name in DECODER_NAMES:
                     mean = {key: np.mean(stats[(name,) + key], axis=0) for key in
                             (("painted", "near"), ("painted", "away"), ("control", "near"))}
                     rows.append([painting, f"{field_deg:g}°", f"{range_m:g} m", name,
