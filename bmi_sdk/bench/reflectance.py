@@ -57,32 +57,6 @@ def band_masks(painted: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     return near, away
 
 
-DECODER_NAMES = ("evidence (default)", "classical")
-
-
-def decoder_reads(raw, row0: int, col0: int, stages: dict, network) -> dict:
-    """{``DECODER_NAMES`` entry: depth_m} of one raw window of the design camera at σ 0.005: the evidence decoder
-    (``stages["evidence"]``, the network's classical stage, then its support read and upsampling as
-    ``runtime.evidence.decode_evidence`` runs them) and the classical decoder (``stages["classical"]``)."""
-    from ..decode.volume import pixel_log_colour
-    from ..lenses import lens_geometry
-    from ..model_io import raw_to_rgb
-    from ..nn.data import STANDARD_SIGMA
-    from ..sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, NoiseProfile
-    from .evidence import _read
-
-    geometry = lens_geometry("bmi_monocentric")
-    noise = NoiseProfile.additive(STANDARD_SIGMA)
-    decode = lambda stage: stage.decode(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN, geometry, row0, col0,  # noqa: E731
-                                        noise_profile=noise, aif=False)
-    result = decode(stages["evidence"])
-    inv_grid, sig_grid = network.read_decode(result)
-    rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
-    evidence, _ = _read(inv_grid, sig_grid, rgb, pixel_log_colour(rgb), network.support, network.colour_sigma,
-                        stages["evidence"].config)
-    return dict(zip(DECODER_NAMES, (evidence, decode(stages["classical"]).depth_m)))
-
-
 def _band_stats(depth: np.ndarray, range_m: float, mask: np.ndarray) -> tuple[float, float]:
     """(AbsRel, median read / true) over ``mask``'s finite reads."""
     read = depth[mask & np.isfinite(depth)]
@@ -90,19 +64,10 @@ def _band_stats(depth: np.ndarray, range_m: float, mask: np.ndarray) -> tuple[fl
 
 
 def run(full: bool = False) -> str:
-    from ..built_camera import BuiltCamera
-    from ..decode import ClassicalConfig, ClassicalDecoder
-    from ..lenses import lens_geometry
-    from ..runtime.evidence import EvidenceNetwork
-    from ..runtime.model import select_model
     from .decoder import PLANE_MARGIN_PX, window_raw
+    from .plane_reads import DECODER_NAMES, decoder_reads, design_decoders
 
-    camera = BuiltCamera("bmi_monocentric")
-    psf_map = camera.psf_map(disk_cache=True)
-    geometry = lens_geometry("bmi_monocentric")
-    network = EvidenceNetwork(select_model("bmi_monocentric", "evidence"), threads=2)
-    stages = {"evidence": ClassicalDecoder.for_psf_map(psf_map, network.stage_config()),
-              "classical": ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig())}
+    psf_map, geometry, network, stages = design_decoders()
     seeds = FULL_SEEDS if full else SEEDS
     size = SIZE_PX + 2 * PLANE_MARGIN_PX
     rows = []

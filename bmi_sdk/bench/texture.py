@@ -35,19 +35,10 @@ def power_law_plane(size_px: int, power_slope: float, rng: np.random.Generator) 
 
 
 def run(full: bool = False) -> str:
-    from ..built_camera import BuiltCamera
-    from ..decode import ClassicalConfig, ClassicalDecoder
-    from ..lenses import lens_geometry
-    from ..runtime.evidence import EvidenceNetwork
-    from ..runtime.model import select_model
     from .decoder import PLANE_MARGIN_PX, window_raw
-    from .reflectance import DECODER_NAMES, decoder_reads
+    from .plane_reads import DECODER_NAMES, decoder_reads, design_decoders
 
-    psf_map = BuiltCamera("bmi_monocentric").psf_map(disk_cache=True)
-    geometry = lens_geometry("bmi_monocentric")
-    network = EvidenceNetwork(select_model("bmi_monocentric", "evidence"), threads=2)
-    stages = {"evidence": ClassicalDecoder.for_psf_map(psf_map, network.stage_config()),
-              "classical": ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig())}
+    psf_map, geometry, network, stages = design_decoders()
     seeds = FULL_SEEDS if full else SEEDS
     size = SIZE_PX + 2 * PLANE_MARGIN_PX
     rows = []
