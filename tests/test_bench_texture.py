@@ -3,12 +3,13 @@
 import numpy as np
 import pytest
 
-from bmi_sdk.bench.texture import POWER_SLOPES, power_law_plane
+from bmi_sdk.bench.decoder import power_law_texture
+from bmi_sdk.bench.texture import POWER_SLOPES
 
 
 @pytest.mark.parametrize("slope", POWER_SLOPES)
 def test_a_planes_power_spectrum_falls_as_its_named_slope(slope):
-    rgb = power_law_plane(256, slope, np.random.default_rng(1))
+    rgb = power_law_texture(256, slope, np.random.default_rng(1))
     assert abs(rgb.mean() - 0.4) < 0.01 and abs(rgb.std() - 0.15) < 0.01
     g = rgb[..., 1] - rgb[..., 1].mean()
     power = np.abs(np.fft.fft2(g)) ** 2

@@ -129,14 +129,21 @@ def plane_texture(size_px: int, texture: str, rng: np.random.Generator) -> np.nd
     specular glows: intrinsically smooth features that defocus cannot be told from), "pink" a 1/f² field per channel
     (the evidence's prior, and natural images' average spectrum), mean 0.4, 15 % contrast."""
     from bmi_sdk.scenes import generate_scene
-    from bmi_sdk.scenes.procedural import pink_noise
 
     if texture == "scene":
         return generate_scene(size_px, size_px, rng).rgb
     if texture == "pink":
-        rgb = np.stack([pink_noise((size_px, size_px), rng) for _ in range(3)], axis=-1) * 0.15 + 0.4
-        return np.clip(rgb, 0.01, 1.0).astype(np.float32)
+        return power_law_texture(size_px, 2.0, rng)
     raise ValueError(f"unknown plane texture {texture!r}")
+
+
+def power_law_texture(size_px: int, power_slope: float, rng: np.random.Generator) -> np.ndarray:
+    """(size, size, 3) float32 linear RGB: per channel a field of power spectrum 1/f^``power_slope``, 15 % contrast
+    about 0.4, clipped to [0.01, 1] (``power_slope`` 2: ``plane_texture``'s "pink")."""
+    from bmi_sdk.scenes.procedural import pink_noise
+
+    rgb = np.stack([pink_noise((size_px, size_px), rng, exponent=power_slope / 2) for _ in range(3)], axis=-1)
+    return np.clip(rgb * 0.15 + 0.4, 0.01, 1.0).astype(np.float32)
 
 
 PLANE_MARGIN_PX = 24

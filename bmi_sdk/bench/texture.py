@@ -4,7 +4,7 @@ The likelihood's prior is a 1/f² power spectrum (docs/decoder.md, step 2): natu
 texture falls faster looks blurred and reads nearer (the sensor is focused near infinity, so blur grows toward the
 camera), one whose texture falls slower looks sharp and reads farther. This measures by how much, on planes of
 power spectrum 1/f^p for ``POWER_SLOPES`` (p 0: white noise, 2: the prior, 3: smooth), each 15 % contrast about a
-mean of 0.4 (``decoder.plane_texture``'s "pink" otherwise), 256² px at φ 30°, σ 0.005, rendered and decoded with
+mean of 0.4 (``decoder.power_law_texture``), 256² px at φ 30°, σ 0.005, rendered and decoded with
 the design camera's exact kernels: AbsRel and the median of read / true range over the plane, per field angle,
 range and decoder (the default evidence decoder and the classical one), the mean over ``SEEDS`` texture and noise
 draws (``--full``: ``FULL_SEEDS``).
@@ -25,17 +25,8 @@ SEEDS = (3, 4)
 FULL_SEEDS = (3, 4, 5, 6, 7, 8)
 
 
-def power_law_plane(size_px: int, power_slope: float, rng: np.random.Generator) -> np.ndarray:
-    """(size, size, 3) float32 linear RGB: per channel a field of power spectrum 1/f^``power_slope``, 15 % contrast
-    about 0.4, clipped to [0.01, 1] (as ``decoder.plane_texture``'s "pink", whose slope is 2)."""
-    from bmi_sdk.scenes.procedural import pink_noise
-
-    rgb = np.stack([pink_noise((size_px, size_px), rng, exponent=power_slope / 2) for _ in range(3)], axis=-1)
-    return np.clip(rgb * 0.15 + 0.4, 0.01, 1.0).astype(np.float32)
-
-
 def run(full: bool = False) -> str:
-    from .decoder import PLANE_MARGIN_PX, window_raw
+    from .decoder import PLANE_MARGIN_PX, power_law_texture, window_raw
     from .plane_reads import DECODER_NAMES, decoder_reads, design_decoders
 
     psf_map, geometry, network, stages = design_decoders()
@@ -47,7 +38,7 @@ def run(full: bool = False) -> str:
             for range_m in RANGES_M:
                 stats: dict = {}
                 for seed in seeds:
-                    rgb = power_law_plane(size, slope, np.random.default_rng(seed))
+                    rgb = power_law_texture(size, slope, np.random.default_rng(seed))
                     raw, row0, col0 = window_raw(rgb, np.full((size, size), range_m, np.float32), psf_map.tensor,
                                                  geometry, field_deg, 30.0, seed, psf_map)
                     for name, depth in decoder_reads(raw, row0, col0, stages, network).items():
