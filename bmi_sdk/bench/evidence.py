@@ -72,7 +72,7 @@ def _other_estimates(shipped) -> list[tuple[str, object]]:
     return [(e, replace(shipped, estimate=e)) for e in ESTIMATES if e != shipped.estimate]
 
 
-def _read(inv_grid, sig_grid, rgb, log_rgb, support, colour_sigma: float, config) -> tuple[np.ndarray, np.ndarray]:
+def pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, colour_sigma: float, config) -> tuple[np.ndarray, np.ndarray]:
     """(depth_m, 1σ) at every pixel of the network's window read: the support read (None: off), then the guided
     upsampling, as ``runtime.evidence.decode_evidence`` does."""
     from ..decode.support import frame_support_read
@@ -112,8 +112,8 @@ def _planes(network, stages, geometry) -> str:
                                           noise_profile=NoiseProfile.additive(STANDARD_SIGMA), aif=False)
                     inv_grid, sig_grid = network.read_decode(result)
                     rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
-                    read, _ = _read(inv_grid, sig_grid, rgb, pixel_log_colour(rgb), network.support,
-                                    network.colour_sigma, stage.config)
+                    read, _ = pixel_read(inv_grid, sig_grid, rgb, pixel_log_colour(rgb), network.support,
+                                         network.colour_sigma, stage.config)
                     truth = np.full(raw.shape, depth_m, np.float32)
                     draws.append([depth_metrics(d, truth, result.valid)["absrel"] for d in (result.depth_m, read)])
                 classical, evidence = np.array(draws).T
@@ -162,7 +162,7 @@ def _full_frame(network, stages, geometry) -> str:
                       for name, support in _other_estimates(network.support)]
         for name, support in reads:
             t0 = time.perf_counter()
-            depth, sigma = _read(inv_grid, sig_grid, rgb, log_rgb, support, network.colour_sigma, stage.config)
+            depth, sigma = pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, network.colour_sigma, stage.config)
             metrics = _row(depth, sigma, range_m, result.valid)
             rows.append([kernels, name, *metrics, f"{time.perf_counter() - t0:.1f}"])
             if name == shipped:
@@ -213,8 +213,8 @@ def _gate_rows(kernels: str, stage, network, raw, rgb, log_rgb, range_m, valid, 
         if config is stage.config:
             absrel = shipped_absrel
         else:
-            depth, sigma = _read(*network.read_decode(result), rgb, log_rgb, network.support, network.colour_sigma,
-                                 config)
+            depth, sigma = pixel_read(*network.read_decode(result), rgb, log_rgb, network.support, network.colour_sigma,
+                                      config)
             absrel = _row(depth, sigma, range_m, valid)[0]
         rows.append([kernels, label, absrel, f"{seconds:.1f}", f"{result.stats['timings_s']['kernels_s']:.1f}"])
     return rows
@@ -256,7 +256,7 @@ def run(full: bool = False) -> str:
         for name, support, colour_sigma in variants:
             name = f"evidence, {name}"
             t0 = time.perf_counter()
-            depth, sigma = _read(inv_grid, sig_grid, rgb, log_rgb, support, colour_sigma, config)
+            depth, sigma = pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, colour_sigma, config)
             seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
             rows.setdefault(name, []).append(_row(depth, sigma, truth, result.valid))
     table = []

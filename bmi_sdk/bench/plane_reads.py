@@ -36,7 +36,7 @@ def decoder_reads(raw, row0: int, col0: int, stages: dict, network) -> dict:
     from ..model_io import raw_to_rgb
     from ..nn.data import STANDARD_SIGMA
     from ..sensor import BLACK_LEVEL_DN, WHITE_LEVEL_DN, NoiseProfile
-    from .evidence import _read
+    from .evidence import pixel_read
 
     geometry = lens_geometry(LENS)
     noise = NoiseProfile.additive(STANDARD_SIGMA)
@@ -45,6 +45,6 @@ def decoder_reads(raw, row0: int, col0: int, stages: dict, network) -> dict:
     result = decode(stages["evidence"])
     inv_grid, sig_grid = network.read_decode(result)
     rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
-    evidence, _ = _read(inv_grid, sig_grid, rgb, pixel_log_colour(rgb), network.support, network.colour_sigma,
-                        stages["evidence"].config)
+    evidence, _ = pixel_read(inv_grid, sig_grid, rgb, pixel_log_colour(rgb), network.support, network.colour_sigma,
+                             stages["evidence"].config)
     return dict(zip(DECODER_NAMES, (evidence, decode(stages["classical"]).depth_m)))
