@@ -42,13 +42,14 @@ def classical_peak_bytes(config: ClassicalConfig, height_px: int = 0, width_px: 
     blocks = threads * 4 * config.block_windows ** 2 * (3 * 4 * n * n + 8 * n * m)
     models = 3 * 4 * len(config.slopes) * depths * n * m * 4
     sp = config.stride_px // 2
-    planes = 2 * 4 * (height_px // 2 + n + sp) * (width_px // 2 + n + sp) * 4
+    padded_samples = 4 * (height_px // 2 + n + sp) * (width_px // 2 + n + sp)  # the four reflected planes
+    planes = 2 * padded_samples * 4
     rows, cols = -(-height_px // config.stride_px) + 1, -(-width_px // config.stride_px) + 1
     grid = rows * cols * (64 + 5 * 4 * depths)
     reach = 2.0 * config.pool_sigma_px / config.stride_px
     pool = (rows + 2 * reach + 1) * (cols + 2 * reach + 1) * (depths + 4) * 4 if config.pool_sigma_px > 0 else 0
     pixels = 40 * height_px * width_px
-    clipped = (5 * planes / 8 + threads * min(config.clipped_planes_per_frame, 4 * config.block_windows ** 2) * 96 * n * n
+    clipped = (5 * padded_samples + threads * min(config.clipped_planes_per_frame, 4 * config.block_windows ** 2) * 96 * n * n
                if config.clipped_planes_per_frame else 0)
     return float(taper + blocks + models + planes + grid + pool + pixels + clipped)
 
