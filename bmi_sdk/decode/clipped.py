@@ -9,11 +9,12 @@ rising smoothly to 1 over ``ClassicalConfig.clipped_ramp_samples`` around it (``
 hard hole, because clipping is not missing at random). The model of the tapered window's periodogram changes with
 the taper: the exact expected periodogram under t' (``masked_window``, ``evidence.tapered_periodogram``; a taper
 with holes has a broad transform, through which the window's mean removal reaches every bin, which the
-taper-smoothed model leaves out). So a bright surface whose noise pushes a few samples over white, or a window reaching the rim of a
-saturated highlight, keeps its evidence.
+taper-smoothed model leaves out). So a bright surface whose noise pushes a few samples over white, or a window
+reaching the rim of a saturated highlight, keeps its evidence.
 
 Each such (window, plane) has its own taper, so its model is made for it alone from the zone's plane
-autocovariances (``evidence.plane_autocovariance``, once per block): a few transforms of the window's size per
+autocovariances (``evidence.plane_autocovariance``, once per block and pass, at the candidates the pass scores,
+``ClippedPairs.nll``): a few transforms of the window's size per
 candidate, about 6–7 ms per window and plane for 28 candidates on one core. Only blocks that hold clipped samples
 pay it, and a frame scores at most ``ClassicalConfig.clipped_planes_per_frame`` pairs this way
 (``choose_clipped_planes``): an over-exposed frame's every window may hold a clipped sample.
