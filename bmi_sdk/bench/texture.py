@@ -3,7 +3,8 @@
 The likelihood's prior is a 1/f² power spectrum (docs/decoder.md, step 2): natural images' average. A surface whose
 texture falls faster looks blurred and reads nearer (the sensor is focused near infinity, so blur grows toward the
 camera), one whose texture falls slower looks sharp and reads farther. This measures by how much, on planes of
-power spectrum 1/f^p for ``POWER_SLOPES`` (p 0: white noise, 2: the prior, 3: smooth), each 15 % contrast about a
+power spectrum 1/f^p for ``POWER_SLOPES`` (p 0: white noise, 2: the prior, 3: smooth; 1.6 and 2.4: the prior ± the
+image-to-image spread of natural images' exponent), each 15 % contrast about a
 mean of 0.4 (``decoder.power_law_texture``), 256² px at φ 30°, σ 0.005, rendered and decoded with
 the design camera's exact kernels: AbsRel and the median of read / true range over the plane, per field angle,
 range and decoder (the default evidence decoder and the classical one), the mean over ``SEEDS`` texture and noise
@@ -16,8 +17,10 @@ import numpy as np
 
 from . import markdown_table, register_target
 
-POWER_SLOPES = (0.0, 1.0, 2.0, 3.0)
-"""p of each texture's power spectrum 1/f^p: white noise, 1/f, the likelihood's 1/f², a smooth 1/f³."""
+POWER_SLOPES = (0.0, 1.0, 1.6, 2.0, 2.4, 3.0)
+"""p of each texture's power spectrum 1/f^p: white noise, 1/f, the likelihood's 1/f², a smooth 1/f³, and 1.6 and 2.4:
+natural images' power-spectrum exponents scatter about 2 by about ±0.4 from one image to the next (van der Schaaf &
+van Hateren, Vision Research 36, 1996), so these two are the textures a user's scenes hold."""
 SIZE_PX = 256
 FIELDS_DEG = (5.0, 55.0)
 RANGES_M = (1.5, 3.0, 6.0)
