@@ -28,8 +28,14 @@ DECODER_NAMES = ("evidence (default)", "classical")
 
 
 def decoder_reads(raw, row0: int, col0: int, stages: dict, network) -> dict:
-    """{``DECODER_NAMES`` entry: depth_m} of one raw window of the design camera at σ 0.005: the evidence decoder
-    (``stages["evidence"]``, the network's classical stage, then its support read and upsampling as
+    """{``DECODER_NAMES`` entry: depth_m} of one raw window of the design camera at σ 0.005 (``decoder_reads_sigma``
+    without the 1σ)."""
+    return {name: depth for name, (depth, _) in decoder_reads_sigma(raw, row0, col0, stages, network).items()}
+
+
+def decoder_reads_sigma(raw, row0: int, col0: int, stages: dict, network) -> dict:
+    """{``DECODER_NAMES`` entry: (depth_m, 1σ in m)} of one raw window of the design camera at σ 0.005: the evidence
+    decoder (``stages["evidence"]``, the network's classical stage, then its support read and upsampling as
     ``runtime.evidence.decode_evidence`` runs them) and the classical decoder (``stages["classical"]``)."""
     from ..decode.volume import pixel_log_colour
     from ..lenses import lens_geometry
@@ -45,6 +51,7 @@ def decoder_reads(raw, row0: int, col0: int, stages: dict, network) -> dict:
     result = decode(stages["evidence"])
     inv_grid, sig_grid = network.read_decode(result)
     rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
-    evidence, _ = pixel_read(inv_grid, sig_grid, rgb, pixel_log_colour(rgb), network.support, network.colour_sigma,
-                             stages["evidence"].config)
-    return dict(zip(DECODER_NAMES, (evidence, decode(stages["classical"]).depth_m)))
+    evidence = pixel_read(inv_grid, sig_grid, rgb, pixel_log_colour(rgb), network.support, network.colour_sigma,
+                          stages["evidence"].config)
+    classical = decode(stages["classical"])
+    return dict(zip(DECODER_NAMES, (evidence, (classical.depth_m, classical.depth_sigma_m))))
