@@ -6,13 +6,16 @@ nearer ones occlude. Every surface carries its own 1/f² power-spectrum texture 
 likelihood's prior; ``surface_texture``) about its own mean colour, at its own contrast: objects ``OBJECT_CONTRAST``, the
 wall ``WALLS`` (textured, or weak: there the honest read is a wide σ). 384² px at φ 30°, σ 0.005, rendered and decoded
 with the design camera's exact kernels (the simulated device's and ``bmi infer``'s path). Per wall, field angle and
-decoder (the default evidence decoder and the classical one), over ``SEEDS`` scenes (``--full``: ``FULL_SEEDS``)
-pooled: AbsRel, within ``EDGE_NEAR_PX`` of a depth edge and beyond it, on the wall beyond it, δ1, σ's honesty
+decoder (the default evidence decoder, the classical one, and the evidence decoder with a wider support read,
+``WIDE_SUPPORT``), over ``SEEDS`` scenes (``--full``: ``FULL_SEEDS``) pooled: AbsRel, within ``EDGE_NEAR_PX`` of a
+depth edge and beyond it, on the wall beyond it, δ1, σ's honesty
 (std of error/σ, 1 for an honest σ, and the share within one σ, 0.683) and the confident coverage (σ ≤ 10 % of the
 depth).
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 
@@ -30,6 +33,9 @@ WALLS = {"textured wall": 0.3, "weak wall": 0.03}
 """The wall texture's std relative to its mean colour."""
 MEAN_COLOUR = (0.08, 0.6)
 """Range of a surface's mean linear colour, per channel."""
+WIDE_SUPPORT = {"radius_windows": 3, "spatial_sigma_windows": 2.0, "spread_scale": 0.2}
+"""A support read that reaches the like-coloured windows inside an object from its rim (docs/decoder.md, the evidence
+decoder's step 3), measured beside the shipped one."""
 FIELDS_DEG = (5.0, 45.0)
 SEEDS = (0, 1)
 FULL_SEEDS = tuple(range(6))
@@ -94,12 +100,16 @@ def run(full: bool = False) -> str:
     from .plane_reads import DECODER_NAMES, decoder_reads_sigma, design_decoders
 
     psf_map, geometry, network, stages = design_decoders()
+    wide = ("evidence, support radius {radius_windows}, spatial σ {spatial_sigma_windows:g}, τ {spread_scale:g}"
+            .format(**WIDE_SUPPORT))
+    supports = {wide: dataclasses.replace(network.support, **WIDE_SUPPORT)}
+    names = (*DECODER_NAMES, wide)
     seeds = FULL_SEEDS if full else SEEDS
     m = PLANE_MARGIN_PX
     rows = []
     for wall_name, wall_contrast in WALLS.items():
         for field_deg in FIELDS_DEG:
-            pooled: dict = {name: [] for name in DECODER_NAMES}
+            pooled: dict = {name: [] for name in names}
             truths, near, walls = [], [], []
             for seed in seeds:
                 rgb, range_m = object_scene(seed, wall_contrast)
@@ -108,9 +118,9 @@ def run(full: bool = False) -> str:
                 truths.append(truth)
                 near.append(edge_distance_px(truth) <= EDGE_NEAR_PX)
                 walls.append(truth >= WALL_RANGE_M[0])  # every object lies nearer than the wall's nearest range
-                for name, reads in decoder_reads_sigma(raw, row0, col0, stages, network).items():
+                for name, reads in decoder_reads_sigma(raw, row0, col0, stages, network, supports).items():
                     pooled[name].append(reads)
-            for name in DECODER_NAMES:
+            for name in names:
                 depth = np.concatenate([d.ravel() for d, _ in pooled[name]])
                 sigma = np.concatenate([s.ravel() for _, s in pooled[name]])
                 rows.append([wall_name, f"{field_deg:g}°", name,

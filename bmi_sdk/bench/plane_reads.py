@@ -33,10 +33,12 @@ def decoder_reads(raw, row0: int, col0: int, stages: dict, network) -> dict:
     return {name: depth for name, (depth, _) in decoder_reads_sigma(raw, row0, col0, stages, network).items()}
 
 
-def decoder_reads_sigma(raw, row0: int, col0: int, stages: dict, network) -> dict:
+def decoder_reads_sigma(raw, row0: int, col0: int, stages: dict, network, supports: dict | None = None) -> dict:
     """{``DECODER_NAMES`` entry: (depth_m, 1σ in m)} of one raw window of the design camera at σ 0.005: the evidence
     decoder (``stages["evidence"]``, the network's classical stage, then its support read and upsampling as
-    ``runtime.evidence.decode_evidence`` runs them) and the classical decoder (``stages["classical"]``)."""
+    ``runtime.evidence.decode_evidence`` runs them) and the classical decoder (``stages["classical"]``); and for each
+    {name: ``decode.support.SupportConfig``} of ``supports``, the evidence decoder's volume read with that support read
+    instead of its manifest's."""
     from ..decode.volume import pixel_log_colour
     from ..lenses import lens_geometry
     from ..model_io import raw_to_rgb
@@ -51,7 +53,9 @@ def decoder_reads_sigma(raw, row0: int, col0: int, stages: dict, network) -> dic
     result = decode(stages["evidence"])
     inv_grid, sig_grid = network.read_decode(result)
     rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
-    evidence = pixel_read(inv_grid, sig_grid, rgb, pixel_log_colour(rgb), network.support, network.colour_sigma,
-                          stages["evidence"].config)
+    log_rgb = pixel_log_colour(rgb)
+    read = lambda support: pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, network.colour_sigma,  # noqa: E731
+                                      stages["evidence"].config)
     classical = decode(stages["classical"])
-    return dict(zip(DECODER_NAMES, (evidence, (classical.depth_m, classical.depth_sigma_m))))
+    reads = dict(zip(DECODER_NAMES, (read(network.support), (classical.depth_m, classical.depth_sigma_m))))
+    return {**reads, **{name: read(support) for name, support in (supports or {}).items()}}
