@@ -117,12 +117,33 @@ def test_an_earlier_record_is_never_replaced_unasked(tmp_path):
     assert json.loads(path.read_text())["tables"][0]["rows"] == [[2]]
 
 
+def test_a_record_names_the_revision_its_run_started_from(tmp_path, monkeypatch):
+    """A checkout that moves on to another commit during a long run: the record names the revision the run started
+    from (``check_record_path`` reads it before the work), not the one the checkout holds at the end."""
+    import subprocess
+
+    from bmi_sdk.bench import record
+
+    revisions = iter(["a" * 40, "b" * 40])
+    monkeypatch.setattr(record.subprocess, "run",
+                        lambda *a, **k: subprocess.CompletedProcess(a, 0, stdout=next(revisions) + "\n"))
+    record.commit.cache_clear()
+    try:
+        path = tmp_path / "r.json"
+        check_record_path(path, overwrite=False)
+        write_record(path, [{"title": "t", "columns": ["a"], "rows": [[1]], "notes": ""}], ["bench", "x"])
+        assert json.loads(path.read_text())["commit"] == "a" * 40
+    finally:
+        record.commit.cache_clear()
+
+
 def test_bench_and_eval_refuse_an_earlier_record_before_running(tmp_path, bmi):
     """Run twice into one ``--json`` path: the second run stops at once (no minutes of benchmark lost first) with
     a one-line error naming ``--overwrite``, and the earlier record is untouched."""
     earlier = tmp_path / "r.json"
     earlier.write_text("{}\n")
-    for command in (["bench", "evidence"], ["eval", "--decoder", "classical"]):
+    for command in (["bench", "evidence"], ["eval", "--decoder", "classical"], ["bench", "device"], ["bench", "infer"],
+                    ["bench", "scaleout"]):
         done = bmi(*command, "--json", earlier, check=False)
         assert done.returncode == 1 and "holds an earlier run's record" in done.stderr and "--overwrite" in done.stderr
         assert earlier.read_text() == "{}\n"

@@ -14,7 +14,7 @@ import subprocess
 import sys
 import time
 
-from . import add_json_argument, emit
+from . import add_json_argument, check_record_path, emit
 
 
 def register(subparsers) -> None:
@@ -40,6 +40,7 @@ def _run(args) -> int:
     from bmi_sdk.protocol.wire import pack12, unpack12
     from devices import open_camera
     from firmware_sim import FirmwareDevice, make_source
+    check_record_path(args.json, args.overwrite)
 
     proc, uri = _serve()
     try:
@@ -85,5 +86,5 @@ def _run(args) -> int:
         unpack12(packed, out)
         t_unpack = time.perf_counter() - t0
         lines.append(f"| {scene} | {t_read:.2f} | {t_pack:.3f} | {t_unpack:.3f} |")
-    emit("\n".join(lines), args.json)
+    emit("\n".join(lines), args.json, args.overwrite)
     return 0

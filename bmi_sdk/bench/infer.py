@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import add_json_argument
+from . import add_json_argument, check_record_path
 
 
 def register(subparsers) -> None:
@@ -145,6 +145,7 @@ def _run(args) -> int:
     from bmi_sdk.model_manifest import read_manifest
     from bmi_sdk.runtime import Model, infer_raw, quantize_int8
     from devices import load_raw
+    check_record_path(args.json, args.overwrite)
 
     work = Path(args.work_dir)
     work.mkdir(parents=True, exist_ok=True)
@@ -219,5 +220,5 @@ def _run(args) -> int:
                              "AiF MAD vs fp32 untiled", "depth MAD m vs fp32 untiled"], rows3)
     sections.append(f"### fp32 vs int8 (static QDQ, per-channel, 8 calibration tiles)\n\n{table3}")
     body = "\n\n".join(sections)
-    emit(body, args.json)
+    emit(body, args.json, args.overwrite)
     return 0

@@ -13,6 +13,7 @@ table), so the record holds exactly what was printed, numbers as numbers.
 from __future__ import annotations
 
 import datetime
+import functools
 import os
 import platform
 import subprocess
@@ -36,9 +37,11 @@ def add_json_argument(p) -> None:
 
 def check_record_path(path, overwrite: bool) -> None:
     """Refuse, before a run's minutes of work, a ``--json`` PATH that is empty or a folder, or that already holds a
-    file (unless ``overwrite``): an earlier run's record is never replaced unasked."""
+    file (unless ``overwrite``): an earlier run's record is never replaced unasked. Also fixes the revision the record
+    will name (``commit``) as the one the run starts from."""
     if path is None:
         return
+    commit()  # the revision of the code about to run (memoised), not of whatever the checkout holds when it ends
     if not str(path).strip() or Path(path).is_dir():
         raise ValueError(f"--json {str(path)!r}: give the path of a file to write the record to, not a folder")
     if not overwrite and Path(path).exists():
@@ -52,8 +55,11 @@ def machine() -> dict:
             "load_average": [round(x, 2) for x in os.getloadavg()]}
 
 
+@functools.lru_cache(maxsize=1)
 def commit() -> str | None:
-    """The git revision of the checkout the package runs from, or None (an installed package, no git)."""
+    """The git revision of the checkout the package runs from, or None (an installed package, no git): read once per
+    process, at the first call. ``check_record_path`` makes that call before a run's work starts, so a record names
+    the code that ran even when the checkout moves on to another commit during a long run."""
     root = Path(__file__).resolve().parents[2]
     try:
         out = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,

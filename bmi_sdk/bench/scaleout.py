@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from . import add_json_argument
+from . import add_json_argument, check_record_path
 
 
 def _process_cpu_s() -> float:
@@ -121,6 +121,7 @@ def _run(args) -> int:
     from bmi_sdk.lenses import DEFAULT_LENS, lens_tensor
     from bmi_sdk.runtime.decoders import DEFAULT_DECODER
     from bmi_sdk.scaleout import parse_scheduler
+    check_record_path(args.json, args.overwrite)
 
     schedulers = args.scheduler or ["local:1", "local:2"]
     for s in schedulers:
@@ -141,5 +142,5 @@ def _run(args) -> int:
              f"{os.cpu_count()} cores (the `bmi infer` default); local:N: N worker processes of one thread each. "
              f"Cache: crop {args.crop} px, {args.shard_samples} pairs a shard; frames: ROI captures of the "
              f"simulated camera, the default ({DEFAULT_DECODER}) decoder, 512-px tiles.")
-    emit(text, args.json)
+    emit(text, args.json, args.overwrite)
     return 0
