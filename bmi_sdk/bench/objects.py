@@ -33,6 +33,9 @@ WALLS = {"textured wall": 0.3, "weak wall": 0.03}
 """The wall texture's std relative to its mean colour."""
 MEAN_COLOUR = (0.08, 0.6)
 """Range of a surface's mean linear colour, per channel."""
+CHANNEL_CORRELATION = 0.9
+"""Correlation of a texture's colour channels: natural images' texture is mostly luminance, their colour channels
+strongly correlated (Ruderman, Cronin & Chiao, J. Opt. Soc. Am. A 15, 1998, for the cone responses)."""
 WIDE_SUPPORT = {"radius_windows": 3, "spatial_sigma_windows": 2.0, "spread_scale": 0.2}
 """A support read that reaches the like-coloured windows inside an object from its rim (docs/decoder.md, the evidence
 decoder's step 3), measured beside the shipped one."""
@@ -40,10 +43,6 @@ FIELDS_DEG = (5.0, 45.0)
 SEEDS = (0, 1)
 FULL_SEEDS = tuple(range(6))
 
-
-CHANNEL_CORRELATION = 0.9
-"""Correlation of a texture's colour channels: natural images' texture is mostly luminance, their colour channels
-strongly correlated (Ruderman, Cronin & Chiao, J. Opt. Soc. Am. A 15, 1998, for the cone responses)."""
 
 
 def surface_texture(size: int, rng: np.random.Generator, contrast: float) -> np.ndarray:
@@ -84,6 +83,8 @@ def object_scene(seed: int, wall_contrast: float) -> tuple[np.ndarray, np.ndarra
 
 
 def _metrics(depth, sigma, truth, near_edge, wall) -> list[float]:
+    """The row's numbers from pooled pixels: AbsRel (all, ``near_edge``, beyond, the ``wall`` beyond), δ1, std(error/σ),
+    the share within one σ and the confident coverage (σ ≤ 10 % of the depth)."""
     ok = np.isfinite(depth)
     rel = np.abs(depth - truth) / truth
     ratio = np.maximum(depth / truth, truth / depth)
