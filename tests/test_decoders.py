@@ -109,10 +109,14 @@ def test_an_earlier_record_is_never_replaced_unasked(tmp_path):
     for not_a_file in ("", tmp_path):
         with pytest.raises(ValueError, match="not a folder"):
             check_record_path(not_a_file, overwrite=True)
+    check_record_path(tmp_path / "new" / "deeper" / "r.json", overwrite=False)
+    assert (tmp_path / "new" / "deeper").is_dir()  # made before the run, not after its work
+    with pytest.raises(ValueError, match="cannot be made"):
+        check_record_path(path / "r.json", overwrite=False)  # a file where its folder would be
     with pytest.raises(FileExistsError, match="another run wrote meanwhile"):
         write_record(path, [dict(table, rows=[[2]])], ["bench", "y"])
     assert path.read_bytes() == before
-    assert [p.name for p in tmp_path.iterdir()] == ["r.json"]  # no temporary file left behind
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["new", "r.json"]  # no temporary file left behind
     write_record(path, [dict(table, rows=[[2]])], ["bench", "y"], overwrite=True)
     assert json.loads(path.read_text())["tables"][0]["rows"] == [[2]]
 

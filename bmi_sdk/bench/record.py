@@ -36,14 +36,20 @@ def add_json_argument(p) -> None:
 
 
 def check_record_path(path, overwrite: bool) -> None:
-    """Refuse, before a run's minutes of work, a ``--json`` PATH that is empty or a folder, or that already holds a
-    file (unless ``overwrite``): an earlier run's record is never replaced unasked. Also fixes the revision the record
-    will name (``commit``) as the one the run starts from."""
+    """Refuse, before a run's minutes of work, a ``--json`` PATH that is empty or a folder, whose folder cannot be made
+    (it is made here), or that already holds a file (unless ``overwrite``): an earlier run's record is never replaced
+    unasked. Also fixes the revision the record will name (``commit``) as the one the run starts from."""
     if path is None:
         return
     commit()  # the revision of the code about to run (memoised), not of whatever the checkout holds when it ends
     if not str(path).strip() or Path(path).is_dir():
         raise ValueError(f"--json {str(path)!r}: give the path of a file to write the record to, not a folder")
+    folder = Path(path).absolute().parent
+    try:  # made now, not when the record is written at the end of the run
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        why = "a file stands on its path" if isinstance(e, (FileExistsError, NotADirectoryError)) else e.strerror or e
+        raise ValueError(f"--json {path}: its folder {folder} cannot be made ({why})") from None
     if not overwrite and Path(path).exists():
         raise FileExistsError(f"--json {path} holds an earlier run's record; pass --overwrite to replace it, or "
                               "choose another path")
