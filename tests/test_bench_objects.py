@@ -5,6 +5,7 @@ import pytest
 
 from bmi_sdk.bench.objects import (
     CHANNEL_CORRELATION,
+    EXPONENT_SPREADS,
     OBJECT_RANGE_M,
     WALL_RANGE_M,
     WALLS,
@@ -44,3 +45,20 @@ def test_every_wall_has_the_same_objects_nearer_than_it_with_depth_edges_to_scor
         assert paint.std(axis=0) == pytest.approx(np.full(3, contrast), rel=0.25)
     near = edge_distance_px(range_m) <= EDGE_NEAR_PX
     assert 0.02 < near.mean() < 0.5
+
+
+def test_a_texture_takes_its_exponent_and_a_scattered_scene_keeps_its_objects():
+    def slope(rgb):
+        g = rgb[..., 1] / rgb[..., 1].mean() - 1.0
+        power = np.abs(np.fft.fft2(g)) ** 2
+        f = np.hypot(*np.meshgrid(np.fft.fftfreq(256), np.fft.fftfreq(256), indexing="ij"))
+        edges = np.geomspace(4 / 256, 0.4, 9)
+        levels = [power[(f >= a) & (f < b)].mean() for a, b in zip(edges[:-1], edges[1:])]
+        return -np.polyfit(np.log(np.sqrt(edges[1:] * edges[:-1])), np.log(levels), 1)[0]
+
+    assert [slope(surface_texture(256, np.random.default_rng(4), 0.2, p)) for p in (1.6, 2.4)] == pytest.approx(
+        [1.6, 2.4], abs=0.15)
+    rgb, range_m = object_scene(3, WALLS["textured wall"])
+    assert np.array_equal(object_scene(3, WALLS["textured wall"], EXPONENT_SPREADS["1/f²"])[0], rgb)
+    scattered, scattered_range_m = object_scene(3, WALLS["textured wall"], EXPONENT_SPREADS["1/f^(2 ± 0.4)"])
+    assert np.array_equal(scattered_range_m, range_m) and not np.array_equal(scattered, rgb)  # the same objects

@@ -2,20 +2,21 @@
 
 Scenes like a user's, for the decoders' depth edges and σ: a wall 4–8 m away and ``OBJECTS`` discs and boxes 0.9–3.5 m
 away, 40–200 px across (the objects of `bmi eval`'s tiles at the paper's scale, ×3–4), drawn far to near so that
-nearer ones occlude. Every surface carries its own 1/f² power-spectrum texture (natural images' average, the
-likelihood's prior; ``surface_texture``) about its own mean colour, at its own contrast: objects ``OBJECT_CONTRAST``, the
-wall ``WALLS`` (textured, or weak: there the honest read is a wide σ). 384² px at φ 30°, σ 0.005, rendered and decoded
-with the design camera's exact kernels (the simulated device's and ``bmi infer``'s path). Per wall, field angle and
-decoder (the default evidence decoder, the classical one, and the evidence decoder with a wider support read,
+nearer ones occlude. Every surface carries its own texture of power spectrum 1/f^p about its own mean colour
+(``surface_texture``), at its own contrast: objects ``OBJECT_CONTRAST``, the wall ``WALLS`` (textured, or weak: there
+the honest read is a wide σ). p is 2 on every surface (natural images' average, the likelihood's prior) or scattered
+about 2 as natural images' exponents are (``EXPONENT_SPREADS``). 384² px at φ 30°, σ 0.005, rendered and decoded with
+the design camera's exact kernels (the simulated device's and ``bmi infer``'s path). Per textures, wall, field angle
+and decoder (the default evidence decoder, the classical one, and the evidence decoder with a wider support read,
 ``WIDE_SUPPORT``), over ``SEEDS`` scenes (``--full``: ``FULL_SEEDS``) pooled: AbsRel, within ``EDGE_NEAR_PX`` of a
-depth edge and beyond it, on the wall beyond it, δ1, σ's honesty
-(std of error/σ, 1 for an honest σ, and the share within one σ, 0.683) and the confident coverage (σ ≤ 10 % of the
-depth).
+depth edge and beyond it, on the wall beyond it, δ1, σ's honesty (std of error/σ, 1 for an honest σ, and the share
+within one σ, 0.683) and the confident coverage (σ ≤ 10 % of the depth).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 
@@ -33,6 +34,10 @@ WALLS = {"textured wall": 0.3, "weak wall": 0.03}
 """The wall texture's std relative to its mean colour."""
 MEAN_COLOUR = (0.08, 0.6)
 """Range of a surface's mean linear colour, per channel."""
+EXPONENT_SPREADS = {"1/f²": 0.0, "1/f^(2 ± 0.4)": 0.4}
+"""Std of each surface's power-spectrum exponent about 2: every surface the prior's 1/f², or scattered as natural
+images' exponents are (about ±0.4 from one image to the next; van der Schaaf & van Hateren, Vision Research 36,
+1996)."""
 CHANNEL_CORRELATION = 0.9
 """Correlation of a texture's colour channels: natural images' texture is mostly luminance, their colour channels
 strongly correlated (Ruderman, Cronin & Chiao, J. Opt. Soc. Am. A 15, 1998, for the cone responses)."""
@@ -45,27 +50,34 @@ FULL_SEEDS = tuple(range(6))
 
 
 
-def surface_texture(size: int, rng: np.random.Generator, contrast: float) -> np.ndarray:
+def surface_texture(size: int, rng: np.random.Generator, contrast: float, power_exponent: float = 2.0) -> np.ndarray:
     """(size, size, 3) linear RGB: a mean colour (``MEAN_COLOUR``) times (1 + ``contrast`` × a unit-std field of power
-    spectrum 1/f² per channel, the channels correlated by ``CHANNEL_CORRELATION``), clipped to [0.005, 1]."""
+    spectrum 1/f^``power_exponent`` per channel, the channels correlated by ``CHANNEL_CORRELATION``), clipped to
+    [0.005, 1]."""
     from bmi_sdk.scenes.procedural import pink_noise
 
     colour = rng.uniform(*MEAN_COLOUR, 3)
-    shared = pink_noise((size, size), rng)
+    amplitude_exponent = power_exponent / 2.0
+    shared = pink_noise((size, size), rng, exponent=amplitude_exponent)
     field = np.stack([np.sqrt(CHANNEL_CORRELATION) * shared
-                      + np.sqrt(1.0 - CHANNEL_CORRELATION) * pink_noise((size, size), rng) for _ in range(3)], axis=-1)
+                      + np.sqrt(1.0 - CHANNEL_CORRELATION) * pink_noise((size, size), rng, exponent=amplitude_exponent)
+                      for _ in range(3)], axis=-1)
     return np.clip(colour * (1.0 + contrast * field), 0.005, 1.0).astype(np.float32)
 
 
-def object_scene(seed: int, wall_contrast: float) -> tuple[np.ndarray, np.ndarray]:
+def object_scene(seed: int, wall_contrast: float, exponent_spread: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(rgb, range_m) of ``SIZE_PX`` + 2 ``PLANE_MARGIN_PX`` square: a wall of texture contrast ``wall_contrast``
-    and the objects of ``seed`` before it (module doc); the same seed gives the same objects for every wall."""
+    and the objects of ``seed`` before it (module doc), each surface's power exponent drawn from a normal law about 2 of
+    std ``exponent_spread`` (from a generator of its own, so the same seed gives the same objects, colours and
+    ranges for every wall and spread)."""
     from .decoder import PLANE_MARGIN_PX
 
     size = SIZE_PX + 2 * PLANE_MARGIN_PX
     rng = np.random.default_rng(seed)
     wall_rng = np.random.default_rng([seed, 1])
-    rgb = surface_texture(size, wall_rng, wall_contrast)
+    exponent_rng = np.random.default_rng([seed, 2])
+    exponent = lambda: 2.0 + exponent_spread * exponent_rng.standard_normal()  # noqa: E731
+    rgb = surface_texture(size, wall_rng, wall_contrast, exponent())
     range_m = np.full((size, size), np.exp(wall_rng.uniform(*np.log(WALL_RANGE_M))), np.float32)
     count = int(rng.integers(*OBJECTS))
     ranges = np.sort(np.exp(rng.uniform(*np.log(OBJECT_RANGE_M), count)))[::-1]  # far to near: nearer ones occlude
@@ -77,7 +89,7 @@ def object_scene(seed: int, wall_contrast: float) -> tuple[np.ndarray, np.ndarra
             mask = (rows - centre_row) ** 2 + (cols - centre_col) ** 2 < half ** 2
         else:
             mask = (np.abs(rows - centre_row) < half) & (np.abs(cols - centre_col) < half * rng.uniform(0.4, 1.5))
-        rgb[mask] = surface_texture(size, rng, rng.uniform(*OBJECT_CONTRAST))[mask]
+        rgb[mask] = surface_texture(size, rng, rng.uniform(*OBJECT_CONTRAST), exponent())[mask]
         range_m[mask] = object_m
     return rgb, range_m
 
@@ -108,30 +120,30 @@ def run(full: bool = False) -> str:
     seeds = FULL_SEEDS if full else SEEDS
     m = PLANE_MARGIN_PX
     rows = []
-    for wall_name, wall_contrast in WALLS.items():
-        for field_deg in FIELDS_DEG:
-            pooled: dict = {name: [] for name in names}
-            truths, near, walls = [], [], []
-            for seed in seeds:
-                rgb, range_m = object_scene(seed, wall_contrast)
-                raw, row0, col0 = window_raw(rgb, range_m, psf_map.tensor, geometry, field_deg, 30.0, seed, psf_map)
-                truth = range_m[m:-m, m:-m]
-                truths.append(truth)
-                near.append(edge_distance_px(truth) <= EDGE_NEAR_PX)
-                walls.append(truth >= WALL_RANGE_M[0])  # every object lies nearer than the wall's nearest range
-                for name, reads in decoder_reads_sigma(raw, row0, col0, stages, network, supports).items():
-                    pooled[name].append(reads)
-            for name in names:
-                depth = np.concatenate([d.ravel() for d, _ in pooled[name]])
-                sigma = np.concatenate([s.ravel() for _, s in pooled[name]])
-                rows.append([wall_name, f"{field_deg:g}°", name,
-                             *_metrics(depth, sigma, np.concatenate([t.ravel() for t in truths]),
-                                       np.concatenate([n.ravel() for n in near]),
-                                       np.concatenate([w.ravel() for w in walls]))])
-    return (f"### Textured objects before a wall ({SIZE_PX}² px, every surface 1/f² about its own colour, φ 30°, "
+    for (textures, spread), (wall_name, wall_contrast), field_deg in itertools.product(
+            EXPONENT_SPREADS.items(), WALLS.items(), FIELDS_DEG):
+        pooled: dict = {name: [] for name in names}
+        truths, near, walls = [], [], []
+        for seed in seeds:
+            rgb, range_m = object_scene(seed, wall_contrast, spread)
+            raw, row0, col0 = window_raw(rgb, range_m, psf_map.tensor, geometry, field_deg, 30.0, seed, psf_map)
+            truth = range_m[m:-m, m:-m]
+            truths.append(truth)
+            near.append(edge_distance_px(truth) <= EDGE_NEAR_PX)
+            walls.append(truth >= WALL_RANGE_M[0])  # every object lies nearer than the wall's nearest range
+            for name, reads in decoder_reads_sigma(raw, row0, col0, stages, network, supports).items():
+                pooled[name].append(reads)
+        for name in names:
+            depth = np.concatenate([d.ravel() for d, _ in pooled[name]])
+            sigma = np.concatenate([s.ravel() for _, s in pooled[name]])
+            rows.append([textures, wall_name, f"{field_deg:g}°", name,
+                         *_metrics(depth, sigma, np.concatenate([t.ravel() for t in truths]),
+                                   np.concatenate([n.ravel() for n in near]),
+                                   np.concatenate([w.ravel() for w in walls]))])
+    return (f"### Textured objects before a wall ({SIZE_PX}² px, every surface 1/f^p about its own colour, φ 30°, "
             f"σ 0.005, exact kernels; {len(seeds)} scenes pooled per row)\n\n"
-            + markdown_table(["wall", "θ", "decoder", "AbsRel", f"≤ {EDGE_NEAR_PX:g} px of an edge", "beyond",
-                              "wall beyond", "δ1", "std(error/σ)", "within 1σ", "confident coverage"], rows))
+            + markdown_table(["textures", "wall", "θ", "decoder", "AbsRel", f"≤ {EDGE_NEAR_PX:g} px of an edge",
+                              "beyond", "wall beyond", "δ1", "std(error/σ)", "within 1σ", "confident coverage"], rows))
 
 
 def register(subparsers) -> None:
