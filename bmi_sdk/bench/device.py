@@ -40,6 +40,7 @@ def _run(args) -> int:
     from bmi_sdk.protocol.wire import pack12, unpack12
     from devices import open_camera
     from firmware_sim import FirmwareDevice, make_source
+
     check_record_path(args.json, args.overwrite)
 
     proc, uri = _serve()

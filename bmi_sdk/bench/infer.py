@@ -145,6 +145,7 @@ def _run(args) -> int:
     from bmi_sdk.model_manifest import read_manifest
     from bmi_sdk.runtime import Model, infer_raw, quantize_int8
     from devices import load_raw
+
     check_record_path(args.json, args.overwrite)
 
     work = Path(args.work_dir)

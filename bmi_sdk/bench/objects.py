@@ -49,7 +49,6 @@ SEEDS = (0, 1)
 FULL_SEEDS = tuple(range(6))
 
 
-
 def surface_texture(size: int, rng: np.random.Generator, contrast: float, power_exponent: float = 2.0) -> np.ndarray:
     """(size, size, 3) linear RGB: a mean colour (``MEAN_COLOUR``) times (1 + ``contrast`` × a unit-std field of power
     spectrum 1/f^``power_exponent`` per channel, the channels correlated by ``CHANNEL_CORRELATION``), clipped to
@@ -97,14 +96,13 @@ def object_scene(seed: int, wall_contrast: float, exponent_spread: float = 0.0) 
 def _metrics(depth, sigma, truth, near_edge, wall) -> list[float]:
     """The row's numbers from pooled pixels: AbsRel (all, ``near_edge``, beyond, the ``wall`` beyond), δ1, std(error/σ),
     the share within one σ and the confident coverage (σ ≤ 10 % of the depth)."""
-    ok = np.isfinite(depth)
-    rel = np.abs(depth - truth) / truth
-    ratio = np.maximum(depth / truth, truth / depth)
-    scored = ok & np.isfinite(sigma) & (sigma > 0)
+    from ..metrics import depth_metrics
+
+    absrel = [depth_metrics(depth, truth, mask)["absrel"] for mask in (None, near_edge, ~near_edge, ~near_edge & wall)]
+    scored = np.isfinite(depth) & np.isfinite(sigma) & (sigma > 0)
     z = (depth - truth)[scored] / sigma[scored]
-    return [float(rel[ok].mean()), float(rel[ok & near_edge].mean()), float(rel[ok & ~near_edge].mean()),
-            float(rel[ok & ~near_edge & wall].mean()), float(np.mean(ratio[ok] < 1.25)), float(np.std(z)),
-            float(np.mean(np.abs(z) <= 1.0)), float(np.mean(sigma[scored] <= 0.1 * depth[scored]))]
+    return [*absrel, depth_metrics(depth, truth)["delta1"], float(np.std(z)), float(np.mean(np.abs(z) <= 1.0)),
+            float(np.mean(sigma[scored] <= 0.1 * depth[scored]))]
 
 
 def run(full: bool = False) -> str:

@@ -121,6 +121,7 @@ def _run(args) -> int:
     from bmi_sdk.lenses import DEFAULT_LENS, lens_tensor
     from bmi_sdk.runtime.decoders import DEFAULT_DECODER
     from bmi_sdk.scaleout import parse_scheduler
+
     check_record_path(args.json, args.overwrite)
 
     schedulers = args.scheduler or ["local:1", "local:2"]

@@ -4,11 +4,10 @@ The likelihood's prior is a 1/f² power spectrum (docs/decoder.md, step 2): natu
 texture falls faster looks blurred and reads nearer (the sensor is focused near infinity, so blur grows toward the
 camera), one whose texture falls slower looks sharp and reads farther. This measures by how much, on planes of
 power spectrum 1/f^p for ``POWER_SLOPES`` (p 0: white noise, 2: the prior, 3: smooth; 1.6 and 2.4: the prior ± the
-image-to-image spread of natural images' exponent), each 15 % contrast about a
-mean of 0.4 (``decoder.power_law_texture``), 256² px at φ 30°, σ 0.005, rendered and decoded with
-the design camera's exact kernels: AbsRel and the median of read / true range over the plane, per field angle,
-range and decoder (the default evidence decoder and the classical one), the mean over ``SEEDS`` texture and noise
-draws (``--full``: ``FULL_SEEDS``).
+image-to-image spread of natural images' exponent), each 15 % contrast about a mean of 0.4
+(``decoder.power_law_texture``), 256² px at φ 30°, σ 0.005, rendered and decoded with the design camera's exact
+kernels: AbsRel and the median of read / true range over the plane, per field angle, range and decoder (the default
+evidence decoder and the classical one), the mean over ``SEEDS`` texture and noise draws (``--full``: ``FULL_SEEDS``).
 """
 
 from __future__ import annotations
