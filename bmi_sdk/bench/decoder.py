@@ -376,7 +376,7 @@ def window_depths(decoder, raw: np.ndarray, zones) -> list[np.ndarray]:
     """Depth of each non-overlapping window of ``raw`` (standard noise) read by the evidence alone with each zone's
     kernel models, every candidate scored: one array per zone (the window spectra are taken once)."""
     from bmi_sdk.decode.bayer import normalised_planes
-    from bmi_sdk.decode.evidence import Evidence, hann_taper, window_spectra
+    from bmi_sdk.decode.evidence import Evidence, hann_taper, profile_exponent, window_spectra
     from bmi_sdk.nn.data import STANDARD_SIGMA
 
     n = decoder.config.window_px // 2
@@ -388,7 +388,8 @@ def window_depths(decoder, raw: np.ndarray, zones) -> list[np.ndarray]:
     depths = []
     for zone in zones:
         models = decoder.zones.models(zone, np.arange(len(cand)))
-        nll = decoder._block_nll(spectra, models, noise, float((taper ** 2).sum()), no_clip)
+        nll = profile_exponent(decoder._block_nll(spectra, models, noise, float((taper ** 2).sum()), no_clip),
+                               decoder.config.slopes)
         depths.append(Evidence(nll, cand.inv_depth_per_m).refine()[0])
     return depths
 

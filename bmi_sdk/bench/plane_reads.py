@@ -33,12 +33,14 @@ def decoder_reads(raw, row0: int, col0: int, stages: dict, network) -> dict:
     return {name: depth for name, (depth, _) in decoder_reads_sigma(raw, row0, col0, stages, network).items()}
 
 
-def decoder_reads_sigma(raw, row0: int, col0: int, stages: dict, network, supports: dict | None = None) -> dict:
+def decoder_reads_sigma(raw, row0: int, col0: int, stages: dict, network, supports: dict | None = None,
+                        volumes: dict | None = None) -> dict:
     """{``DECODER_NAMES`` entry: (depth_m, 1σ in m)} of one raw window of the design camera at σ 0.005: the evidence
     decoder (``stages["evidence"]``, the network's classical stage, then its support read and upsampling as
-    ``runtime.evidence.decode_evidence`` runs them) and the classical decoder (``stages["classical"]``); and for each
+    ``runtime.evidence.decode_evidence`` runs them) and the classical decoder (``stages["classical"]``); for each
     {name: ``decode.support.SupportConfig``} of ``supports``, the evidence decoder's volume read with that support read
-    instead of its manifest's."""
+    instead of its manifest's; and for each {name: classical stage} of ``volumes``, that stage's volume read by the
+    network as the evidence decoder reads its own."""
     from ..decode.volume import pixel_log_colour
     from ..lenses import lens_geometry
     from ..model_io import raw_to_rgb
@@ -58,4 +60,8 @@ def decoder_reads_sigma(raw, row0: int, col0: int, stages: dict, network, suppor
                                       stages["evidence"].config)
     classical = decode(stages["classical"])
     reads = dict(zip(DECODER_NAMES, (read(network.support), (classical.depth_m, classical.depth_sigma_m))))
-    return {**reads, **{name: read(support) for name, support in (supports or {}).items()}}
+    reads |= {name: read(support) for name, support in (supports or {}).items()}
+    for name, stage in (volumes or {}).items():
+        inv_grid, sig_grid = network.read_decode(decode(stage))
+        reads[name] = pixel_read(inv_grid, sig_grid, rgb, log_rgb, network.support, network.colour_sigma, stage.config)
+    return reads

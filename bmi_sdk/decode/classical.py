@@ -66,7 +66,15 @@ from .aif import wiener_blend
 from .bayer import clipped_samples, estimate_noise_sigma, normalised_planes
 from .candidates import Candidates, inverse_depth_candidates
 from .clipped import ClippedPairs, choose_clipped_planes, clipped_weights
-from .evidence import Evidence, hann_taper, plane_nll, taper_variance_inflation, window_spectra, windows_touching
+from .evidence import (
+    Evidence,
+    hann_taper,
+    plane_nll,
+    profile_exponent,
+    taper_variance_inflation,
+    window_spectra,
+    windows_touching,
+)
 from .kernels import ZONE_STEP_DEG, ZoneKernels
 from .pooling import pool_evidence, window_colour
 
@@ -97,6 +105,11 @@ range drowns any signal it can hold, and every window then reads its prior: one 
 marked valid."""
 
 
+MAX_SLOPE = 4.0
+"""The steepest prior exponent a ``ClassicalConfig`` takes: a texture of power spectrum 1/f⁴ is already smoother than
+any defocus the camera can tell from it."""
+
+
 @dataclass(frozen=True)
 class ClassicalConfig:
     """Accuracy knobs of the classical decoder (error against run time: ``bmi bench decoder``)."""
@@ -105,7 +118,8 @@ class ClassicalConfig:
     stride_px: int = 16
     candidates: int = 48
     coarse_step: int = 4
-    slopes: tuple = (2.0,)
+    slopes: tuple = (2.0,)  # the prior's power exponents α (S ∝ 1/|f|^α); several (evenly spaced): α is profiled out
+    #                         per window and candidate, one α for all planes (``evidence.profile_exponent``)
     block_windows: int = 16
     theta_step_deg: float | None = None  # None: a block's windows read its centre's zone; else each window reads
     #                                      the zones of a θ grid of this step around its own θ (``ZoneKernels.field_reads``)
@@ -145,8 +159,13 @@ class ClassicalConfig:
                              f"got {self.pool_sigma_px}, {self.pool_colour_sigma}, {self.pool_truncate_nats}")
         if self.block_windows < 1 or self.coarse_step < 1 or self.aif_step < 1:
             raise ValueError("block_windows, coarse_step and aif_step must be >= 1")
-        if not self.slopes:
-            raise ValueError("at least one prior slope is needed")
+        slopes = np.asarray(self.slopes, np.float64) if len(self.slopes) else np.zeros(0)
+        if not len(slopes) or not np.all(np.isfinite(slopes)) or not np.all((slopes > 0) & (slopes <= MAX_SLOPE)):
+            raise ValueError(f"slopes must be one or more prior exponents in (0, {MAX_SLOPE}], got {self.slopes!r}")
+        if len(slopes) > 1 and not np.all(np.diff(slopes) > 0):
+            raise ValueError(f"slopes must increase, got {self.slopes!r}")
+        if len(slopes) > 2 and not np.allclose(np.diff(slopes), slopes[1] - slopes[0], rtol=1e-6, atol=1e-9):
+            raise ValueError(f"slopes must be evenly spaced (a parabola refines the best one), got {self.slopes!r}")
         if self.theta_step_deg is not None and not (
                 self.theta_step_deg > 0 and float(self.theta_step_deg / ZONE_STEP_DEG).is_integer()):
             raise ValueError(f"theta_step_deg must be a positive multiple of the zone step {ZONE_STEP_DEG}°, "
@@ -225,7 +244,8 @@ class ClassicalDecoder:
     # -- evidence ---------------------------------------------------------------------------------
     def _block_nll(self, spectra: list, models: np.ndarray, noise_vars: list, taper_energy: float,
                    clipped: list, grid_models: np.ndarray | None = None) -> np.ndarray:
-        """(windows, D) NLL summed over the planes, each plane's prior slope profiled out; ``models`` is
+        """(slopes, windows, D) NLL summed over the planes at each prior slope (``evidence.profile_exponent`` profiles
+        the slope out once every plane's evidence, clipped pairs' included, is in); ``models`` is
         ``ZoneKernels.models`` (planes, slopes, D, n, m), ``noise_vars`` each plane's per-window noise variance,
         ``clipped`` each plane's windows holding a sample at the white level: that plane gives them no evidence
         (a clipped plateau's sharp rim reads as a sharp kernel, confidently and wrongly). ``grid_models``: the
@@ -233,27 +253,27 @@ class ClassicalDecoder:
         grid = models if grid_models is None else grid_models
         total: np.ndarray | None = None
         for p, power in enumerate(spectra):
-            best = np.min([plane_nll(power, models[p, a], noise_vars[p], taper_energy, grid_model=grid[p, a])
-                           for a in range(models.shape[1])], axis=0)
-            best[clipped[p]] = 0.0
-            total = best if total is None else total + best
+            per_slope = np.stack([plane_nll(power, models[p, a], noise_vars[p], taper_energy, grid_model=grid[p, a])
+                                  for a in range(models.shape[1])])
+            per_slope[:, clipped[p]] = 0.0
+            total = per_slope if total is None else total + per_slope
         if total is None:
             raise ValueError("_block_nll needs the spectra of at least one colour plane, got none")
-        return total                                               # (windows, D)
+        return total                                               # (slopes, windows, D)
 
     def _field_nll(self, spectra: list, reads: list, models: list, noise_vars: list, taper_energy: float,
                    clipped: list, grid_models: list | None = None) -> np.ndarray:
-        """(windows, D) NLL of a block's windows, each read with the zones ``ZoneKernels.field_reads`` gives it
+        """(slopes, windows, D) NLL of a block's windows, each read with the zones ``ZoneKernels.field_reads`` gives it
         (``models`` one ``_block_nll`` model stack per read, ``grid_models`` the stacks that place each read's β
         grid): the weighted sum of the zones' NLLs, which is the NLL under the kernels interpolated to the
         window's θ to first order in the zones' spacing."""
         grid_models = grid_models or [None] * len(reads)
         if len(reads) == 1:
             return self._block_nll(spectra, models[0], noise_vars, taper_energy, clipped, grid_models[0])
-        total = np.zeros((len(spectra[0]), models[0].shape[2]))
+        total = np.zeros((models[0].shape[1], len(spectra[0]), models[0].shape[2]))
         for (_, idx, weight), zone_models, zone_grid in zip(reads, models, grid_models):
             pick = lambda planes: [p[idx] for p in planes]  # noqa: E731
-            total[idx] += weight[:, None] * self._block_nll(pick(spectra), zone_models, pick(noise_vars),
+            total[:, idx] += weight[:, None] * self._block_nll(pick(spectra), zone_models, pick(noise_vars),
                                                             taper_energy, pick(clipped), zone_grid)
         return total
 
@@ -342,16 +362,18 @@ class ClassicalDecoder:
             # group's β grid placed by its own windows and coarse models; without a gate, one group of every window
             groups = [(mask, exact, block_part(mask, spectra, noise_vars, clipped, reads))
                       for mask, exact in window_groups(windows, cfg.exact_model_below) if mask.any()]
-            coarse_nll = np.empty((nr * nc, len(coarse)))
+            n_slopes = len(cfg.slopes)
+            coarse_nll = np.empty((n_slopes, nr * nc, len(coarse)))
             coarse_models = {}
             for mask, exact, (g_spectra, g_noise, g_clipped, g_reads) in groups:
                 tm = time.perf_counter()
                 coarse_models[exact] = [self.zones.models(z, coarse, exact) for z, _, _ in g_reads]
                 kernels_s += time.perf_counter() - tm
-                coarse_nll[mask] = self._field_nll(g_spectra, g_reads, coarse_models[exact], g_noise, taper_energy,
-                                                   g_clipped)
+                coarse_nll[:, mask] = self._field_nll(g_spectra, g_reads, coarse_models[exact], g_noise, taper_energy,
+                                                      g_clipped)
             if pairs is not None:
                 coarse_nll += pairs.nll(coarse)
+            coarse_nll = profile_exponent(coarse_nll, cfg.slopes)
             best = np.unique(coarse[np.argmin(coarse_nll, axis=1)])
             reach = np.arange(-cfg.coarse_step, cfg.coarse_step + 1)
             which = np.unique(np.clip(best[:, None] + reach[None, :], 0, n_cand - 1))
@@ -361,14 +383,16 @@ class ClassicalDecoder:
             nll = np.empty((nr * nc, len(which)))
             nll[:, np.isin(which, coarse)] = coarse_nll[:, np.isin(coarse, which)]
             if len(fine):
+                fine_nll = np.empty((n_slopes, nr * nc, len(fine)))
                 for mask, exact, (g_spectra, g_noise, g_clipped, g_reads) in groups:
                     tm = time.perf_counter()
                     models = [self.zones.models(z, fine, exact) for z, _, _ in g_reads]
                     kernels_s += time.perf_counter() - tm
-                    nll[np.flatnonzero(mask)[:, None], np.flatnonzero(np.isin(which, fine))[None, :]] = self._field_nll(
-                        g_spectra, g_reads, models, g_noise, taper_energy, g_clipped, coarse_models[exact])
+                    fine_nll[:, mask] = self._field_nll(g_spectra, g_reads, models, g_noise, taper_energy, g_clipped,
+                                                        coarse_models[exact])
                 if pairs is not None:
-                    nll[:, np.isin(which, fine)] += pairs.nll(fine)
+                    fine_nll += pairs.nll(fine)
+                nll[:, np.isin(which, fine)] = profile_exponent(fine_nll, cfg.slopes)
             depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
             return {"evidence": (coarse_nll - coarse_nll.min(axis=1, keepdims=True)).reshape(nr, nc, -1),
                     "clipped": int(np.logical_or.reduce(clipped).sum()), "masked": int(masked.any(axis=0).sum()),

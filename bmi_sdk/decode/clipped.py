@@ -120,8 +120,8 @@ class ClippedPairs:
     ``plane_windows`` / ``weight_windows``: per plane, the (windows, n, n) samples and clipped weights of the
     block's windows (``window_spectra``'s grid); ``chosen``: (planes, windows) the pairs to score; ``kernels_of(zone,
     which)``: (channels, len(which), K, K) kernels of candidates ``which`` at a zone; ``reads``: the block's zone
-    reads (``ZoneKernels.field_reads``: zone, window indices, weights); ``slopes``: the prior slopes, profiled as
-    ``ClassicalDecoder._block_nll`` does; ``noise``: the frame's ``NoiseProfile``. ``scored``: (planes, windows)
+    reads (``ZoneKernels.field_reads``: zone, window indices, weights); ``slopes``: the prior slopes, whose NLLs
+    ``nll`` keeps apart for the decoder to profile (``evidence.profile_exponent``); ``noise``: the frame's ``NoiseProfile``. ``scored``: (planes, windows)
     which pairs give evidence (a chosen pair whose weighted taper keeps too little gives none).
     """
 
@@ -144,10 +144,10 @@ class ClippedPairs:
         self._grid_models: dict = {}
 
     def nll(self, which: np.ndarray) -> np.ndarray:
-        """(windows, len(which)) NLL of candidates ``which`` summed over each window's scored pairs (0 for a window
-        with none). The first call's models place each pair's β grid for every later call, as the coarse pass's
+        """(slopes, windows, len(which)) NLL of candidates ``which`` at each prior slope, summed over each window's
+        scored pairs (0 for a window with none). The first call's models place each pair's β grid for every later call, as the coarse pass's
         models place the fine pass's (``evidence.plane_nll``), so that the passes' NLLs form one curve."""
-        total = np.zeros((self.n_windows, len(which)))
+        total = np.zeros((len(self.slopes), self.n_windows, len(which)))
         autocovariances: dict = {}
         for p, w, power, energy, noise_var, terms in self.pairs:
             for zone, idx, weight in self.reads:
@@ -158,11 +158,8 @@ class ClippedPairs:
                 if key not in autocovariances:
                     k = self.kernels_of(zone, which)[PLANE_CHANNELS[p]]
                     autocovariances[key] = [plane_autocovariance(k, self.n_plane, a) for a in self.slopes]
-                best = None
                 for a, r in enumerate(autocovariances[key]):
                     model = tapered_periodogram(r, terms)
                     grid = self._grid_models.setdefault((p, w, zone, a), model)
-                    nll = plane_nll(power, model, noise_var, energy, grid_model=grid)[0]
-                    best = nll if best is None else np.minimum(best, nll)
-                total[w] += weight[hit[0]] * best
+                    total[a, w] += weight[hit[0]] * plane_nll(power, model, noise_var, energy, grid_model=grid)[0]
         return total
