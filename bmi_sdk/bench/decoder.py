@@ -55,7 +55,8 @@ def _knob_rows(bench, renders, nominal_map) -> list[list]:
     variants += [(f"candidates {n}", replace(base, candidates=n)) for n in (16, 24) if n != base.candidates]
     variants += [(f"window {w} px", replace(base, window_px=w)) for w in (48, 96) if w != base.window_px]
     variants += [(f"stride {s} px", replace(base, stride_px=s)) for s in (8, 32) if s != base.stride_px]
-    variants += [("slopes 1.6–3.2 (5)", replace(base, slopes=(1.6, 2.0, 2.4, 2.8, 3.2))),
+    variants += [("exponent profiled 1.5–2.5 (5 slopes, exact model)",
+                  replace(base, slopes=(1.5, 1.75, 2.0, 2.25, 2.5), exact_model_below=1.0)),
                  ("confidence fill 1.5 windows", replace(base, fill_windows=1.5)),
                  ("AiF on every 2nd candidate", replace(base, aif_step=2)),
                  ("AiF on every candidate", replace(base, aif_step=1)),
