@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 
 from bmi_sdk.decode.support import (
+    HIGHPASS_SIGMA_PX,
     SupportConfig,
     cell_colours,
     colour_spread,
+    evidence_colours,
     relative_median,
     support_read,
     taper_weights,
@@ -89,6 +91,95 @@ def test_windows_straddling_an_occlusion_take_the_read_of_their_own_side():
     assert np.all(got_var[:, 5] < 1e-3)
 
 
+def test_a_read_attributed_to_its_evidence_colour_leaves_the_rim_it_does_not_belong_to():
+    """The occlusion of the test above, with the straddling column's far read attributed to the colour its
+    evidence came from (the far surface's, b): the near side's rim window no longer counts it as its own and reads
+    the near surface from its like-coloured neighbours; compared by cell colours alone, the far read is the
+    rim window's own and the mixture reports the gap in its variance."""
+    rows, cols = 10, 14
+    cells = np.zeros((rows, cols, 3))
+    cells[:, 6:] = 1.0
+    inv = np.where(np.arange(cols) < 6, 1.0, 0.2)[None, :].repeat(rows, 0).astype(np.float32)
+    inv[:, 5] = 0.2
+    var = np.full((rows, cols), 1e-4, np.float32)
+    source = cells.copy()
+    source[:, 5] = 1.0  # the straddling windows' evidence came from the far surface
+    ok = np.ones((rows, cols), bool)
+    # no purity weight, so that only the attribution tells the rim window's read apart
+    config = SupportConfig(spread_scale=1e9)
+    by_cell, by_cell_var = support_read(inv, var, cells, ok, config, 64, 16)
+    by_evidence, by_evidence_var = support_read(inv, var, cells, ok, config, 64, 16, source)
+    np.testing.assert_allclose(by_evidence[:, 4:6], 1.0, atol=1e-4)
+    assert np.all(by_evidence_var[:, 5] < 2e-4) and np.all(by_cell_var[:, 5] > 0.05)
+    np.testing.assert_allclose(by_evidence[:, 7:], 0.2, atol=1e-5)
+    with pytest.raises(ValueError, match="source"):
+        support_read(inv, var, cells, ok, config, 64, 16, source[:, :-1])
+
+
+def _brute_evidence_colours(rgb, stride, grid_shape, window_px, floor):
+    """``evidence_colours`` by its definition, pixel by pixel over the whole frame at once (no bands)."""
+    import cv2
+
+    lum = rgb.mean(axis=2).astype(np.float32)
+    energy = (lum - cv2.GaussianBlur(lum, (0, 0), HIGHPASS_SIGMA_PX, borderType=cv2.BORDER_REFLECT)) ** 2
+    w1 = taper_weights(window_px, stride)
+    reach = len(w1) // 2
+    height, width = lum.shape
+    out = np.zeros(grid_shape + (3,))
+    for r in range(grid_shape[0]):
+        for c in range(grid_shape[1]):
+            num, den, plain, area = np.zeros(3), 0.0, np.zeros(3), 0.0
+            for a in range(-reach, reach + 1):
+                for b in range(-reach, reach + 1):
+                    y0, y1 = max(0, (r + a) * stride - stride // 2), min(height, (r + a) * stride + stride // 2)
+                    x0, x1 = max(0, (c + b) * stride - stride // 2), min(width, (c + b) * stride + stride // 2)
+                    if y1 <= y0 or x1 <= x0:
+                        continue
+                    w = w1[a + reach] * w1[b + reach]
+                    e = energy[y0:y1, x0:x1].astype(np.float64)
+                    num += w * (e[..., None] * rgb[y0:y1, x0:x1]).sum(axis=(0, 1))
+                    den += w * e.sum()
+                    plain += w * rgb[y0:y1, x0:x1].sum(axis=(0, 1))
+                    area += w * (y1 - y0) * (x1 - x0)
+            out[r, c] = num / den if den > 0 else plain / area
+    return np.log(np.maximum(out, 0) + floor)
+
+
+def test_evidence_colours_are_the_detail_weighted_tapered_colours_band_by_band():
+    """Against the definition computed pixel by pixel over the whole frame: a frame 70 cells tall (three of
+    ``evidence_colours``' bands) of textured patches with a flat part (no detail: its windows read their plain
+    tapered colour), an odd size so that the last cells are clipped, and a grid reaching a stride past it."""
+    rng = np.random.default_rng(7)
+    height, width, stride = 70 * 16 + 5, 7 * 16 + 9, 16
+    rgb = (0.3 + 0.2 * rng.uniform(size=(height, width, 3))).astype(np.float32)
+    rgb[:200] = [0.2, 0.5, 0.7]  # flat: no detail at all
+    grid = (height // stride + 2, width // stride + 2)
+    got = evidence_colours(rgb, stride, grid, 64, 0.01)
+    np.testing.assert_allclose(got, _brute_evidence_colours(rgb, stride, grid, 64, 0.01), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(got[3, 3], np.log(np.array([0.2, 0.5, 0.7]) + 0.01), rtol=1e-5)
+
+
+def test_a_window_across_a_sharp_and_a_blurred_surface_takes_the_sharp_ones_colour():
+    """A sharp white-noise texture of one colour left of a column, the same texture blurred by a 12-px Gaussian
+    (a near object's defocus) of another colour right of it: the window centred on the edge holds both halves by
+    area, but its evidence colour lies within a few per cent of the sharp side's."""
+    import cv2
+
+    rng = np.random.default_rng(3)
+    size, stride = 256, 16
+    texture = rng.uniform(0.0, 1.0, (size, size)).astype(np.float32)
+    blurred = cv2.GaussianBlur(texture, (0, 0), 12.0)
+    sharp_colour, blurred_colour = np.array([0.8, 0.3, 0.1]), np.array([0.1, 0.3, 0.8])
+    rgb = np.where((np.arange(size) < 128)[None, :, None], (0.5 + 0.5 * texture)[..., None] * sharp_colour,
+                   (0.5 + 0.5 * blurred)[..., None] * blurred_colour).astype(np.float32)
+    got = np.exp(evidence_colours(rgb, stride, (17, 17), 64, 0.0))
+    edge = got[8, 8]  # window 8's centre is pixel 127.5: half of it on each side
+    np.testing.assert_allclose(edge / edge.sum(), sharp_colour / sharp_colour.sum(), atol=0.03)
+    cells, _ = cell_colours(rgb, stride, (17, 17), 0.0)
+    by_area = np.exp(cells[8, 8]) / np.exp(cells[8, 8]).sum()  # the cell's mean: the two colours half and half
+    np.testing.assert_allclose(by_area, 0.5 * (sharp_colour + blurred_colour) / 1.2, atol=0.03)
+
+
 def test_the_relative_median_minimises_the_expected_relative_error():
     """Brute force: the expected relative error Σ w_k |d − d_k| / d_k of a mixture of reads is convex and piecewise
     linear in d, so its least value lies at one of the reads; ``relative_median`` reaches it on every column of
@@ -147,6 +238,18 @@ def test_a_manifest_whose_support_names_no_estimate_reads_the_mean(tmp_path):
     assert EvidenceNetwork(path).support.estimate == "mean"
 
 
+def test_a_manifest_whose_support_names_no_attribution_compares_cell_colours(tmp_path):
+    """Knobs chosen before reads were attributed to their evidence's colour were chosen with cell colours: a manifest
+    without ``attribution`` reads with them; the shipped manifest names the evidence's colour."""
+    assert EvidenceNetwork(EVIDENCE_MODEL).support.attribution == "evidence"
+    path = tmp_path / EVIDENCE_MODEL.name
+    shutil.copy(EVIDENCE_MODEL, path)
+    manifest = json.loads(EVIDENCE_MODEL.with_suffix(".manifest.json").read_text())
+    knobs = {k: v for k, v in manifest["support"].items() if k != "attribution"}
+    path.with_suffix(".manifest.json").write_text(json.dumps(dict(manifest, support=knobs)))
+    assert EvidenceNetwork(path).support.attribution == "cell"
+
+
 def test_windows_without_a_read_stay_without_and_lend_nothing():
     rows, cols = 8, 8
     inv = np.full((rows, cols), 0.5, np.float32)
@@ -176,6 +279,7 @@ def test_extreme_colours_and_spreads_give_finite_reads():
                                          ({"spread_scale": float("nan")}, "spread_scale"),
                                          ({"colour_sigma": 0}, "colour_sigma"),
                                          ({"estimate": "mode"}, "estimate"),
+                                         ({"attribution": "pixel"}, "attribution"),
                                          ({"radius": 3}, "unexpected")])
 def test_a_manifest_with_bad_support_knobs_is_refused(tmp_path, knobs, word):
     path = tmp_path / EVIDENCE_MODEL.name

@@ -32,6 +32,15 @@ The window's read is a point estimate of that mixture (``SupportConfig.estimate`
 
 Either way the variance is the mixture's about the read, Σ_j w_ij (var_j + (1/d_j − 1/d)²) / Σ_j w_ij.
 
+Whose read is it? A window straddling an occlusion reads the surface its evidence comes from, and its evidence comes
+from the pixels with fine detail: the depth is read from how blur takes detail away, so a sharp surface's texture
+outweighs a blurred one's. The sensor is focused near infinity, so at an object's rim that is the far wall, and the
+window centred on the rim reads the wall although its centre cell holds the object's colour. With
+``SupportConfig.attribution`` "evidence" each neighbour's read is compared with the window's cell colour through the
+colour of the pixels its evidence came from (``evidence_colours``: the window's mean colour weighted by the local
+high-frequency energy under its taper) instead of its own cell colour: a rim window's wall read then lends to the wall,
+not to the object's rim. "cell" compares cell colours on both sides.
+
 Weights are formed in the log domain and normalised per window, so a window all of whose neighbours have a
 large spread or a far colour still reads them (relatively) rather than dividing by an underflowed zero.
 """
@@ -43,13 +52,22 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .volume import cell_area_px, cell_colour
+from .volume import cell_area_px, cell_bounds, cell_colour
 
 MAX_RADIUS_WINDOWS = 4
 """The widest support read: 9 × 9 windows (64 px either side at stride 16), whose 81 weight grids a full frame
 holds at once (~70 MB; the relative median sorts them, a few times that)."""
 ESTIMATES = ("relative_median", "mean")
 """The point estimates of a window's mixture of reads (module doc)."""
+ATTRIBUTIONS = ("cell", "evidence")
+"""Which colour a neighbour's read is taken to belong to: its centre cell's, or that of the pixels its evidence came
+from (module doc)."""
+HIGHPASS_SIGMA_PX = 1.5
+"""The fine detail ``evidence_colours`` weighs pixels by: the luminance less its Gaussian blur of this σ, squared.
+Defocus takes that band away first (the camera's near kernels are 20–40 px wide, its far ones a few px)."""
+EVIDENCE_BAND_CELLS = 32
+"""Cell rows of a frame ``evidence_colours`` filters at a time (a full frame's weighted colour at once would be
+0.3 GB; a band of 32 cells is 37 MB)."""
 
 
 @dataclass(frozen=True)
@@ -62,6 +80,7 @@ class SupportConfig:
     spread_scale: float = 0.05       # τ: a support whose colour variance is τ weighs e⁻¹
     dark_floor: float = 0.01         # added to the linear cell colour (white = 1) before its log
     estimate: str = "relative_median"  # the mixture's point estimate (``ESTIMATES``, module doc)
+    attribution: str = "evidence"  # the colour a neighbour's read belongs to (``ATTRIBUTIONS``, module doc)
 
     def __post_init__(self):
         if isinstance(self.radius_windows, bool) or not isinstance(self.radius_windows, int) \
@@ -74,6 +93,8 @@ class SupportConfig:
                 raise ValueError(f"support {name} must be a finite number > 0, got {value!r}")
         if self.estimate not in ESTIMATES:
             raise ValueError(f"support estimate must be one of {', '.join(ESTIMATES)}, got {self.estimate!r}")
+        if self.attribution not in ATTRIBUTIONS:
+            raise ValueError(f"support attribution must be one of {', '.join(ATTRIBUTIONS)}, got {self.attribution!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -126,15 +147,94 @@ def colour_spread(cells: np.ndarray, cell_ok: np.ndarray, window_px: int, stride
     return np.where(weight > 0, np.maximum(spread, 0.0), 0.0)
 
 
+def _taper_smooth(grid: np.ndarray, weights_1d: np.ndarray) -> np.ndarray:
+    """(R, C, …) the separable sum Σ_ab w_a w_b grid[r + a, c + b] over the cells a window's taper covers
+    (``taper_weights``), the grid zero beyond its edges."""
+    reach = len(weights_1d) // 2
+    rows, cols = grid.shape[:2]
+    padded = np.pad(grid, ((reach, reach), (reach, reach)) + ((0, 0),) * (grid.ndim - 2))
+    along_rows = sum(w * padded[a:a + rows] for a, w in enumerate(weights_1d))
+    return sum(w * along_rows[:, b:b + cols] for b, w in enumerate(weights_1d))
+
+
+def _cell_sums(image: np.ndarray, first_row_half: bool, n_rows: int, n_cols: int, stride_px: int) -> np.ndarray:
+    """(n_rows, n_cols, C) sums of an H × W × C band over the cells it holds: the band starts at a cell's top (half
+    a cell when ``first_row_half``: the frame's first cell row), its first cell column is half a cell (the frame's),
+    and its last cells may be clipped. Zero-padded to whole cells, one area resampling gives the means
+    (``volume.cell_colour`` does the same for a whole frame)."""
+    import cv2
+
+    s, half = stride_px, stride_px // 2
+    top = half if first_row_half else 0
+    height, width = image.shape[:2]
+    padded = cv2.copyMakeBorder(np.ascontiguousarray(image), top, n_rows * s - top - height, half,
+                                n_cols * s - half - width, cv2.BORDER_CONSTANT, value=0)
+    means = cv2.resize(padded, (n_cols, n_rows), interpolation=cv2.INTER_AREA)
+    return means.reshape(n_rows, n_cols, -1).astype(np.float64) * float(s * s)
+
+
+def evidence_colours(rgb: np.ndarray, stride_px: int, grid_shape: tuple[int, int], window_px: int,
+                     dark_floor: float, threads: int = 1) -> np.ndarray:
+    """(R × C × 3) log colour of the pixels each window's evidence comes from (module doc): the mean linear colour of
+    the window's support weighted by the taper (sampled at its cells' centres, ``taper_weights``) times each pixel's
+    fine-detail energy e = (L − G_σ ⊛ L)², L the luminance (the mean of R, G, B) and σ ``HIGHPASS_SIGMA_PX``; plus
+    ``dark_floor``, then the log, as ``cell_colours``. A window whose support holds no energy at all (a flat or empty
+    one) reads its cells' plain mean colour under the same taper. Bands of ``EVIDENCE_BAND_CELLS`` cell rows run on
+    ``threads`` threads."""
+    import cv2
+
+    from ..parallel import map_threads
+
+    rows, cols = grid_shape
+    height, width = rgb.shape[:2]
+    halo = int(math.ceil(4.0 * HIGHPASS_SIGMA_PX)) + 1
+    n_cols = sum(1 for k in range(cols) if cell_bounds(k, stride_px, width)[1] > cell_bounds(k, stride_px, width)[0])
+    third = np.full((1, 3), 1.0 / 3.0, np.float32)
+
+    def band(k0: int) -> tuple[int, np.ndarray] | None:
+        """(k0, (cells, n_cols, 7) sums of e, e·RGB and RGB) over the band's cell rows, None past the frame."""
+        bounds = [cell_bounds(k, stride_px, height) for k in range(k0, min(rows, k0 + EVIDENCE_BAND_CELLS))]
+        bounds = [b for b in bounds if b[1] > b[0]]
+        if not bounds or not n_cols:
+            return None
+        top, bottom = bounds[0][0], bounds[-1][1]
+        lo, hi = max(0, top - halo), min(height, bottom + halo)
+        lum = cv2.transform(np.ascontiguousarray(rgb[lo:hi], np.float32), third)
+        detail = lum - cv2.GaussianBlur(lum, (0, 0), HIGHPASS_SIGMA_PX, borderType=cv2.BORDER_REFLECT)
+        e = np.square(detail[top - lo:bottom - lo])[..., None]
+        colour = np.asarray(rgb[top:bottom], np.float32)
+        stack = np.concatenate([e, e * colour, colour], axis=-1)
+        return k0, _cell_sums(stack, k0 == 0, len(bounds), n_cols, stride_px)
+
+    sums = np.zeros((rows, cols, 7))
+    for _, done in map_threads(band, range(0, rows, EVIDENCE_BAND_CELLS), threads, "evidence colours"):
+        if done is not None:
+            k0, part = done
+            sums[k0:k0 + part.shape[0], :n_cols] = part
+    w1 = taper_weights(window_px, stride_px)
+    smooth = _taper_smooth(sums, w1)
+    energy_t, weighted_t = smooth[..., 0], smooth[..., 1:4]
+    area_t = _taper_smooth(cell_area_px(stride_px, grid_shape, height, width).astype(np.float64), w1)
+    plain_t = smooth[..., 4:7] / np.maximum(area_t, 1.0)[..., None]
+    flat = energy_t <= 0
+    colour = np.where(flat[..., None], plain_t, weighted_t / np.where(flat, 1.0, energy_t)[..., None])
+    return np.log(np.maximum(colour, 0.0) + dark_floor)
+
+
 def support_read(inv_grid: np.ndarray, var_grid: np.ndarray, cells: np.ndarray, cell_ok: np.ndarray,
-                 config: SupportConfig, window_px: int, stride_px: int) -> tuple[np.ndarray, np.ndarray]:
+                 config: SupportConfig, window_px: int, stride_px: int,
+                 source_colours: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(1/d, variance of 1/d) of every window (R × C, float32) as the mixture of its like-coloured, single-surface
     neighbours' reads (module doc). ``inv_grid``/``var_grid``: the windows' reads (NaN where a window has none,
     which stays NaN and lends nothing); ``cells``/``cell_ok``: the windows' cell colours and which cells hold
-    pixels (``cell_colours``)."""
-    if inv_grid.shape != var_grid.shape or cells.shape[:2] != inv_grid.shape or cell_ok.shape != inv_grid.shape:
-        raise ValueError(f"support_read needs R × C reads, variances and cell flags and R × C × 3 cell colours, got "
-                         f"{inv_grid.shape}, {var_grid.shape}, {cell_ok.shape} and {cells.shape}")
+    pixels (``cell_colours``); ``source_colours`` (R × C × 3): the colour each window's read belongs to
+    (``evidence_colours``), compared with the reading window's cell colour; None: the cell colours."""
+    source = cells if source_colours is None else source_colours
+    if inv_grid.shape != var_grid.shape or cells.shape[:2] != inv_grid.shape or cell_ok.shape != inv_grid.shape \
+            or source.shape != cells.shape:
+        raise ValueError(f"support_read needs R × C reads, variances and cell flags and R × C × 3 cell and source "
+                         f"colours, got {inv_grid.shape}, {var_grid.shape}, {cell_ok.shape}, {cells.shape} and "
+                         f"{source.shape}")
     valid = np.isfinite(inv_grid) & np.isfinite(var_grid)
     if config.radius_windows == 0:
         return (np.where(valid, inv_grid, np.nan).astype(np.float32),
@@ -145,7 +245,7 @@ def support_read(inv_grid: np.ndarray, var_grid: np.ndarray, cells: np.ndarray, 
     pad = ((r, r), (r, r))
     lp_p = np.pad(np.where(valid, log_purity, -np.inf), pad, constant_values=-np.inf)
     g = np.asarray(cells, np.float64)
-    g_p = np.pad(g, pad + ((0, 0),))
+    g_p = np.pad(np.asarray(source, np.float64), pad + ((0, 0),))
     inv_p = np.pad(np.where(valid, inv_grid, 0.0).astype(np.float64), pad)
     var_p = np.pad(np.where(valid, var_grid, 0.0).astype(np.float64), pad)
     offsets = [(a, b) for a in range(2 * r + 1) for b in range(2 * r + 1)]
@@ -190,8 +290,11 @@ def relative_median(inv_depths: np.ndarray, weights: np.ndarray) -> np.ndarray:
 
 
 def frame_support_read(inv_grid: np.ndarray, var_grid: np.ndarray, rgb: np.ndarray, config: SupportConfig,
-                       window_px: int, stride_px: int) -> tuple[np.ndarray, np.ndarray]:
+                       window_px: int, stride_px: int, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """``support_read`` of a frame's window grid, its cell colours taken from the frame's H × W × 3 linear RGB
-    (``cell_colours`` at the config's dark floor): the step the evidence decoder runs."""
+    (``cell_colours`` at the config's dark floor), and with the config's ``attribution`` "evidence" its reads'
+    colours too (``evidence_colours``, on ``threads`` threads): the step the evidence decoder runs."""
     cells, cell_ok = cell_colours(rgb, stride_px, inv_grid.shape, config.dark_floor)
-    return support_read(inv_grid, var_grid, cells, cell_ok, config, window_px, stride_px)
+    source = (evidence_colours(rgb, stride_px, inv_grid.shape, window_px, config.dark_floor, threads)
+              if config.attribution == "evidence" and config.radius_windows > 0 else None)
+    return support_read(inv_grid, var_grid, cells, cell_ok, config, window_px, stride_px, source)

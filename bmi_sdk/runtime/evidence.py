@@ -79,11 +79,12 @@ class EvidenceNetwork:
 
     def _support(self, knobs) -> SupportConfig | None:
         """The manifest's ``support`` knobs (``decode.support``); None (each window keeps its own read) without.
-        Knobs that name no ``estimate`` were chosen for the mixture's mean, and read with it."""
+        Knobs that name no ``estimate`` were chosen for the mixture's mean, and read with it; knobs that name no
+        ``attribution`` were chosen with reads compared by their cell colours, and read so."""
         if knobs is None:
             return None
         try:
-            return SupportConfig(**{"estimate": "mean", **knobs})
+            return SupportConfig(**{"estimate": "mean", "attribution": "cell", **knobs})
         except (TypeError, ValueError) as e:
             raise ModelError(f"manifest of {self.path.name}: its support knobs {knobs!r} are not valid: {e}") from None
 
@@ -163,7 +164,7 @@ def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, ca
     if network.support is not None:
         t1 = time.perf_counter()
         inv_grid, var_grid = frame_support_read(inv_grid, var_grid, rgb, network.support, stage.config.window_px,
-                                                stride_px)
+                                                stride_px, stage.threads)
         timings["support_s"] = time.perf_counter() - t1
     log_rgb = pixel_log_colour(rgb)
     del rgb
