@@ -3,8 +3,8 @@
 On ``bmi eval``'s benchmark tiles at the paper's scene scale (4; ``--full``: 12 tiles per region instead of 4),
 σ 0.005, design camera, tensor kernels (rendered and decoded with the same): the classical stage runs once per
 tile; the network then reads its volume. Two sweeps of what follows, each from the shipped knobs: the support
-read (``decode.support``: off, its radius, its spread scale τ (∞: no purity weight), its point estimate) and
-the colour-guided upsampling's colour scale (``COLOUR_SIGMAS``; ∞: plain bilinear weights). Rows: AbsRel, δ1,
+read (``decode.support``: off, its radius, its spread scale τ (∞: no purity weight), its point estimate, the
+colour its neighbours' reads are attributed to) and the colour-guided upsampling's colour scale (``COLOUR_SIGMAS``; ∞: plain bilinear weights). Rows: AbsRel, δ1,
 the std of error / σ (1: honest σ), the confident coverage (share of valid pixels with σ ≤ 10 % of depth) and
 the time of the support read and the upsampling per megapixel; the classical decoder's own read beside them.
 
@@ -13,8 +13,9 @@ classical stage and the evidence decoder, twice: rendered and decoded with the r
 benchmark tiles' model) and with the design camera's exact kernels (what the simulated device renders and
 ``bmi infer`` decodes with). ``--full`` also reads the benchmarks' full 6000×4500 procedural frame
 (seed 7, σ 0.005: ``decoder.full_frame_raw``), rendered and decoded with each of the two kernel models, with the
-support read off, as shipped and with its other point estimates, beside the classical read of the same stage, and
-with the tapered model in every window against the exact model in the dark ones (error and the stage's seconds).
+support read off, as shipped and with its other point estimates and read attribution, beside the classical read of
+the same stage, and with the tapered model in every window against the exact model in the dark ones (error and the
+stage's seconds).
 """
 
 from __future__ import annotations
@@ -57,19 +58,21 @@ def _variants(shipped, colour_sigma: float) -> list[tuple[str, object, float]]:
               replace(shipped, radius_windows=r), colour_sigma) for r in SUPPORT_RADII]
     rows += [(f"support τ {t:g}", replace(shipped, spread_scale=t if math.isfinite(t) else 1e12), colour_sigma)
              for t in SPREAD_SCALES if t != shipped.spread_scale]
-    rows += [(f"support estimate {name}", support, colour_sigma) for name, support in _other_estimates(shipped)]
+    rows += [(f"support {name}", support, colour_sigma) for name, support in _other_reads(shipped)]
     rows += [(f"colour σ {c:g}", shipped, c if math.isfinite(c) else 1e6) for c in COLOUR_SIGMAS
              if c != colour_sigma]
     return rows
 
 
-def _other_estimates(shipped) -> list[tuple[str, object]]:
-    """(name, support knobs) of each point estimate the ``shipped`` support read does not use, its other knobs kept."""
+def _other_reads(shipped) -> list[tuple[str, object]]:
+    """(name, support knobs) of each point estimate and each read attribution the ``shipped`` support read does not
+    use, its other knobs kept."""
     from dataclasses import replace
 
-    from ..decode.support import ESTIMATES
+    from ..decode.support import ATTRIBUTIONS, ESTIMATES
 
-    return [(e, replace(shipped, estimate=e)) for e in ESTIMATES if e != shipped.estimate]
+    return ([(f"estimate {e}", replace(shipped, estimate=e)) for e in ESTIMATES if e != shipped.estimate]
+            + [(f"attribution {a}", replace(shipped, attribution=a)) for a in ATTRIBUTIONS if a != shipped.attribution])
 
 
 def pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, colour_sigma: float, config) -> tuple[np.ndarray, np.ndarray]:
@@ -129,7 +132,7 @@ def _planes(network, stages, geometry) -> str:
 def _full_frame(network, stages, geometry) -> str:
     """The benchmarks' full frame (``decoder.full_frame_optical`` at σ 0.005) rendered and decoded with the same kernels
     of every (name, classical stage) of ``stages``: the classical read, and the evidence decoder's with the support
-    read off, as shipped and with its other point estimates; then the shipped read's error by range, by distance to a
+    read off, as shipped and with its other point estimates and read attribution; then the shipped read's error by range, by distance to a
     depth edge and by signal (``nn.eval_strata``, as ``bmi eval`` breaks a row down); and where the stage scores dark
     windows with the exact model, that gate's error and time against none (``_gate_rows``)."""
     from ..decode.volume import pixel_log_colour
@@ -158,8 +161,7 @@ def _full_frame(network, stages, geometry) -> str:
         shipped = "evidence, support as shipped"
         reads = [("evidence, support off", None), (shipped, network.support)]
         if network.support is not None:
-            reads += [(f"evidence, support estimate {name}", support)
-                      for name, support in _other_estimates(network.support)]
+            reads += [(f"evidence, support {name}", support) for name, support in _other_reads(network.support)]
         for name, support in reads:
             t0 = time.perf_counter()
             depth, sigma = pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, network.colour_sigma, stage.config)
