@@ -226,28 +226,20 @@ def test_a_window_beside_a_depth_step_of_one_colour_reads_one_surface_and_report
     assert mean_var[4, 5] < got_var[4, 5]  # the mean sits between the surfaces: nearer both than either is to it
 
 
-def test_a_manifest_whose_support_names_no_estimate_reads_the_mean(tmp_path):
-    """Knobs chosen before the relative median existed were chosen for the mean: a manifest without ``estimate``
-    reads with it; the shipped manifest names the relative median."""
-    assert EvidenceNetwork(EVIDENCE_MODEL).support.estimate == "relative_median"
+@pytest.mark.parametrize("knob, shipped, without", [("estimate", "relative_median", "mean"),
+                                                    ("attribution", "evidence", "cell")])
+def test_a_manifest_whose_support_leaves_a_later_knob_out_reads_as_its_knobs_were_chosen(tmp_path, knob, shipped,
+                                                                                          without):
+    """Knobs chosen before the relative median existed were chosen for the mean, and knobs chosen before reads were
+    attributed to their evidence's colour were chosen comparing cell colours: a manifest without ``estimate`` or
+    ``attribution`` reads that way; the shipped manifest names the relative median and the evidence's colour."""
+    assert getattr(EvidenceNetwork(EVIDENCE_MODEL).support, knob) == shipped
     path = tmp_path / EVIDENCE_MODEL.name
     shutil.copy(EVIDENCE_MODEL, path)
     manifest = json.loads(EVIDENCE_MODEL.with_suffix(".manifest.json").read_text())
-    knobs = {k: v for k, v in manifest["support"].items() if k != "estimate"}
+    knobs = {k: v for k, v in manifest["support"].items() if k != knob}
     path.with_suffix(".manifest.json").write_text(json.dumps(dict(manifest, support=knobs)))
-    assert EvidenceNetwork(path).support.estimate == "mean"
-
-
-def test_a_manifest_whose_support_names_no_attribution_compares_cell_colours(tmp_path):
-    """Knobs chosen before reads were attributed to their evidence's colour were chosen with cell colours: a manifest
-    without ``attribution`` reads with them; the shipped manifest names the evidence's colour."""
-    assert EvidenceNetwork(EVIDENCE_MODEL).support.attribution == "evidence"
-    path = tmp_path / EVIDENCE_MODEL.name
-    shutil.copy(EVIDENCE_MODEL, path)
-    manifest = json.loads(EVIDENCE_MODEL.with_suffix(".manifest.json").read_text())
-    knobs = {k: v for k, v in manifest["support"].items() if k != "attribution"}
-    path.with_suffix(".manifest.json").write_text(json.dumps(dict(manifest, support=knobs)))
-    assert EvidenceNetwork(path).support.attribution == "cell"
+    assert getattr(EvidenceNetwork(path).support, knob) == without
 
 
 def test_windows_without_a_read_stay_without_and_lend_nothing():
