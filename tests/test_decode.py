@@ -1018,7 +1018,7 @@ def test_a_far_plane_of_a_steeper_or_flatter_texture_reads_its_range_with_the_ex
             assert abs(ratio["fixed"] - 1) > 0.1 and abs(ratio["profiled"] - 1) < tolerance, ratio
 
 
-@pytest.mark.parametrize("slopes", [(), (2.0, 1.5), (1.5, 1.6, 2.0), (float("nan"),), (-1.0,), (1e9,)])
+@pytest.mark.parametrize("slopes", [(), (2.0, 1.5), (1.5, 1.6, 2.0), (float("nan"),), (-1.0,), (1e9,), ("2",), (True,)])
 def test_prior_slopes_must_be_increasing_evenly_spaced_exponents(slopes):
     with pytest.raises(ValueError, match="slopes must"):
         ClassicalConfig(slopes=slopes)

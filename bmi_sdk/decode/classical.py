@@ -159,7 +159,9 @@ class ClassicalConfig:
                              f"got {self.pool_sigma_px}, {self.pool_colour_sigma}, {self.pool_truncate_nats}")
         if self.block_windows < 1 or self.coarse_step < 1 or self.aif_step < 1:
             raise ValueError("block_windows, coarse_step and aif_step must be >= 1")
-        slopes = np.asarray(self.slopes, np.float64) if len(self.slopes) else np.zeros(0)
+        numbers = all(isinstance(a, (int, float, np.integer, np.floating)) and not isinstance(a, bool)
+                      for a in self.slopes)
+        slopes = np.asarray(self.slopes, np.float64) if numbers and len(self.slopes) else np.zeros(0)
         if not len(slopes) or not np.all(np.isfinite(slopes)) or not np.all((slopes > 0) & (slopes <= MAX_SLOPE)):
             raise ValueError(f"slopes must be one or more prior exponents in (0, {MAX_SLOPE}], got {self.slopes!r}")
         if len(slopes) > 1 and not np.all(np.diff(slopes) > 0):
