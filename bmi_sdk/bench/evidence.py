@@ -4,8 +4,8 @@ On ``bmi eval``'s benchmark tiles at the paper's scene scale (4; ``--full``: 12 
 σ 0.005, design camera, tensor kernels (rendered and decoded with the same): the classical stage runs once per
 tile; the network then reads its volume. Two sweeps of what follows, each from the shipped knobs: the support
 read (``decode.support``: off, its radius, its spread scale τ (∞: no purity weight), its point estimate, the
-colour its neighbours' reads are attributed to) and the colour-guided upsampling's colour scale (``COLOUR_SIGMAS``; ∞: plain bilinear weights). Rows: AbsRel, δ1,
-the std of error / σ (1: honest σ), the confident coverage (share of valid pixels with σ ≤ 10 % of depth) and
+colour its neighbours' reads are attributed to) and the colour-guided upsampling's colour scale (``COLOUR_SIGMAS``;
+∞: plain bilinear weights). Rows: AbsRel, δ1, the std of error / σ (1: honest σ), the confident coverage (share of valid pixels with σ ≤ 10 % of depth) and
 the time of the support read and the upsampling per megapixel; the classical decoder's own read beside them.
 
 Then the issue's plane target: 1/f²-textured planes at 1–6 m on the axis and at 50° of field, read by the
@@ -132,8 +132,8 @@ def _planes(network, stages, geometry) -> str:
 def _full_frame(network, stages, geometry) -> str:
     """The benchmarks' full frame (``decoder.full_frame_optical`` at σ 0.005) rendered and decoded with the same kernels
     of every (name, classical stage) of ``stages``: the classical read, and the evidence decoder's with the support
-    read off, as shipped and with its other point estimates and read attribution; then the shipped read's error by range, by distance to a
-    depth edge and by signal (``nn.eval_strata``, as ``bmi eval`` breaks a row down); and where the stage scores dark
+    read off, as shipped and with its other point estimates and read attribution; then the shipped read's error by
+    range, by distance to a depth edge and by signal (``nn.eval_strata``, as ``bmi eval`` breaks a row down); and where the stage scores dark
     windows with the exact model, that gate's error and time against none (``_gate_rows``)."""
     from ..decode.volume import pixel_log_colour
     from ..model_io import raw_to_rgb

@@ -8,8 +8,8 @@ the honest read is a wide σ). p is 2 on every surface (natural images' average,
 about 2 as natural images' exponents are (``EXPONENT_SPREADS``). 384² px at φ 30°, σ 0.005, rendered and decoded with
 the design camera's exact kernels (the simulated device's and ``bmi infer``'s path). Per textures, wall, field angle
 and decoder (the default evidence decoder, the classical one, the evidence decoder with a wider support read,
-``WIDE_SUPPORT``, and the evidence decoder on a volume with the texture's exponent profiled, ``PROFILED_EXPONENT``), over ``SEEDS`` scenes (``--full``: ``FULL_SEEDS``) pooled: AbsRel, within ``EDGE_NEAR_PX`` of a
-depth edge and beyond it, on the wall beyond it, δ1, σ's honesty (std of error/σ, 1 for an honest σ, and the share
+``WIDE_SUPPORT``, and the evidence decoder on a volume with the texture's exponent profiled, ``PROFILED_EXPONENT``),
+over ``SEEDS`` scenes (``--full``: ``FULL_SEEDS``) pooled: AbsRel, within ``EDGE_NEAR_PX`` of a depth edge and beyond it, on the wall beyond it, δ1, σ's honesty (std of error/σ, 1 for an honest σ, and the share
 within one σ, 0.683) and the confident coverage (σ ≤ 10 % of the depth).
 """
 

@@ -276,7 +276,7 @@ class ClassicalDecoder:
         for (_, idx, weight), zone_models, zone_grid in zip(reads, models, grid_models):
             pick = lambda planes: [p[idx] for p in planes]  # noqa: E731
             total[:, idx] += weight[:, None] * self._block_nll(pick(spectra), zone_models, pick(noise_vars),
-                                                            taper_energy, pick(clipped), zone_grid)
+                                                               taper_energy, pick(clipped), zone_grid)
         return total
 
     def decode(self, raw: np.ndarray, black_level_dn: float, white_level_dn: float, geometry: SensorGeometry,

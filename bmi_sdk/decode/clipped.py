@@ -121,8 +121,9 @@ class ClippedPairs:
     block's windows (``window_spectra``'s grid); ``chosen``: (planes, windows) the pairs to score; ``kernels_of(zone,
     which)``: (channels, len(which), K, K) kernels of candidates ``which`` at a zone; ``reads``: the block's zone
     reads (``ZoneKernels.field_reads``: zone, window indices, weights); ``slopes``: the prior slopes, whose NLLs
-    ``nll`` keeps apart for the decoder to profile (``evidence.profile_exponent``); ``noise``: the frame's ``NoiseProfile``. ``scored``: (planes, windows)
-    which pairs give evidence (a chosen pair whose weighted taper keeps too little gives none).
+    ``nll`` keeps apart for the decoder to profile (``evidence.profile_exponent``); ``noise``: the frame's
+    ``NoiseProfile``. ``scored``: (planes, windows) which pairs give evidence (a chosen pair whose weighted taper
+    keeps too little gives none).
     """
 
     def __init__(self, plane_windows: list, weight_windows: list, chosen: np.ndarray, taper: np.ndarray, kernels_of,
@@ -145,8 +146,9 @@ class ClippedPairs:
 
     def nll(self, which: np.ndarray) -> np.ndarray:
         """(slopes, windows, len(which)) NLL of candidates ``which`` at each prior slope, summed over each window's
-        scored pairs (0 for a window with none). The first call's models place each pair's β grid for every later call, as the coarse pass's
-        models place the fine pass's (``evidence.plane_nll``), so that the passes' NLLs form one curve."""
+        scored pairs (0 for a window with none). The first call's models place each pair's β grid for every later
+        call, as the coarse pass's models place the fine pass's (``evidence.plane_nll``), so that the passes' NLLs form
+        one curve."""
         total = np.zeros((len(self.slopes), self.n_windows, len(which)))
         autocovariances: dict = {}
         for p, w, power, energy, noise_var, terms in self.pairs:

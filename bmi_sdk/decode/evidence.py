@@ -116,15 +116,23 @@ def profile_exponent(nll_by_slope: np.ndarray, slopes) -> np.ndarray:
     mean, spread = EXPONENT_PRIOR
     penalty = (slopes - mean) ** 2 / (2.0 * spread ** 2)
     total = nll_by_slope + penalty.reshape((-1,) + (1,) * (nll_by_slope.ndim - 1))
-    best = total.min(axis=0)
     if len(slopes) == 2:
-        return best
-    j = np.clip(np.argmin(total, axis=0), 1, len(slopes) - 2)
-    take = lambda k: np.take_along_axis(total, k[None], axis=0)[0]  # noqa: E731
+        return total.min(axis=0)
+    return parabola_minimum(np.moveaxis(total, 0, -1))
+
+
+def parabola_minimum(values: np.ndarray) -> np.ndarray:
+    """(...) the least of (..., L ≥ 3) values on an evenly spaced grid along their last axis: the vertex of the parabola
+    through the least value and its two neighbours (the end value's neighbours at either end), clamped to that
+    bracket, and never above the least value itself (the β levels of ``plane_nll``, the slopes of
+    ``profile_exponent``)."""
+    j = np.clip(np.argmin(values, axis=-1), 1, values.shape[-1] - 2)
+    take = lambda k: np.take_along_axis(values, k[..., None], axis=-1)[..., 0]  # noqa: E731
     lo, mid, hi = take(j - 1), take(j), take(j + 1)
-    curv = lo - 2.0 * mid + hi
+    curv = lo - 2 * mid + hi
+    # the parabola through the three levels, evaluated at its vertex clamped to the bracket
     offset = np.clip(0.5 * (lo - hi) / np.where(curv > 0, curv, np.inf), -1.0, 1.0)
-    return np.minimum(mid + 0.5 * offset * (hi - lo) + 0.5 * curv * offset ** 2, best)
+    return np.minimum(mid + 0.5 * offset * (hi - lo) + 0.5 * curv * offset ** 2, values.min(axis=-1))
 
 
 TAPER_OVERSAMPLE = 2
@@ -456,11 +464,4 @@ def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: flo
     log_term = (np.log(v) @ mult32).astype(np.float64)                       # (D·J,)
     nll = (p @ weights).astype(np.float64) + log_term                        # (W, D·J)
     nll = nll.reshape(nw, n_cand, n_beta) + (mult.sum() * np.log(s))[:, None, None]
-    j = np.clip(np.argmin(nll, axis=-1), 1, n_beta - 2)
-    take = lambda k: np.take_along_axis(nll, k[..., None], axis=-1)[..., 0]  # noqa: E731
-    lo_v, mid_v, hi_v = take(j - 1), take(j), take(j + 1)
-    curv = lo_v - 2 * mid_v + hi_v
-    # the parabola through the three levels, evaluated at its vertex clamped to the bracket
-    offset = np.clip(0.5 * (lo_v - hi_v) / np.where(curv > 0, curv, np.inf), -1.0, 1.0)
-    refined = mid_v + 0.5 * offset * (hi_v - lo_v) + 0.5 * curv * offset ** 2
-    return np.minimum(refined, nll.min(axis=-1))
+    return parabola_minimum(nll)
