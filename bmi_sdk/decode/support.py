@@ -52,7 +52,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .volume import cell_area_px, cell_bounds, cell_colour
+from .volume import cell_area_px, cell_bounds, cell_colour, cell_sums
 
 MAX_RADIUS_WINDOWS = 4
 """The widest support read: 9 × 9 windows (64 px either side at stride 16), whose 81 weight grids a full frame
@@ -124,23 +124,10 @@ def colour_spread(cells: np.ndarray, cell_ok: np.ndarray, window_px: int, stride
     colour, summed over the channels) under the window's taper sampled at the cell centres (``taper_weights``),
     over the cells that hold pixels (``cell_ok``). A window none of whose support's cells holds pixels reads 0."""
     w1 = taper_weights(window_px, stride_px)
-    reach = len(w1) // 2
-    rows, cols = cell_ok.shape
-    ok = cell_ok.astype(np.float64)
     g = np.where(cell_ok[..., None], cells, 0.0).astype(np.float64)
-    pad = ((reach, reach), (reach, reach))
-    ok_p = np.pad(ok, pad)
-    g_p = np.pad(g, pad + ((0, 0),))
-    weight = np.zeros((rows, cols))
-    first = np.zeros((rows, cols, 3))
-    second = np.zeros((rows, cols))
-    for a, wa in enumerate(w1):
-        for b, wb in enumerate(w1):
-            w = wa * wb * ok_p[a:a + rows, b:b + cols]
-            x = g_p[a:a + rows, b:b + cols]
-            weight += w
-            first += w[..., None] * x
-            second += w * np.einsum("...c,...c->...", x, x)
+    weight = _taper_smooth(cell_ok.astype(np.float64), w1)
+    first = _taper_smooth(g, w1)
+    second = _taper_smooth(np.einsum("...c,...c->...", g, g), w1)
     safe = np.maximum(weight, 1e-300)
     mean = first / safe[..., None]
     spread = second / safe - np.einsum("...c,...c->...", mean, mean)
@@ -155,22 +142,6 @@ def _taper_smooth(grid: np.ndarray, weights_1d: np.ndarray) -> np.ndarray:
     padded = np.pad(grid, ((reach, reach), (reach, reach)) + ((0, 0),) * (grid.ndim - 2))
     along_rows = sum(w * padded[a:a + rows] for a, w in enumerate(weights_1d))
     return sum(w * along_rows[:, b:b + cols] for b, w in enumerate(weights_1d))
-
-
-def _cell_sums(image: np.ndarray, first_row_half: bool, n_rows: int, n_cols: int, stride_px: int) -> np.ndarray:
-    """(n_rows, n_cols, C) sums of an H × W × C band over the cells it holds: the band starts at a cell's top (half
-    a cell when ``first_row_half``: the frame's first cell row), its first cell column is half a cell (the frame's),
-    and its last cells may be clipped. Zero-padded to whole cells, one area resampling gives the means
-    (``volume.cell_colour`` does the same for a whole frame)."""
-    import cv2
-
-    s, half = stride_px, stride_px // 2
-    top = half if first_row_half else 0
-    height, width = image.shape[:2]
-    padded = cv2.copyMakeBorder(np.ascontiguousarray(image), top, n_rows * s - top - height, half,
-                                n_cols * s - half - width, cv2.BORDER_CONSTANT, value=0)
-    means = cv2.resize(padded, (n_cols, n_rows), interpolation=cv2.INTER_AREA)
-    return means.reshape(n_rows, n_cols, -1).astype(np.float64) * float(s * s)
 
 
 def evidence_colours(rgb: np.ndarray, stride_px: int, grid_shape: tuple[int, int], window_px: int,
@@ -188,7 +159,7 @@ def evidence_colours(rgb: np.ndarray, stride_px: int, grid_shape: tuple[int, int
     rows, cols = grid_shape
     height, width = rgb.shape[:2]
     halo = int(math.ceil(4.0 * HIGHPASS_SIGMA_PX)) + 1
-    n_cols = sum(1 for k in range(cols) if cell_bounds(k, stride_px, width)[1] > cell_bounds(k, stride_px, width)[0])
+    n_cols = sum(1 for lo, hi in (cell_bounds(k, stride_px, width) for k in range(cols)) if hi > lo)
     third = np.full((1, 3), 1.0 / 3.0, np.float32)
 
     def band(k0: int) -> tuple[int, np.ndarray] | None:
@@ -204,7 +175,7 @@ def evidence_colours(rgb: np.ndarray, stride_px: int, grid_shape: tuple[int, int
         e = np.square(detail[top - lo:bottom - lo])[..., None]
         colour = np.asarray(rgb[top:bottom], np.float32)
         stack = np.concatenate([e, e * colour, colour], axis=-1)
-        return k0, _cell_sums(stack, k0 == 0, len(bounds), n_cols, stride_px)
+        return k0, cell_sums(stack, stride_px, len(bounds), n_cols, first_row_half=k0 == 0).astype(np.float64)
 
     sums = np.zeros((rows, cols, 7))
     for _, done in map_threads(band, range(0, rows, EVIDENCE_BAND_CELLS), threads, "evidence colours"):

@@ -169,20 +169,28 @@ def cell_colour(image: np.ndarray, stride_px: int, grid_shape: tuple[int, int]) 
     Cell k spans pixels [k·stride − stride/2, k·stride + stride/2) clipped to the frame: in the frame shifted
     by stride/2 down and right and zero-padded to R·stride × C·stride, it is the stride × stride block k. The
     blocks' means are one area resampling (``cv2.resize``, ``INTER_AREA``, exact for a whole-number factor),
-    made sums and divided by each cell's clipped area (an empty cell reads 0). float32."""
+    made sums (``cell_sums``) and divided by each cell's clipped area (an empty cell reads 0). float32."""
+    height, width = image.shape[:2]
+    area = np.maximum(cell_area_px(stride_px, grid_shape, height, width), 1)[..., None]
+    return cell_sums(image, stride_px, *grid_shape) / area.astype(np.float32)
+
+
+def cell_sums(image: np.ndarray, stride_px: int, rows: int, cols: int, first_row_half: bool = True) -> np.ndarray:
+    """(rows, cols, C) float32 sums of an H × W × C image over the ``rows`` × ``cols`` cells (``cell_bounds``) it starts
+    at: the first cell row is half a cell (a frame's, ``first_row_half``) or a whole one (a band of a frame that starts
+    at a cell's top), the first cell column is half a cell, and the last ones may be clipped; pixels past the cells are
+    left out. Zero-padded to whole cells, one area resampling gives the means (exact for a whole-number factor)."""
     import cv2
 
-    rows, cols = grid_shape
     s, half = int(stride_px), int(stride_px) // 2
-    height, width = image.shape[:2]
-    crop = np.ascontiguousarray(image[:max(0, rows * s - half), :max(0, cols * s - half)], np.float32)
+    top = half if first_row_half else 0
+    crop = np.ascontiguousarray(image[:max(0, rows * s - top), :max(0, cols * s - half)], np.float32)
     if crop.size == 0:
-        return np.zeros((rows, cols, 3), np.float32)
-    shifted = cv2.copyMakeBorder(crop, half, rows * s - half - crop.shape[0], half, cols * s - half - crop.shape[1],
-                                 cv2.BORDER_CONSTANT, value=0)
-    sums = cv2.resize(shifted, (cols, rows), interpolation=cv2.INTER_AREA) * np.float32(s * s)
-    area = np.maximum(cell_area_px(s, grid_shape, height, width), 1)[..., None]
-    return sums / area.astype(np.float32)
+        return np.zeros((rows, cols, image.shape[2]), np.float32)
+    padded = cv2.copyMakeBorder(crop, top, rows * s - top - crop.shape[0], half, cols * s - half - crop.shape[1],
+                                cv2.BORDER_CONSTANT, value=0)
+    means = cv2.resize(padded, (cols, rows), interpolation=cv2.INTER_AREA)
+    return means.reshape(rows, cols, -1) * np.float32(s * s)
 
 
 def cell_area_px(stride_px: int, grid_shape: tuple[int, int], height: int, width: int) -> np.ndarray:
