@@ -291,6 +291,7 @@ class ClassicalDecoder:
         cfg = self.config
         t_start = time.perf_counter()
         traced_before = self.zones.psf_map.kernels_traced
+        models_before = self.zones.models_computed
         timings = dict.fromkeys(("planes_s", "evidence_s", "kernels_s", "pool_s", "fill_s", "upsample_s", "aif_s"),
                                 0.0)
         height, width = raw.shape
@@ -484,6 +485,7 @@ class ClassicalDecoder:
                  "candidate_evaluations": evaluations["done"],
                  "candidate_evaluations_exhaustive": evaluations["full"],
                  "kernel_sets_computed": self.zones.kernel_sets_computed,
+                 "models_computed": self.zones.models_computed - models_before,  # 0: all from memory or disk
                  "kernel_sets_traced": self.zones.psf_map.kernels_traced - traced_before,  # 0: all from cache
                  "timings_s": timings}
         volume = (curves, pooled, colour) if pooling else (None, None, None)

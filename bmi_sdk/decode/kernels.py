@@ -14,7 +14,7 @@ import threading
 import numpy as np
 
 from .bayer import PLANE_CHANNELS
-from .evidence import expected_periodogram, folded_model
+from .model_cache import ModelCache, model_function
 
 ZONE_STEP_DEG = 0.5
 
@@ -25,7 +25,8 @@ class ZoneKernels:
     Safe to share between the decoder's block threads: a zone's kernels and evidence models are made under that
     zone's lock (once), other zones' at the same time (a camera's first frame traces two zones at once on two
     threads: ``PsfMap.kernel_sets`` allows it for distinct field positions), and memoised entries are read
-    without a lock."""
+    without a lock. With a ``psf_map`` that keeps its kernels on disk (``exact_cache_dir``), a zone's evidence models
+    are read from and written to its ``model_cache.ModelCache``."""
 
     def __init__(self, psf_map, candidates, slopes: tuple[float, ...], window_px: int):
         if window_px % 2 or window_px < 8:
@@ -37,8 +38,14 @@ class ZoneKernels:
         self._kernels: dict[tuple, np.ndarray] = {}
         self._models: dict[tuple, np.ndarray] = {}  # (θ, φ, candidate, exact) → (C, slopes, n, m)
         self.kernel_sets_computed = 0
-        self._count_lock = threading.Lock()  # around ``kernel_sets_computed``
+        self._count_lock = threading.Lock()  # around ``kernel_sets_computed`` and ``models_computed``
         self._zone_locks: dict[tuple, threading.RLock] = {}
+        cache_dir = getattr(psf_map, "exact_cache_dir", None)
+        self.model_cache = None if cache_dir is None else ModelCache(
+            cache_dir, psf_map.exact_key(), window_px, self.slopes, psf_map.n_channels, len(psf_map.tensor.spec.depth_m))
+        self._shards_read: set[tuple] = set()  # (θ, φ, exact) whose model shard was read
+        self._foreign: dict[tuple, dict[int, np.ndarray]] = {}  # (θ, φ, exact) → a shard's models of other candidates
+        self.models_computed = 0  # (zone, candidate) models made here, not read from memory or disk
 
     def __getstate__(self) -> dict:
         """Pickled without its locks (a decoder travels to scale-out workers): each copy makes its own."""
@@ -114,18 +121,47 @@ class ZoneKernels:
 
     def models(self, zone: tuple[float, float], which: np.ndarray, exact: bool = False) -> np.ndarray:
         """(planes, slopes, len(which), n, n//2+1) model power of each Bayer plane (``evidence``): the taper-smoothed
-        ``folded_model``, or with ``exact`` the ``expected_periodogram`` (the mean's removal held as well)."""
+        ``folded_model``, or with ``exact`` the ``expected_periodogram`` (the mean's removal held as well). From
+        memory, else the zone's model shard on disk, else made from the kernels (and the shard written again)."""
         which = np.atleast_1d(np.asarray(which, dtype=int))
         n_plane = self.window_px // 2
-        model = expected_periodogram if exact else folded_model
         if any(zone + (int(j), exact) not in self._models for j in which):
             with self._zone_lock(zone):
+                self._read_models(zone, exact)
                 missing = [int(j) for j in which if zone + (int(j), exact) not in self._models]
                 if missing:
+                    model = model_function(exact)
                     k = self.kernels(zone, np.asarray(missing))                       # (C, m, K, K)
                     per_channel = np.stack([[model(k[c], n_plane, a) for a in self.slopes]
                                             for c in range(k.shape[0])])               # (C, A, m, n, n/2+1)
                     for n, j in enumerate(missing):
                         self._models[zone + (j, exact)] = per_channel[:, :, n].astype(np.float32)
+                    with self._count_lock:
+                        self.models_computed += len(missing)
+                    self._write_models(zone, exact)
         stacked = np.stack([self._models[zone + (int(j), exact)] for j in which], axis=2)  # (C, A, D, n, m)
         return stacked[list(PLANE_CHANNELS)]
+
+    def _read_models(self, zone: tuple[float, float], exact: bool) -> None:
+        """Take the zone's model shard from disk (once per zone and kind; under the zone's lock)."""
+        if self.model_cache is None or zone + (exact,) in self._shards_read:
+            return
+        self._shards_read.add(zone + (exact,))
+        grid_index = self.candidates.index
+        position = {int(g): j for j, g in enumerate(grid_index)}
+        foreign = self._foreign.setdefault(zone + (exact,), {})
+        for g, model in self.model_cache.read(zone, exact).items():
+            if g in position:
+                self._models.setdefault(zone + (position[g], exact), model)
+            else:  # another decoder's candidate: kept, so that rewriting the shard does not drop it
+                foreign[g] = model
+
+    def _write_models(self, zone: tuple[float, float], exact: bool) -> None:
+        """Write the zone's model shard with every model of that kind this zone holds (under the zone's lock)."""
+        if self.model_cache is None:
+            return
+        grid_index = self.candidates.index
+        held = dict(self._foreign.get(zone + (exact,), {}))
+        held.update({int(grid_index[j]): self._models[zone + (j, exact)] for j in range(len(grid_index))
+                     if zone + (j, exact) in self._models})
+        self.model_cache.write(zone, exact, held)
