@@ -942,8 +942,8 @@ def test_windows_read_at_their_own_theta_agree_with_the_block_zone_on_the_field_
 
 def test_a_warmed_cache_serves_a_frames_decode_without_tracing(tmp_path, monkeypatch):
     """``warm_kernels`` traces every zone kernel a window's decode reads (evidence and AiF blocks) into the disk
-    cache: a second warm-up traces nothing, and a fresh decoder (a new process's) decodes the window reading every
-    kernel from disk. A region off the sensor is refused before any work."""
+    cache, and makes their evidence models: a second warm-up traces and makes nothing, and a fresh decoder (a new
+    process's) decodes the window reading every kernel and evidence model from disk. A region off the sensor is refused before any work."""
     from bmi_sdk.runtime.classical import classical_decoder, warm_kernels
 
     monkeypatch.setenv("BMI_CACHE_DIR", str(tmp_path / "cache"))
@@ -952,13 +952,15 @@ def test_a_warmed_cache_serves_a_frames_decode_without_tracing(tmp_path, monkeyp
     roi = (1504, 2304, 288, 288)  # two evidence blocks and two AiF blocks a side, at zones of their own
     first = warm_kernels(camera, config, roi=roi)
     assert first["zones"] >= 2 and first["kernel_sets_traced"] == first["kernel_sets"] > 0
+    assert first["evidence_models_made"] == first["kernel_sets"]
     again = warm_kernels(camera, config, roi=roi)
-    assert again["kernel_sets_traced"] == 0 and again["zones"] == first["zones"]
+    assert again["kernel_sets_traced"] == 0 and again["evidence_models_made"] == 0 and again["zones"] == first["zones"]
     decoder = classical_decoder(camera, config)
     raw = np.full(roi[2:], 1500, np.uint16) + np.random.default_rng(0).integers(0, 200, roi[2:]).astype(np.uint16)
     out = decoder.decode(raw, BLACK, WHITE, camera.sensor(), roi[0], roi[1], noise_profile=NoiseProfile.additive(0.005))
     assert out.valid.any() and decoder.zones.kernel_sets_computed > 0
     assert decoder.zones.psf_map.kernels_traced == 0 and out.stats["kernel_sets_traced"] == 0
+    assert out.stats["models_computed"] == 0  # and every evidence model from the shards the warm-up wrote
     with pytest.raises(ValueError, match="not inside the"):
         warm_kernels(camera, config, roi=(4400, 0, 200, 200))
     with pytest.raises(ValueError, match="workers must be >= 1"):

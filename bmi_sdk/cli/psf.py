@@ -112,7 +112,8 @@ def _warm(args) -> int:
     print(json.dumps(report) if args.json else
           f"camera {report['camera_sha256'][:12]}…: {report['zones']} zones, {report['kernel_sets_traced']} of "
           f"{report['kernel_sets']} kernel sets traced ({report['kernel_sets'] - report['kernel_sets_traced']} "
-          f"already cached) in {report['wall_s']:.1f} s → {report['cache_dir']}")
+          f"already cached), {report['evidence_models_made']} evidence models made, in {report['wall_s']:.1f} s → "
+          f"{report['cache_dir']}")
     return 0
 
 
@@ -155,11 +156,12 @@ def register(subparsers) -> None:
     b.add_argument("--overwrite", action="store_true",
                    help="replace an existing --out and its .json (default: refuse them, before tracing)")
     b.set_defaults(handler=_build)
-    w = sub.add_parser("warm", help="trace a camera's decoder kernels into the PSF cache before its first frame",
-                       description="Traces every kernel a frame's classical (or learned) decode can read, at every "
-                                   "zone of the sensor (or of --frame's window), into the PSF cache "
+    w = sub.add_parser("warm", help="trace a camera's decoder kernels (and make their evidence models) into the PSF "
+                       "cache before its first frame",
+                       description="Traces every kernel a frame's decode can read, at every zone of the sensor (or "
+                                   "of --frame's window), and makes their evidence models, into the PSF cache "
                                    "($BMI_CACHE_DIR/psf): the first full frame then decodes as fast as later ones. "
-                                   "A second run traces nothing.")
+                                   "A second run traces and makes nothing.")
     w.add_argument("--calibration", metavar="FILE", help="calibration from bmi calibrate (default: nominal PSFs)")
     w.add_argument("--frame", metavar="RAW.dng",
                    help="warm for this frame's camera and window, exactly as bmi infer builds them")

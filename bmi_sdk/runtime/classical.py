@@ -122,26 +122,29 @@ class _ZoneTracer:
         return classical_decoder(self.camera, self.config)
 
 
-def _trace_ring(decoder: ClassicalDecoder, ring: list) -> int:
-    """Trace (or read) the kernels of one θ ring's zones, [(zone, candidate indices)], into the disk cache; returns
-    the kernel sets traced. A ring is one job, so its zones share the process's pupil fits (the design's depend on
-    θ alone) and aims (every lens's)."""
-    before = decoder.zones.psf_map.kernels_traced
+def _trace_ring(decoder: ClassicalDecoder, ring: list) -> tuple[int, int]:
+    """Trace (or read) the kernels of one θ ring's zones, [(zone, candidate indices)], and make (or read) their
+    evidence models (the window model every window not gated to the exact one reads), into the disk cache; returns
+    the kernel sets traced and the models made. A ring is one job, so its zones share the process's pupil fits (the
+    design's depend on θ alone) and aims (every lens's)."""
+    traced, made = decoder.zones.psf_map.kernels_traced, decoder.zones.models_computed
     for zone, which in ring:
         decoder.zones.kernels(zone, which)
-    return decoder.zones.psf_map.kernels_traced - before
+        decoder.zones.models(zone, which)
+    return decoder.zones.psf_map.kernels_traced - traced, decoder.zones.models_computed - made
 
 
 def warm_kernels(camera: BuiltCamera, config: ClassicalConfig = ClassicalConfig(), roi: tuple | None = None,
                  workers: int = 1, progress: bool = False) -> dict:
-    """Trace ahead of a capture every kernel a frame's decode can read, into the disk cache (``bmi psf warm``).
+    """Trace ahead of a capture every kernel a frame's decode can read, and make their evidence models, into the disk
+    cache (``bmi psf warm``).
 
     A camera's first full frame otherwise spends most of its time tracing (docs/benchmarks.md, ``bmi bench
     frame``); its later frames, and any process after a warm-up, read the kernels. ``roi`` = (row0, col0, height, width)
     of the sensor (default the whole sensor). The zones are those ``ClassicalDecoder.frame_zones`` lists, every
     candidate of the evidence and the AiF's, so any scene's decode finds them. ``workers`` > 1 traces zones in
     that many single-threaded processes, a θ ring per job (each writes its own zones' shards). Returns what was done: zones,
-    kernel sets traced (0 when the cache was already warm), the cache folder and the wall time.
+    kernel sets traced and evidence models made (0 when the cache was already warm), the cache folder and the wall time.
     """
     import time
 
@@ -161,10 +164,12 @@ def warm_kernels(camera: BuiltCamera, config: ClassicalConfig = ClassicalConfig(
     for zone, which in zones.items():
         rings.setdefault(zone[0], []).append((zone, which))
     start = time.perf_counter()
-    traced = sum(map_jobs(_trace_ring, list(rings.values()), workers, state=_ZoneTracer(camera, config),
-                          desc="tracing zone kernels", unit="θ ring", progress=progress))
+    done = list(map_jobs(_trace_ring, list(rings.values()), workers, state=_ZoneTracer(camera, config),
+                         desc="tracing zone kernels", unit="θ ring", progress=progress))
+    traced, made = int(sum(t for t, _ in done)), int(sum(m for _, m in done))
     return {"camera_sha256": camera.sha256(), "calibration_id": camera.calibration_id, "zones": len(zones),
-            "kernel_sets": int(sum(len(w) for w in zones.values())), "kernel_sets_traced": int(traced),
+            "kernel_sets": int(sum(len(w) for w in zones.values())), "kernel_sets_traced": traced,
+            "evidence_models_made": made,
             "cache_dir": str(decoder.zones.psf_map.exact_cache_dir), "wall_s": time.perf_counter() - start}
 
 
