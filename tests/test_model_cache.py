@@ -122,3 +122,22 @@ def test_a_map_without_a_disk_cache_writes_no_models(tensor, tmp_path):
                         (2.0,), 64)
     zones.models(ZONE, [0])
     assert zones.model_cache is None and not any(tmp_path.iterdir())
+
+
+def test_a_cache_it_cannot_write_warns_once_and_the_decode_goes_on(tensor, tmp_path, monkeypatch):
+    """A full or read-only disk under the cache: the first failed write is named in one warning, the models stay in
+    memory and are the same, and no further write is tried."""
+    good = _zones(tensor, tmp_path / "good").models(ZONE, [0, 1])
+    tries = []
+
+    def full_disk(*args, **kwargs):
+        tries.append(args)
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(model_cache, "atomic_path", full_disk)
+    zones = _zones(tensor, tmp_path / "full")
+    with pytest.warns(PsfCacheWarning, match="No space left on device"):
+        made = zones.models(ZONE, [0, 1])
+    np.testing.assert_array_equal(made, good)
+    zones.models((30.0, 30.0), [0])  # another zone: no second try, no second warning
+    assert len(tries) == 1 and not zones.model_cache.writable

@@ -82,6 +82,7 @@ class ModelCache:
         self.slopes = tuple(float(a) for a in slopes)
         self.n_channels = int(n_channels)
         self.depth_count = int(depth_count)
+        self.writable = True  # False once a write failed (a read-only or full disk): the models then stay in memory
 
     def folder(self, exact: bool) -> Path:
         """The folder of this window's, slopes' and model kind's shards, named by what they depend on."""
@@ -135,11 +136,19 @@ class ModelCache:
 
     def write(self, zone: tuple[float, float], exact: bool, models: dict[int, np.ndarray]) -> None:
         """Write the zone's shard atomically with ``models`` ({depth index: one depth's models}); another process
-        writing the same shard at once leaves one of the two whole."""
+        writing the same shard at once leaves one of the two whole. A cache it cannot write to (read-only, full) is
+        named once in a ``PsfCacheWarning`` and not written again: the decode goes on with the models in memory."""
+        if not self.writable:
+            return
         held = sorted(models)
         stacked = np.stack([np.asarray(models[j], np.float32) for j in held]) if held else \
             np.zeros((0,) + self.shape(), np.float32)
         depth_index = np.asarray(held, np.int64)
         path = self.path(zone, exact)
-        with atomic_path(path, suffix=".npz") as tmp:
-            np.savez(tmp, models=stacked, depth_index=depth_index, sha256=np.array(_digest(stacked, depth_index)))
+        try:
+            with atomic_path(path, suffix=".npz") as tmp:
+                np.savez(tmp, models=stacked, depth_index=depth_index, sha256=np.array(_digest(stacked, depth_index)))
+        except OSError as exc:
+            self.writable = False
+            warnings.warn(f"cannot write the evidence model cache at {path.parent} ({exc}); this decoder keeps its "
+                          f"models in memory only", PsfCacheWarning, stacklevel=2)
