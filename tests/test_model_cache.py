@@ -1,4 +1,5 @@
-"""The evidence models kept on disk beside the kernels: read back bit for bit, never stale, never damaged."""
+"""The evidence models kept on disk beside the kernels: read back bit for bit, never stale, never damaged; and neither
+cache fails a decode when its disk cannot be written."""
 
 import numpy as np
 import pytest
@@ -141,3 +142,24 @@ def test_a_cache_it_cannot_write_warns_once_and_the_decode_goes_on(tensor, tmp_p
     np.testing.assert_array_equal(made, good)
     zones.models((30.0, 30.0), [0])  # another zone: no second try, no second warning
     assert len(tries) == 1 and not zones.model_cache.writable
+
+
+def test_a_kernel_cache_it_cannot_write_warns_once_and_keeps_the_kernels(tensor, tmp_path, monkeypatch):
+    """The kernels' disk cache on a full or read-only disk: the traced kernels are those of a map without a disk
+    cache, one warning names the folder, and no further shard write is tried."""
+    from bmi_sdk.render import psf_map as psf_map_module
+
+    plain = PsfMap(tensor, BMI_SENSOR, mode="exact").kernels(*ZONE, [0, 1])
+    tries = []
+
+    def full_disk(*args, **kwargs):
+        tries.append(args)
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(psf_map_module, "write_kernel_shard", full_disk)
+    cached = PsfMap(tensor, BMI_SENSOR, mode="exact", cache_dir=tmp_path)
+    with pytest.warns(PsfCacheWarning, match="No space left on device"):
+        kernels = cached.kernels(*ZONE, [0, 1])
+    np.testing.assert_array_equal(kernels, plain)
+    cached.kernels(30.0, 30.0, [0])  # another zone: no second try, no second warning
+    assert len(tries) == 1 and not cached.disk_writable

@@ -56,6 +56,7 @@ import json
 import math
 import os
 import threading
+import warnings
 from collections import OrderedDict
 from pathlib import Path
 
@@ -74,7 +75,7 @@ from ..optics.perturb import (
 )
 from ..optics.psf import psf_from_pupil
 from ..optics.pupil import PupilFit, chief_points, fit_pupils
-from ..optics.tensor import PsfTensor, usable_kernel_shard, write_kernel_shard
+from ..optics.tensor import PsfCacheWarning, PsfTensor, usable_kernel_shard, write_kernel_shard
 
 INTERPOLATIONS = ("linear", "inverse_square")
 
@@ -163,6 +164,7 @@ class PsfMap:
         self._lock = threading.Lock()  # around the memos' bookkeeping (see ``kernel_sets``)
         self.exact_cache_dir = None if cache_dir is None or mode != "exact" else Path(cache_dir) / self.exact_key()
         self._zones_read: set[tuple] = set()
+        self.disk_writable = True  # False once a shard write failed (a full or read-only disk): kernels stay in memory
         self.kernels_traced = 0  # exact (θ, φ, depth) kernel sets traced here, not read from memory or disk
 
     def __getstate__(self) -> dict:
@@ -201,10 +203,19 @@ class PsfMap:
 
     def _write_zone(self, key: tuple) -> None:
         """A sparse shard of the depths this field position holds (a full frame has ~430 zones, each needing ~20
-        of the grid's depths: writing the whole grid would take 4× the disk)."""
+        of the grid's depths: writing the whole grid would take 4× the disk). A cache it cannot write to (full or
+        read-only disk) is named once in a ``PsfCacheWarning`` and not written again: the kernels stay in memory."""
+        if not self.disk_writable:
+            return
         held = sorted(j for j in range(len(self.tensor.spec.depth_m)) if key + (j,) in self._exact)
         psf = np.stack([self._exact[key + (j,)] for j in held], axis=1)
-        write_kernel_shard(self._zone_path(key), psf, np.ones(psf.shape[:2], dtype=bool), np.asarray(held))
+        path = self._zone_path(key)
+        try:
+            write_kernel_shard(path, psf, np.ones(psf.shape[:2], dtype=bool), np.asarray(held))
+        except OSError as exc:
+            self.disk_writable = False
+            warnings.warn(f"cannot write the PSF cache at {path.parent} ({exc}); this camera's kernels stay in memory "
+                          f"only", PsfCacheWarning, stacklevel=3)
 
     @property
     def n_channels(self) -> int:
