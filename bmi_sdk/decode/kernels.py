@@ -42,7 +42,7 @@ class ZoneKernels:
         self._zone_locks: dict[tuple, threading.RLock] = {}
         cache_dir = getattr(psf_map, "exact_cache_dir", None)
         self.model_cache = None if cache_dir is None else ModelCache(
-            cache_dir, psf_map.exact_key(), window_px, self.slopes, psf_map.n_channels, len(psf_map.tensor.spec.depth_m))
+            cache_dir, window_px, self.slopes, psf_map.n_channels, len(psf_map.tensor.spec.depth_m))
         self._shards_read: set[tuple] = set()  # (θ, φ, exact) whose model shard was read
         self._foreign: dict[tuple, dict[int, np.ndarray]] = {}  # (θ, φ, exact) → a shard's models of other candidates
         self.models_computed = 0  # (zone, candidate) models made here, not read from memory or disk

@@ -6,8 +6,8 @@ taper. A full frame needs ~430 zones × 28 candidates of them, about 20 s of one
 kernels themselves come from the PSF cache in well under a second. This cache keeps the models too, one shard per
 zone and model kind (tapered or exact), so a process decoding a camera's second frame reads them instead.
 
-A shard lives in a folder of the kernel cache (``render.PsfMap.exact_cache_dir``) named by everything a model
-depends on besides its kernels: the window, the texture slopes, the model kind and a fingerprint of the model code
+A shard lives in a folder of the kernel cache (``render.PsfMap.exact_cache_dir``, itself named by the kernels'
+identity) named by everything else a model depends on: the window, the texture slopes, the model kind and a fingerprint of the model code
 (``model_fingerprint``: the models of one fixed test kernel, so a change to how models are made changes the folder
 and never reads a stale shard). It holds the depths computed so far (sparse, as the kernel shards do), written
 atomically with a SHA-256 of its arrays; a shard failing its checks is never used: a ``PsfCacheWarning`` names it
@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io_atomic import atomic_path
-from ..optics.tensor import PsfCacheWarning
+from ..optics.tensor import PsfCacheWarning, arrays_digest, read_npz_arrays
 from .evidence import expected_periodogram, folded_model
 
 
@@ -60,11 +60,7 @@ def model_fingerprint(n_plane: int, slope: float, exact: bool) -> str:
 
 def _digest(models: np.ndarray, depth_index: np.ndarray) -> str:
     """SHA-256 of a shard's arrays (shape and bytes), recorded in it when it is written."""
-    h = hashlib.sha256()
-    for a in (np.ascontiguousarray(models, "<f4"), np.ascontiguousarray(depth_index, "<i8")):
-        h.update(repr(a.shape).encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
+    return arrays_digest([np.ascontiguousarray(models, "<f4"), np.ascontiguousarray(depth_index, "<i8")])
 
 
 class ModelCache:
@@ -74,22 +70,26 @@ class ModelCache:
     without one, or when it fails its checks); ``write(zone, exact, models)`` replaces the shard with those. The
     depth index is the kernel grid's (``Candidates.index``), so decoders with other candidates share shards."""
 
-    def __init__(self, kernel_cache_dir: str | Path, kernel_key: str, window_px: int, slopes: tuple[float, ...],
-                 n_channels: int, depth_count: int):
+    def __init__(self, kernel_cache_dir: str | Path, window_px: int, slopes: tuple[float, ...], n_channels: int,
+                 depth_count: int):
         self.root = Path(kernel_cache_dir)
-        self.kernel_key = kernel_key
         self.n_plane = int(window_px) // 2
         self.slopes = tuple(float(a) for a in slopes)
         self.n_channels = int(n_channels)
         self.depth_count = int(depth_count)
         self.writable = True  # False once a write failed (a read-only or full disk): the models then stay in memory
+        self._folders: dict[bool, Path] = {}  # model kind → ``folder``, named once
 
     def folder(self, exact: bool) -> Path:
-        """The folder of this window's, slopes' and model kind's shards, named by what they depend on."""
-        identity = {"kernels": self.kernel_key, "n_plane": self.n_plane, "slopes": self.slopes, "exact": bool(exact),
-                    "code": [model_fingerprint(self.n_plane, a, exact) for a in self.slopes]}
-        digest = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:20]
-        return self.root / f"models-{'exact' if exact else 'tapered'}-{digest}"
+        """The folder of this window's, slopes' and model kind's shards, named by what they depend on (once per kind:
+        the code's fingerprint costs a model)."""
+        exact = bool(exact)
+        if exact not in self._folders:
+            identity = {"n_plane": self.n_plane, "slopes": self.slopes, "exact": exact,
+                        "code": [model_fingerprint(self.n_plane, a, exact) for a in self.slopes]}
+            digest = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:20]
+            self._folders[exact] = self.root / f"models-{'exact' if exact else 'tapered'}-{digest}"
+        return self._folders[exact]
 
     def path(self, zone: tuple[float, float], exact: bool) -> Path:
         return self.folder(exact) / f"theta{zone[0]:+010.5f}_phi{zone[1]:+011.5f}.npz"
@@ -114,11 +114,7 @@ class ModelCache:
         """(models (n, C, slopes, n_plane, m) float32, depth_index (n,)) of a shard, or ``ValueError`` saying what is
         wrong with it: unreadable, other arrays or shapes, a SHA-256 other than the one written, repeated or
         out-of-grid depths, non-finite values."""
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
-        except Exception as exc:  # zipfile, zlib and numpy raise many types for a damaged file
-            raise ValueError(f"unreadable: {type(exc).__name__}: {exc}") from None
+        arrays = read_npz_arrays(path)
         if set(arrays) != {"models", "depth_index", "sha256"}:
             raise ValueError(f"arrays {sorted(arrays)}, expected ['depth_index', 'models', 'sha256']")
         models, depth_index = arrays["models"], arrays["depth_index"]
@@ -135,14 +131,13 @@ class ModelCache:
         return models, depth_index
 
     def write(self, zone: tuple[float, float], exact: bool, models: dict[int, np.ndarray]) -> None:
-        """Write the zone's shard atomically with ``models`` ({depth index: one depth's models}); another process
+        """Write the zone's shard atomically with ``models`` ({depth index: one depth's models}, one or more); another process
         writing the same shard at once leaves one of the two whole. A cache it cannot write to (read-only, full) is
         named once in a ``PsfCacheWarning`` and not written again: the decode goes on with the models in memory."""
         if not self.writable:
             return
         held = sorted(models)
-        stacked = np.stack([np.asarray(models[j], np.float32) for j in held]) if held else \
-            np.zeros((0,) + self.shape(), np.float32)
+        stacked = np.stack([np.asarray(models[j], np.float32) for j in held])
         depth_index = np.asarray(held, np.int64)
         path = self.path(zone, exact)
         try:

@@ -122,16 +122,31 @@ class PsfCacheWarning(UserWarning):
     """A cached PSF shard failed its checks and is being recomputed."""
 
 
+def arrays_digest(arrays: list[np.ndarray]) -> str:
+    """SHA-256 of arrays' shapes and bytes, in order: what a cache shard records when it is written and is checked
+    against when it is read (the caller fixes each array's dtype)."""
+    h = hashlib.sha256()
+    for a in arrays:
+        h.update(repr(a.shape).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def read_npz_arrays(path: Path) -> dict[str, np.ndarray]:
+    """{name: array} of an npz file, or ``ValueError`` "unreadable: …" (zip CRCs catch truncation and bit flips)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except Exception as exc:  # zipfile, zlib and numpy raise many types for a damaged file
+        raise ValueError(f"unreadable: {type(exc).__name__}: {exc}") from None
+
+
 def _shard_digest(psf: np.ndarray, filled: np.ndarray, depth_index: np.ndarray | None = None) -> str:
     """SHA-256 of a shard's arrays (shape, dtype and bytes), recorded in the shard when it is written."""
-    h = hashlib.sha256()
     arrays = [np.ascontiguousarray(psf, dtype="<f4"), np.ascontiguousarray(filled, dtype=bool)]
     if depth_index is not None:
         arrays.append(np.ascontiguousarray(depth_index, dtype="<i8"))
-    for a in arrays:
-        h.update(repr(a.shape).encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
+    return arrays_digest(arrays)
 
 
 def read_kernel_shard(path: Path, psf_shape: tuple,
@@ -149,11 +164,7 @@ def read_kernel_shard(path: Path, psf_shape: tuple,
     with unit sum: a shard that would decode to NaN or to an all-zero frame is
     never used.
     """
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except Exception as exc:  # zipfile, zlib and numpy raise many types for a damaged file
-        raise ValueError(f"unreadable: {type(exc).__name__}: {exc}") from None
+    arrays = read_npz_arrays(path)
     needed = {"psf", "filled"} | ({"depth_index", "sha256"} if sparse else set())
     if not needed <= set(arrays):
         raise ValueError(f"arrays {sorted(arrays)}, expected {sorted(needed)}")
