@@ -991,14 +991,19 @@ def test_a_far_plane_of_a_steeper_or_flatter_texture_reads_its_range_with_the_ex
     """A plane at 6 m (θ 5°) whose texture's power spectrum falls as 1/f^1.6 or 1/f^2.4, natural images' spread about
     the prior's 1/f²: far away a texture's slope mimics blur, and the 1/f² prior reads such planes 10–45 % off. With
     the exponent profiled (five slopes 1.5–2.5, every window scored with the exact model) the plane reads within 12 %,
-    and a 1/f² plane stays within 8 %. At 1.5 m the kernels' rings pin the depth, and both read it within 1 %."""
+    and a 1/f² plane stays within 8 %. At 1.5 m the kernels' rings pin the depth, and both read it within 1 %.
+
+    ``--texture-exponent profiled`` (α profiled per pool, gated) reads them as well; its likelihood-ratio gate keeps
+    the prior's α on (nearly) every window of the 1/f² plane and opens on most windows of the others at 6 m."""
     from bmi_sdk.bench.decoder import power_law_texture
+    from bmi_sdk.decode.classical import with_texture_exponent
 
     tensor, size = lens_tensor("bmi_monocentric"), 192
     psf_map = PsfMap(tensor, GEOMETRY, mode="tensor")
     fixed = ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig())
     profiled = ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig(slopes=(1.5, 1.75, 2.0, 2.25, 2.5),
                                                                      exact_model_below=1.0))
+    gated = ClassicalDecoder.for_psf_map(psf_map, with_texture_exponent(ClassicalConfig(), "profiled"))
     for depth_m, tolerance in ((6.0, 0.12), (1.5, 0.01)):
         rgb = power_law_texture(size + 48, power_slope, np.random.default_rng(3))
         r, c = GEOMETRY.pixel_of_field(5.0, 30.0)
@@ -1007,17 +1012,103 @@ def test_a_far_plane_of_a_steeper_or_flatter_texture_reads_its_range_with_the_ex
                                row0 - 24, col0 - 24, psf_map=psf_map)[24:-24, 24:-24]
         optical *= relative_illumination(GEOMETRY, row0, col0, size, size)[..., None]
         raw = simulate_raw(optical, 0.005, np.random.default_rng(4), row0, col0)
-        ratio = {}
-        for name, decoder in (("fixed", fixed), ("profiled", profiled)):
+        ratio, opened = {}, {}
+        for name, decoder in (("fixed", fixed), ("profiled", profiled), ("gated", gated)):
             out = decoder.decode(raw, BLACK, WHITE, GEOMETRY, row0, col0, noise_profile=NoiseProfile.additive(0.005),
                                  aif=False)
             ratio[name] = float(np.median(out.depth_m[out.valid])) / depth_m
+            opened[name] = out.stats["windows_exponent_profiled"] / np.isfinite(out.grid_inv_depth).sum()
+        assert opened["fixed"] == 0 and opened["profiled"] == 1, opened
         if depth_m == 1.5:
-            assert abs(ratio["profiled"] - 1) < tolerance and abs(ratio["fixed"] - 1) < tolerance, ratio
+            assert all(abs(r - 1) < tolerance for r in ratio.values()), ratio
         elif power_slope == 2.0:
-            assert abs(ratio["profiled"] - 1) < 0.08 and abs(ratio["fixed"] - 1) < 0.08, ratio
+            assert all(abs(r - 1) < 0.08 for r in ratio.values()), ratio
+            assert opened["gated"] < 0.05, opened
         else:
-            assert abs(ratio["fixed"] - 1) > 0.1 and abs(ratio["profiled"] - 1) < tolerance, ratio
+            assert abs(ratio["fixed"] - 1) > 0.1, ratio
+            assert abs(ratio["profiled"] - 1) < tolerance and abs(ratio["gated"] - 1) < tolerance, ratio
+            assert opened["gated"] > 0.8, opened
+
+
+def test_a_pooled_exponent_with_no_neighbour_in_reach_is_each_windows_own_profile():
+    """Exponent profiled over each window's pooled curves: with a pooling radius so small that every neighbour weighs
+    e^-512, each pool is the window alone, and its reads are those of α profiled in the window's own NLL (the
+    ``exponent_scope`` "window" path, which never pools by slope), to float32 rounding."""
+    from bmi_sdk.bench.decoder import power_law_texture
+
+    tensor, size = lens_tensor("bmi_monocentric"), 128
+    psf_map = PsfMap(tensor, GEOMETRY, mode="tensor")
+    rgb = power_law_texture(size + 48, 2.3, np.random.default_rng(5))
+    r, c = GEOMETRY.pixel_of_field(30.0, 60.0)
+    row0, col0 = int(r - size / 2) // 2 * 2, int(c - size / 2) // 2 * 2
+    depth = np.where(np.arange(size + 48)[:, None] < (size + 48) // 2, 1.2, 4.0) * np.ones((1, size + 48))
+    optical = render_coded(rgb, depth.astype(np.float32), tensor, GEOMETRY, row0 - 24, col0 - 24,
+                           psf_map=psf_map)[24:-24, 24:-24]
+    raw = simulate_raw(optical, 0.005, np.random.default_rng(6), row0, col0)
+    reads = {}
+    for scope in ("window", "pooled"):
+        config = ClassicalConfig(slopes=(1.6, 2.0, 2.4), pool_sigma_px=0.5, exponent_scope=scope)
+        out = ClassicalDecoder.for_psf_map(psf_map, config).decode(raw, BLACK, WHITE, GEOMETRY, row0, col0,
+                                                                   noise_profile=NoiseProfile.additive(0.005),
+                                                                   aif=False)
+        reads[scope] = out.grid_inv_depth
+    assert np.isfinite(reads["window"]).all()
+    np.testing.assert_allclose(reads["pooled"], reads["window"], rtol=1e-5)
+
+
+@pytest.mark.parametrize("knobs, message", [({"exponent_scope": "frame"}, "exponent_scope must be one of"),
+                                            ({"exponent_scope": "pooled", "pool_sigma_px": 0.0}, "needs pool_sigma_px")])
+def test_an_exponent_scope_it_cannot_profile_is_refused(knobs, message):
+    with pytest.raises(ValueError, match=message):
+        ClassicalConfig(slopes=(1.5, 2.0, 2.5), **knobs)
+
+
+def test_the_exponent_gate_keeps_the_priors_slope_unless_profiling_lowers_the_pooled_nll_beyond_it():
+    """``evidence.gated_exponent`` on curves built to a known likelihood ratio: pools whose profiled least NLL lies more
+    than the gate below the α = 2 curve's take the profile (equal to ``profile_exponent``'s), the others the α = 2
+    curve exactly; gate 0 profiles every pool; NaN pools (no decode) stay NaN."""
+    from bmi_sdk.decode.evidence import gated_exponent, profile_exponent
+
+    slopes = (1.6, 2.0, 2.4)
+    d = np.arange(7.0)
+    base = (d - 3.0) ** 2                       # α = 2: least NLL 0 at candidate 3
+    gains = np.array([0.0, 5.0, 40.0, 400.0])   # how much lower the α = 1.6 curve lies, per pool
+    by_slope = np.stack([base[None, :] - gains[:, None], np.broadcast_to(base, (4, 7)),
+                         np.broadcast_to(base + 50.0, (4, 7))]).copy()   # (slopes, pools, D)
+    by_slope[:, 0] = np.nan
+    reference = profile_exponent(by_slope, slopes)
+    drop = by_slope[1, 1:].min(axis=-1) - reference[1:].min(axis=-1)   # the likelihood ratio of pools 1–3
+    assert np.all(np.diff(drop) > 0) and drop[0] < 10 < drop[1] < 100 < drop[2]
+    for gate in (0.0, 10.0, 100.0):
+        pooled, profiled = gated_exponent(by_slope, slopes, gate)
+        expected = np.array([gate == 0] + [gate == 0 or g > gate for g in drop])
+        np.testing.assert_array_equal(profiled, expected)
+        take = expected[1:]
+        np.testing.assert_allclose(pooled[1:][take], reference[1:][take], rtol=1e-6)
+        np.testing.assert_array_equal(pooled[1:][~take], by_slope[1, 1:][~take].astype(np.float32))
+        assert np.isnan(pooled[0]).all()
+
+
+@pytest.mark.parametrize("knobs, message", [
+    ({"exponent_gate_nats": -1.0}, "exponent_gate_nats must lie in"),
+    ({"exponent_gate_nats": float("nan")}, "exponent_gate_nats must lie in"),
+    ({"exponent_gate_nats": 1e9}, "exponent_gate_nats must lie in"),
+    ({"exponent_gate_nats": 30.0}, "needs exponent_scope 'pooled'"),
+    ({"exponent_gate_nats": 30.0, "exponent_scope": "pooled", "slopes": (1.5, 2.5)}, "2 among the slopes")])
+def test_an_exponent_gate_it_cannot_apply_is_refused(knobs, message):
+    with pytest.raises(ValueError, match=message):
+        ClassicalConfig(**{"slopes": (1.6, 2.0, 2.4), **knobs})
+
+
+def test_a_texture_exponent_mode_sets_its_knobs_and_an_unknown_one_is_refused():
+    from bmi_sdk.decode.classical import TEXTURE_EXPONENTS, with_texture_exponent
+
+    assert with_texture_exponent(ClassicalConfig(), "prior") == ClassicalConfig()
+    profiled = with_texture_exponent(ClassicalConfig(candidates=16), "profiled")
+    assert profiled.candidates == 16 and profiled.exponent_scope == "pooled" and profiled.exponent_gate_nats > 0
+    assert set(TEXTURE_EXPONENTS) == {"prior", "profiled"}
+    with pytest.raises(ValueError, match="one of prior, profiled"):
+        with_texture_exponent(ClassicalConfig(), "natural")
 
 
 @pytest.mark.parametrize("slopes", [(), (2.0, 1.5), (1.5, 1.6, 2.0), (float("nan"),), (-1.0,), (1e9,), ("2",), (True,)])

@@ -69,6 +69,19 @@ def test_every_numeric_option_refuses_huge_negative_zero_nan_and_inf_in_one_line
         assert not out.exists(), (option, value)
 
 
+def test_a_texture_exponent_is_refused_by_a_decoder_whose_network_holds_its_own_and_an_unknown_one_by_name(
+        dng, tmp_path, capsys, no_decode):
+    out = tmp_path / "out"
+    for decoder in ("learned", "cnn"):
+        code, err = _infer(capsys, dng, "--out", out, "--decoder", decoder, "--texture-exponent", "profiled")
+        assert code == 2 and "texture exponent 'profiled'" in err and "classical, evidence decoders take it" in err, err
+        assert "Traceback" not in err and not out.exists()
+    for value in ("natural", "", "nan"):
+        code, err = _infer(capsys, dng, "--out", out, "--texture-exponent", value)
+        assert code == 2 and "--texture-exponent" in err and "Traceback" not in err, err
+        assert not out.exists()
+
+
 def test_a_memory_refusal_names_the_option_its_value_the_estimate_and_the_limit(dng, tmp_path, capsys, no_decode):
     for option in ("--window-px", "--stride-px", "--pool-sigma-px"):
         code, err = _infer(capsys, dng, "--out", tmp_path / "o", "--decoder", "classical", option, "100000")

@@ -34,6 +34,7 @@ def register(subparsers) -> None:
     p.add_argument("--calibration", default=None, metavar="C.json",
                    help="also time the camera this calibration describes (bmi calibrate --out C.json)")
     p.add_argument("--decoder", default=None, help="bmi infer's --decoder (default: its default)")
+    p.add_argument("--texture-exponent", default=None, help="bmi infer's --texture-exponent (default: its default)")
     add_json_argument(p)
     p.set_defaults(handler=_run)
 
@@ -49,6 +50,7 @@ def _run(args) -> int:
             raise FileNotFoundError(f"--calibration {args.calibration}: no such file")
         cameras.append(("calibrated", ["--calibration", str(Path(args.calibration).resolve())]))
     extra = [] if args.decoder is None else ["--decoder", args.decoder]
+    extra += [] if args.texture_exponent is None else ["--texture-exponent", args.texture_exponent]
     rows = []
     with tempfile.TemporaryDirectory(prefix="bmi-bench-frame-") as work:
         for name, camera_args in cameras:
@@ -61,7 +63,8 @@ def _run(args) -> int:
     text = "\n".join([
         f"### The whole bmi infer command on {frame.name}",
         "",
-        "Each run: `bmi infer FRAME --out DIR --ply-step 4 [--calibration C]` in a new process; first frame: the "
+        f"Each run: `bmi infer FRAME --out DIR --ply-step 4 [--calibration C]{''.join(' ' + a for a in extra)}` in a "
+        "new process; first frame: the "
         "camera's PSF cache empty, next frame: filled by the first. load: the one-minute load average before the "
         "run. Stages from the run's report.json.",
         "",

@@ -8,7 +8,8 @@ the honest read is a wide σ). p is 2 on every surface (natural images' average,
 about 2 as natural images' exponents are (``EXPONENT_SPREADS``). 384² px at φ 30°, σ 0.005, rendered and decoded with
 the design camera's exact kernels (the simulated device's and ``bmi infer``'s path). Per textures, wall, field angle
 and decoder (the default evidence decoder, the classical one, the evidence decoder with a wider support read,
-``WIDE_SUPPORT``, and the evidence decoder on a volume with the texture's exponent profiled, ``PROFILED_EXPONENT``),
+``WIDE_SUPPORT``, and the evidence decoder with the texture's exponent profiled where the evidence asks for it,
+``PROFILED_EXPONENT``),
 over ``SEEDS`` scenes (``--full``: ``FULL_SEEDS``) pooled: AbsRel, within ``EDGE_NEAR_PX`` of a depth edge and beyond it, on the wall beyond it, δ1, σ's honesty (std of error/σ, 1 for an honest σ, and the share
 within one σ, 0.683) and the confident coverage (σ ≤ 10 % of the depth).
 """
@@ -44,10 +45,9 @@ strongly correlated (Ruderman, Cronin & Chiao, J. Opt. Soc. Am. A 15, 1998, for 
 WIDE_SUPPORT = {"radius_windows": 3, "spatial_sigma_windows": 2.0, "spread_scale": 0.2}
 """A support read that reaches the like-coloured windows inside an object from its rim (docs/decoder.md, the evidence
 decoder's step 3), measured beside the shipped one."""
-PROFILED_EXPONENT = {"slopes": (1.5, 1.75, 2.0, 2.25, 2.5), "exact_model_below": 1.0}
-"""The evidence decoder's classical stage with each window's texture exponent profiled out (``ClassicalConfig.slopes``,
-``evidence.profile_exponent``), every window scored with the exact model (the tapered one's approximations at the
-lowest frequencies bias a profiled exponent), its volume read by the shipped network: measured beside the shipped
+PROFILED_EXPONENT = "profiled"
+"""The evidence decoder with ``bmi infer --texture-exponent profiled`` (``decode.classical.TEXTURE_EXPONENTS``: each
+pool's texture exponent profiled where its pooled evidence rejects the prior's 1/f²), measured beside the shipped
 stage, whose prior is 1/f² only."""
 FIELDS_DEG = (5.0, 45.0)
 SEEDS = (0, 1)
@@ -112,6 +112,7 @@ def _metrics(depth, sigma, truth, near_edge, wall) -> list[float]:
 
 def run(full: bool = False) -> str:
     from ..decode import ClassicalDecoder
+    from ..decode.classical import with_texture_exponent
     from ..nn.eval_strata import EDGE_NEAR_PX, edge_distance_px
     from .decoder import PLANE_MARGIN_PX, window_raw
     from .plane_reads import DECODER_NAMES, decoder_reads_sigma, design_decoders
@@ -120,10 +121,9 @@ def run(full: bool = False) -> str:
     wide = ("evidence, support radius {radius_windows}, spatial σ {spatial_sigma_windows:g}, τ {spread_scale:g}"
             .format(**WIDE_SUPPORT))
     supports = {wide: dataclasses.replace(network.support, **WIDE_SUPPORT)}
-    profiled = "evidence, exponent profiled {:g}–{:g}".format(PROFILED_EXPONENT["slopes"][0],
-                                                              PROFILED_EXPONENT["slopes"][-1])
-    volumes = {profiled: ClassicalDecoder.for_psf_map(psf_map, dataclasses.replace(network.stage_config(),
-                                                                                   **PROFILED_EXPONENT))}
+    profiled = f"evidence, --texture-exponent {PROFILED_EXPONENT}"
+    volumes = {profiled: ClassicalDecoder.for_psf_map(psf_map, with_texture_exponent(network.stage_config(),
+                                                                                     PROFILED_EXPONENT))}
     names = (*DECODER_NAMES, wide, profiled)
     seeds = FULL_SEEDS if full else SEEDS
     m = PLANE_MARGIN_PX

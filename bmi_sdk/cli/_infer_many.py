@@ -26,7 +26,7 @@ def infer_many(args) -> int:
                             threads=args.threads, overlap_px=args.overlap_px, ply_step_px=args.ply_step,
                             decoder=args.decoder, classical_config=args.classical_config, overwrite=args.overwrite,
                             allow_test_pattern=args.allow_test_pattern, providers=args.provider,
-                            depth_range_m=args.depth_range)
+                            depth_range_m=args.depth_range, texture_exponent=args.texture_exponent)
     t0 = time.perf_counter()
     with open_client(args.scheduler) as client:
         summaries = run_batch(jobs, options, client=client, progress=not args.quiet)

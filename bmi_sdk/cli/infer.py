@@ -94,7 +94,7 @@ def _run(args) -> int:
     from bmi_sdk.cli._infer_many import infer_many, wants_batch
     from bmi_sdk.cli._logging import command_logger
     from bmi_sdk.runtime import DECODERS, run_job
-    from bmi_sdk.runtime.decoders import decoder_kind
+    from bmi_sdk.runtime.decoders import decoder_kind, refuse_texture_exponent
 
     if args.depth_range is not None:
         args.depth_range = depth_range(args.depth_range)
@@ -107,6 +107,10 @@ def _run(args) -> int:
     if knobs and not takes_config:
         raise ValueError(f"{', '.join(knobs)}: classical decoder options, not taken by the {args.decoder} decoder "
                          "(the learned one decodes with its model's own; use --decoder classical)")
+    try:
+        refuse_texture_exponent(args.decoder, args.texture_exponent)
+    except ValueError as exc:
+        raise OptionError(f"--texture-exponent {args.texture_exponent}: {exc}", "--texture-exponent") from None
     if args.provider is not None:  # an unavailable provider fails here, naming the available ones, before any work
         from bmi_sdk.runtime.model import choose_providers
 
@@ -126,7 +130,7 @@ def _run(args) -> int:
                         tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
                         providers=args.provider, ply_step_px=args.ply_step, progress=not args.quiet,
                         overwrite=args.overwrite, allow_test_pattern=args.allow_test_pattern,
-                        depth_range_m=args.depth_range)
+                        depth_range_m=args.depth_range, texture_exponent=args.texture_exponent)
     wall_s = time.perf_counter() - t0
     log = command_logger("infer")
     log.info("input %s; bmi-sdk %s, onnxruntime %s; execution provider %s", report["input_path"],
@@ -203,6 +207,7 @@ def detail_lines(report: dict) -> list[str]:
 
 
 def register(subparsers) -> None:
+    from bmi_sdk.decode.classical import TEXTURE_EXPONENTS
     from bmi_sdk.runtime.decoders import DECODERS, DEFAULT_DECODER
     from bmi_sdk.scaleout import add_scheduler_argument
 
@@ -237,6 +242,11 @@ def register(subparsers) -> None:
                         f"depth 1σ; cnn: the shipped end-to-end network (default: the kind of --model, else "
                         f"{DEFAULT_DECODER}; docs/decoder.md)")
     add_classical_arguments(p)
+    p.add_argument("--texture-exponent", choices=tuple(TEXTURE_EXPONENTS), default="prior",
+                   help="evidence and classical decoders: prior, every surface's texture read with natural images' "
+                        "mean power spectrum 1/f^2; profiled, each surface's exponent profiled where its pooled "
+                        "evidence rejects 2 (for large natural surfaces beyond about 3 m; about 2x the evidence "
+                        "stage's time; docs/decoder.md) (default prior)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an earlier run's results in --out (they are replaced only once all new files "

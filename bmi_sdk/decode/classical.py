@@ -51,7 +51,8 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
 
 import cv2
 import numpy as np
@@ -67,7 +68,9 @@ from .bayer import clipped_samples, estimate_noise_sigma, normalised_planes
 from .candidates import Candidates, inverse_depth_candidates
 from .clipped import ClippedPairs, choose_clipped_planes, clipped_weights
 from .evidence import (
+    EXPONENT_PRIOR,
     Evidence,
+    gated_exponent,
     hann_taper,
     plane_nll,
     profile_exponent,
@@ -80,6 +83,7 @@ from .pooling import pool_evidence, window_colour
 
 NOISE_MODELS = ("profile",)  # ``frame_noise``; a manifest's classical_config names it
 WINDOW_MODELS = ("tapered",)  # the taper-smoothed evidence model (``evidence``); a manifest names it too
+EXPONENT_SCOPES = ("window", "pooled")  # where several slopes' texture exponent is profiled (``ClassicalConfig``)
 
 
 def frame_noise(config: "ClassicalConfig", planes: np.ndarray, profile: NoiseProfile | None) -> tuple[NoiseProfile, str]:
@@ -109,6 +113,10 @@ MAX_SLOPE = 4.0
 """The steepest prior exponent a ``ClassicalConfig`` takes: a texture of power spectrum 1/f⁴ is already smoother than
 any defocus the camera can tell from it."""
 
+MAX_EXPONENT_GATE_NATS = 1e6
+"""The largest ``ClassicalConfig.exponent_gate_nats``: a pool's NLL spans far fewer nats than this (its windows' curves
+are truncated at ``pool_truncate_nats`` each), so a larger gate would change nothing."""
+
 
 @dataclass(frozen=True)
 class ClassicalConfig:
@@ -120,6 +128,11 @@ class ClassicalConfig:
     coarse_step: int = 4
     slopes: tuple = (2.0,)  # the prior's power exponents α (S ∝ 1/|f|^α); several (evenly spaced): α is profiled out
     #                         per window and candidate, one α for all planes (``evidence.profile_exponent``)
+    exponent_scope: str = "window"  # with several slopes: "window", α profiled in each window's own NLL; "pooled",
+    #                                 also each window's pooled curve is the neighbours' NLLs pooled at each slope, then
+    #                                 α profiled (one α for the surface the pool holds; needs pooling)
+    exponent_gate_nats: float = 0.0  # "pooled" only: a pool keeps α = 2 unless profiling α lowers its least pooled
+    #                                  NLL by more than this (``evidence.gated_exponent``; 0: α profiled in every pool)
     block_windows: int = 16
     theta_step_deg: float | None = None  # None: a block's windows read its centre's zone; else each window reads
     #                                      the zones of a θ grid of this step around its own θ (``ZoneKernels.field_reads``)
@@ -181,6 +194,18 @@ class ClassicalConfig:
         if not 0.0 <= self.clipped_ramp_samples <= MAX_CLIPPED_RAMP_SAMPLES:
             raise ValueError(f"clipped_ramp_samples must lie in [0, {MAX_CLIPPED_RAMP_SAMPLES}] (plane samples), got "
                              f"{self.clipped_ramp_samples}")
+        if self.exponent_scope not in EXPONENT_SCOPES:
+            raise ValueError(f"exponent_scope must be one of {EXPONENT_SCOPES}, got {self.exponent_scope!r}")
+        if self.exponent_scope == "pooled" and not self.pool_sigma_px > 0:
+            raise ValueError("exponent_scope 'pooled' profiles the exponent of the pooled curves: it needs "
+                             "pool_sigma_px > 0")
+        if not 0.0 <= self.exponent_gate_nats <= MAX_EXPONENT_GATE_NATS:
+            raise ValueError(f"exponent_gate_nats must lie in [0, {MAX_EXPONENT_GATE_NATS:g}] (nats), got "
+                             f"{self.exponent_gate_nats}")
+        if self.exponent_gate_nats > 0 and (self.exponent_scope != "pooled" or EXPONENT_PRIOR[0] not in self.slopes):
+            raise ValueError(f"exponent_gate_nats gates the pooled exponent profile against the prior's α = "
+                             f"{EXPONENT_PRIOR[0]:g}: it needs exponent_scope 'pooled' and {EXPONENT_PRIOR[0]:g} "
+                             f"among the slopes, got {self.exponent_scope!r} and {self.slopes!r}")
         if self.window_model not in WINDOW_MODELS:
             raise ValueError(f"window_model must be one of {WINDOW_MODELS}, got {self.window_model!r}")
         if self.noise_model not in NOISE_MODELS:
@@ -193,6 +218,25 @@ class ClassicalConfig:
         d = asdict(self)
         d["slopes"] = list(self.slopes)
         return d
+
+
+TEXTURE_EXPONENTS: dict[str, dict[str, Any]] = {
+    "prior": {},
+    "profiled": {"slopes": (1.6, 2.0, 2.4), "exact_model_below": 1.0, "exponent_scope": "pooled",
+                 "exponent_gate_nats": 30.0},
+}
+"""What ``bmi infer --texture-exponent`` sets in a decoder's ``ClassicalConfig``. "prior": its own knobs (the texture's
+power spectrum 1/f², the natural images' mean). "profiled": each pool's exponent α profiled over 1.6–2.4 where that
+lowers its pooled NLL by more than 30 nats, on the exact model (the taper-smoothed model's approximations at the lowest
+frequencies bias a profiled α); for scenes of large natural surfaces beyond about 3 m, whose exponents scatter about 2
+(docs/decoder.md, "The texture's exponent")."""
+
+
+def with_texture_exponent(config: ClassicalConfig, mode: str) -> ClassicalConfig:
+    """``config`` with the knobs of ``TEXTURE_EXPONENTS[mode]`` (refused, naming the modes, for another ``mode``)."""
+    if mode not in TEXTURE_EXPONENTS:
+        raise ValueError(f"texture exponent {mode!r}: one of {', '.join(TEXTURE_EXPONENTS)}")
+    return replace(config, **TEXTURE_EXPONENTS[mode])
 
 
 UPSAMPLE_ROWS = 512
@@ -329,6 +373,10 @@ class ClassicalDecoder:
         if pooling:  # every window's whole curve and colour, for pooling once the grid is read
             curves = np.full((grid_rows, grid_cols, n_cand), np.nan, np.float32)
             colour = np.zeros((grid_rows, grid_cols, 3), np.float32)
+        n_slopes = len(cfg.slopes)
+        by_slope = pooling and cfg.exponent_scope == "pooled" and n_slopes > 1
+        if by_slope:  # and each slope's, less the window's least NLL over every slope and candidate
+            slope_curves = np.full((grid_rows, grid_cols, n_slopes, n_cand), np.nan, np.float32)
         evaluations = {"full": 0, "done": 0}
         blocks = evidence_blocks(cfg, height, width)
         workers, fft_threads = self._block_threads(len(blocks))
@@ -365,7 +413,6 @@ class ClassicalDecoder:
             # group's β grid placed by its own windows and coarse models; without a gate, one group of every window
             groups = [(mask, exact, block_part(mask, spectra, noise_vars, clipped, reads))
                       for mask, exact in window_groups(windows, cfg.exact_model_below) if mask.any()]
-            n_slopes = len(cfg.slopes)
             coarse_nll = np.empty((n_slopes, nr * nc, len(coarse)))
             coarse_models = {}
             for mask, exact, (g_spectra, g_noise, g_clipped, g_reads) in groups:
@@ -376,6 +423,7 @@ class ClassicalDecoder:
                                                       g_clipped)
             if pairs is not None:
                 coarse_nll += pairs.nll(coarse)
+            coarse_by_slope = coarse_nll
             coarse_nll = profile_exponent(coarse_nll, cfg.slopes)
             best = np.unique(coarse[np.argmin(coarse_nll, axis=1)])
             reach = np.arange(-cfg.coarse_step, cfg.coarse_step + 1)
@@ -385,6 +433,8 @@ class ClassicalDecoder:
             fine = np.setdiff1d(which, coarse)
             nll = np.empty((nr * nc, len(which)))
             nll[:, np.isin(which, coarse)] = coarse_nll[:, np.isin(coarse, which)]
+            nll_by_slope = np.empty((n_slopes, nr * nc, len(which)))
+            nll_by_slope[:, :, np.isin(which, coarse)] = coarse_by_slope[:, :, np.isin(coarse, which)]
             if len(fine):
                 fine_nll = np.empty((n_slopes, nr * nc, len(fine)))
                 for mask, exact, (g_spectra, g_noise, g_clipped, g_reads) in groups:
@@ -395,6 +445,7 @@ class ClassicalDecoder:
                                                         coarse_models[exact])
                 if pairs is not None:
                     fine_nll += pairs.nll(fine)
+                nll_by_slope[:, :, np.isin(which, fine)] = fine_nll
                 nll[:, np.isin(which, fine)] = profile_exponent(fine_nll, cfg.slopes)
             depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
             return {"evidence": (coarse_nll - coarse_nll.min(axis=1, keepdims=True)).reshape(nr, nc, -1),
@@ -404,6 +455,8 @@ class ClassicalDecoder:
                     "curves": (whole_curves(coarse, coarse_nll, which, nll, n_cand).reshape(nr, nc, -1)
                                if pooling else None),
                     "colour": window_colour([w[1] for w in windows]).reshape(nr, nc, 3) if pooling else None,
+                    "slope_curves": (slope_whole_curves(coarse, coarse_by_slope, which, nll_by_slope, n_cand)
+                                     .reshape(nr, nc, n_slopes, n_cand) if by_slope else None),
                     "full": window_reads * n_cand, "done": window_reads * (len(coarse) + len(fine)),
                     "evidence_s": time.perf_counter() - t0 - kernels_s, "kernels_s": kernels_s}
 
@@ -429,6 +482,8 @@ class ClassicalDecoder:
             if pooling:
                 curves[cells] = read["curves"]
                 colour[cells] = read["colour"]
+            if by_slope:
+                slope_curves[cells] = read["slope_curves"]
             for key in ("full", "done"):
                 evaluations[key] += read[key]
             for key in ("evidence_s", "kernels_s"):
@@ -437,10 +492,18 @@ class ClassicalDecoder:
             bar.close()
         t0 = time.perf_counter()
         sigma_laplace = sig
+        windows_profiled = int(np.isfinite(inv).sum()) if n_slopes > 1 else 0
         spread = local_spread(inv)  # the windows' own reads: how much they disagree is what the σ model was fitted on
         if pooling:
-            pooled = pool_evidence(curves, colour, cfg.pool_sigma_px / cfg.stride_px, cfg.pool_colour_sigma,
-                                   cfg.pool_truncate_nats)
+            pool = lambda c: pool_evidence(c, colour, cfg.pool_sigma_px / cfg.stride_px,  # noqa: E731
+                                           cfg.pool_colour_sigma, cfg.pool_truncate_nats)
+            if by_slope:  # one α per pool: each slope's curves pooled, then α profiled from the pooled NLLs
+                pooled, profiled = gated_exponent(np.stack([pool(slope_curves[..., a, :]) for a in range(n_slopes)]),
+                                                  cfg.slopes, cfg.exponent_gate_nats)
+                windows_profiled = int((profiled & np.isfinite(inv)).sum())
+                del slope_curves
+            else:
+                pooled = pool(curves)
             inv = np.where(np.isfinite(inv), 1.0 / Evidence(np.nan_to_num(pooled), cand_inv).refine()[0], np.nan)
         timings["pool_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -482,6 +545,7 @@ class ClassicalDecoder:
                  "windows_with_clipped_samples": windows_clipped,
                  "windows_scored_without_clipped_samples": windows_masked,
                  "windows_without_evidence": int(blind.sum()),
+                 "windows_exponent_profiled": windows_profiled,
                  "candidate_evaluations": evaluations["done"],
                  "candidate_evaluations_exhaustive": evaluations["full"],
                  "kernel_sets_computed": self.zones.kernel_sets_computed,
@@ -685,8 +749,9 @@ def coarse_indices(n_candidates: int, coarse_step: int) -> np.ndarray:
 
 
 def whole_curves(coarse: np.ndarray, coarse_nll: np.ndarray, which: np.ndarray, nll: np.ndarray,
-                 n_candidates: int) -> np.ndarray:
-    """(windows, n_candidates) float32 NLL less each window's minimum over every candidate, from a block's two passes:
+                 n_candidates: int, relative: bool = True) -> np.ndarray:
+    """(windows, n_candidates) NLL less each window's minimum over every candidate (float32; ``relative`` False: the
+    NLL itself, float64), from a block's two passes:
     the coarse pass's ``coarse_nll`` (windows, len(coarse)) and the fine pass's ``nll`` (windows, len(which)), one
     curve on one β grid; candidates neither pass scored are interpolated linearly between the scored ones (they lie
     away from every window's best, where the curve is smooth and pooling truncates it)."""
@@ -699,7 +764,18 @@ def whole_curves(coarse: np.ndarray, coarse_nll: np.ndarray, which: np.ndarray, 
     hi = np.minimum(lo + 1, len(scored) - 1)
     frac = pos - lo
     full = values[:, lo] * (1.0 - frac) + values[:, hi] * frac
-    return (full - full.min(axis=1, keepdims=True)).astype(np.float32)
+    return (full - full.min(axis=1, keepdims=True)).astype(np.float32) if relative else full
+
+
+def slope_whole_curves(coarse: np.ndarray, coarse_by_slope: np.ndarray, which: np.ndarray, nll_by_slope: np.ndarray,
+                       n_candidates: int) -> np.ndarray:
+    """(windows, slopes, n_candidates) float32 ``whole_curves`` of each slope's NLLs (slopes, windows, ·), less each
+    window's least NLL over every slope and candidate, so that the slopes' curves stay comparable (``exponent_scope``
+    "pooled")."""
+    n_slopes, n_windows, _ = nll_by_slope.shape
+    full = np.stack([whole_curves(coarse, coarse_by_slope[a], which, nll_by_slope[a], n_candidates, relative=False)
+                     for a in range(n_slopes)], axis=1)
+    return (full - full.min(axis=(1, 2), keepdims=True)).astype(np.float32)
 
 
 def local_spread(inv: np.ndarray) -> np.ndarray:

@@ -121,6 +121,29 @@ def profile_exponent(nll_by_slope: np.ndarray, slopes) -> np.ndarray:
     return parabola_minimum(np.moveaxis(total, 0, -1))
 
 
+def gated_exponent(pooled_by_slope: np.ndarray, slopes, gate_nats: float) -> tuple[np.ndarray, np.ndarray]:
+    """((...) pooled NLL, (...[:-1]) bool: α profiled) from (A, ..., D) pooled NLLs, one per slope of ``slopes``, each
+    window's pool over D candidates: α profiled out (``profile_exponent``) in the pools where that lowers the least NLL
+    over the candidates by more than ``gate_nats`` below the prior's own α (``EXPONENT_PRIOR``, which must be among
+    the slopes), that α's NLL elsewhere; ``gate_nats`` 0 profiles every pool.
+
+    A likelihood-ratio test of the texture's exponent: a pool sums many windows' NLLs, so a surface whose spectrum
+    falls steeper or flatter than 1/f² moves it by many nats, and one of 1/f² texture rarely does; there the prior's
+    α is kept, which reads depth more precisely than α profiled (``bmi bench objects``). The windows of a pool
+    overlap, so its NLL differences are not χ²-distributed and the gate is an empirical threshold, not a p-value.
+    """
+    pooled_by_slope = np.asarray(pooled_by_slope, np.float64)
+    profiled = profile_exponent(pooled_by_slope, slopes)
+    keep = np.ones(profiled.shape[:-1], bool)
+    if gate_nats > 0:
+        prior = list(np.asarray(slopes, np.float64)).index(EXPONENT_PRIOR[0])
+        fixed = pooled_by_slope[prior]
+        with np.errstate(invalid="ignore"):
+            keep = np.nan_to_num(fixed.min(axis=-1) - profiled.min(axis=-1)) > gate_nats
+        profiled = np.where(keep[..., None], profiled, fixed)
+    return profiled.astype(np.float32), keep
+
+
 def parabola_minimum(values: np.ndarray) -> np.ndarray:
     """(...) the least of (..., L ≥ 3) values on an evenly spaced grid along their last axis: the vertex of the parabola
     through the least value and its two neighbours (the end value's neighbours at either end), clamped to that

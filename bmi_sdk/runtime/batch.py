@@ -89,6 +89,7 @@ class DecodeOptions:
     allow_test_pattern: bool = False
     providers: str | tuple[str, ...] | None = None   # onnxruntime execution provider(s); None: the best available
     depth_range_m: tuple[float, float] | None = None  # fixed depth_preview.png colours (near, far), metres
+    texture_exponent: str = "prior"        # decode.classical.TEXTURE_EXPONENTS (the evidence and classical decoders)
 
 
 @dataclass
@@ -122,7 +123,8 @@ class FrameDecoder:
         key = camera.sha256()
         if key not in self.decoders:
             self.decoders[key] = open_decoder(camera, o.decoder, o.model_path, o.classical_config,
-                                              DecoderOptions(o.tile_px, o.threads, o.providers, o.overlap_px))
+                                              DecoderOptions(o.tile_px, o.threads, o.providers, o.overlap_px,
+                                                             o.texture_exponent))
         return self.decoders[key]
 
     def decode(self, frame_path: str | os.PathLike, out_dir: str | os.PathLike) -> dict:

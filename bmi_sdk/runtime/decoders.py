@@ -69,6 +69,8 @@ class DecoderOptions:
     threads: int | None = None                        # None: all cores
     providers: str | tuple[str, ...] | None = None   # None: the best available (``model.choose_providers``)
     overlap_px: int | None = None                     # None: the model's receptive field
+    texture_exponent: str = "prior"                   # decode.classical.TEXTURE_EXPONENTS: the evidence and classical
+    #                                                   decoders' texture model; the others take only "prior"
 
 
 class Decoder(Protocol):
@@ -89,6 +91,7 @@ class DecoderClass(Protocol):
     title: str
     model_kind: str | None
     takes_config: bool
+    takes_texture_exponent: bool  # reads ``DecoderOptions.texture_exponent``; else refuses any but "prior"
 
     def __call__(self, camera: BuiltCamera, model, config, options: DecoderOptions) -> Decoder: ...
 
@@ -201,6 +204,15 @@ def camera_head(camera: BuiltCamera) -> dict:
     return camera.to_dict() | {"sha256": camera.sha256()}
 
 
+def refuse_texture_exponent(kind: str, texture_exponent: str) -> None:
+    """Refuse a texture model other than the prior's for a decoder whose network holds its own
+    (``takes_texture_exponent`` False)."""
+    if texture_exponent != "prior" and not DECODERS[kind].takes_texture_exponent:
+        takers = ", ".join(k for k, cls in DECODERS.items() if cls.takes_texture_exponent)
+        raise ValueError(f"texture exponent {texture_exponent!r}: the {kind} decoder reads with its model's own "
+                         f"texture model (only 'prior'); the {takers} decoders take it")
+
+
 @register
 class LearnedDecoder:
     """The classical stage over the camera's kernels with its model's knobs, then the refinement network, fused."""
@@ -209,10 +221,12 @@ class LearnedDecoder:
     title = "learned refinement"
     model_kind: str | None = "learned"
     takes_config = False
+    takes_texture_exponent = False
 
     def __init__(self, camera: BuiltCamera, model, config, options: DecoderOptions):
         from .learned import learned_decoder
 
+        refuse_texture_exponent(self.kind, options.texture_exponent)
         self.camera, self.options = camera, options
         self.model = load_model(model, camera, self.kind, options)
         self.stage = learned_decoder(self.model, camera, options.threads)
@@ -236,8 +250,10 @@ class NetworkDecoder:
     title = "end-to-end network"
     model_kind: str | None = "cnn"
     takes_config = False
+    takes_texture_exponent = False
 
     def __init__(self, camera: BuiltCamera, model, config, options: DecoderOptions):
+        refuse_texture_exponent(self.kind, options.texture_exponent)
         self.camera, self.options = camera, options
         self.model = load_model(model, camera, self.kind, options)
 
@@ -260,14 +276,16 @@ class ClassicalDecoderKind:
     title = "classical decoder"
     model_kind: str | None = None
     takes_config = True
+    takes_texture_exponent = True
 
     def __init__(self, camera: BuiltCamera, model, config, options: DecoderOptions):
         from dataclasses import replace
 
         from ..decode import ClassicalConfig
+        from ..decode.classical import with_texture_exponent
         from .classical import classical_decoder
 
-        config = config or ClassicalConfig()
+        config = with_texture_exponent(config or ClassicalConfig(), options.texture_exponent)
         if options.threads is not None and config.threads is None:  # e.g. a Dask worker's own thread count
             config = replace(config, threads=options.threads)
         self.camera, self.options = camera, options
@@ -292,6 +310,7 @@ class EvidenceDecoder:
     title = "evidence network"
     model_kind: str | None = "evidence"
     takes_config = False
+    takes_texture_exponent = True
 
     def __init__(self, camera: BuiltCamera, model, config, options: DecoderOptions):
         from .evidence import EvidenceNetwork, evidence_stage
@@ -301,7 +320,7 @@ class EvidenceDecoder:
             model = packaged_model(camera, self.kind)
         self.model = EvidenceNetwork(getattr(model, "path", model), threads=options.threads,
                                      providers=options.providers)
-        self.stage = evidence_stage(self.model, camera, options.threads)
+        self.stage = evidence_stage(self.model, camera, options.threads, options.texture_exponent)
 
     def decode(self, frame, progress: bool = False) -> DecodedFrame:
         from .evidence import decode_evidence

@@ -32,6 +32,7 @@ import numpy as np
 
 from ..built_camera import BuiltCamera
 from ..decode import ClassicalConfig, ClassicalDecoder
+from ..decode.classical import with_texture_exponent
 from ..decode.support import SupportConfig, frame_support_read
 from ..decode.volume import guided_upsample, pixel_log_colour, posterior, volume_inputs
 from ..model_io import raw_to_rgb
@@ -132,10 +133,13 @@ class EvidenceNetwork:
         return inv, sig
 
 
-def evidence_stage(network: EvidenceNetwork, camera: BuiltCamera, threads: int | None = None) -> ClassicalDecoder:
-    """The classical decoder whose volume ``network`` reads: the camera's kernels, the manifest's knobs, and the
-    candidates the network was trained on (refused, naming both, when the camera's kernels give others)."""
-    stage = ClassicalDecoder.for_psf_map(camera.psf_map(disk_cache=True), network.stage_config(threads))
+def evidence_stage(network: EvidenceNetwork, camera: BuiltCamera, threads: int | None = None,
+                   texture_exponent: str = "prior") -> ClassicalDecoder:
+    """The classical decoder whose volume ``network`` reads: the camera's kernels, the manifest's knobs (with
+    ``texture_exponent``'s, ``decode.classical.TEXTURE_EXPONENTS``), and the candidates the network was trained on
+    (refused, naming both, when the camera's kernels give others)."""
+    config = with_texture_exponent(network.stage_config(threads), texture_exponent)
+    stage = ClassicalDecoder.for_psf_map(camera.psf_map(disk_cache=True), config)
     got = stage.candidates.inv_depth_per_m
     if got.shape != network.inv_depth_per_m.shape or not np.allclose(got, network.inv_depth_per_m, rtol=1e-5):
         raise ModelError(f"evidence network {network.path.name} reads {len(network.inv_depth_per_m)} depth "

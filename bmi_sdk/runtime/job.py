@@ -135,14 +135,15 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = Fals
             calibration_path: str | os.PathLike | None = None, classical_config=None, tile_px: int = 512,
             threads: int | None = None, overlap_px: int | None = None, providers=None, ply_step_px: int = 1,
             progress: bool = False, allow_test_pattern: bool = False,
-            depth_range_m: tuple[float, float] | None = None,
+            depth_range_m: tuple[float, float] | None = None, texture_exponent: str = "prior",
             input_path: str | os.PathLike | None = None) -> tuple[DecodedFrame, dict]:
     """Read (if a path), decode, write outputs and ``report.json`` into ``out_dir``; return (decoded, report).
 
     ``decoder``: an opened ``Decoder`` (``decoders.open_decoder``; a batch opens one per camera and reuses it),
     or the kind to open for this frame's camera (``decoders.DECODERS``; None: the kind of ``model`` or
-    ``model_path``, else ``DEFAULT_DECODER``) with ``model``/``model_path``, ``classical_config`` and the network's
-    ``tile_px``, ``threads``, ``providers``, ``overlap_px``. ``calibration`` (a loaded ``calibration.io.Calibration``)
+    ``model_path``, else ``DEFAULT_DECODER``) with ``model``/``model_path``, ``classical_config``, the network's
+    ``tile_px``, ``threads``, ``providers``, ``overlap_px`` and the texture model (``texture_exponent``,
+    ``decode.classical.TEXTURE_EXPONENTS``). ``calibration`` (a loaded ``calibration.io.Calibration``)
     or ``calibration_path`` (its file) makes the camera the calibrated one, after ``check_calibration``.
 
     The frame passes ``quality_gate`` first: its findings go to ``warnings.warn`` (``FrameQualityWarning``) and
@@ -174,7 +175,7 @@ def run_job(frame_or_path, out_dir: str | os.PathLike, *, overwrite: bool = Fals
         else:
             t0 = time.perf_counter()
             decoder = open_decoder(camera, decoder, model if model is not None else model_path, classical_config,
-                                   DecoderOptions(tile_px, threads, providers, overlap_px))
+                                   DecoderOptions(tile_px, threads, providers, overlap_px, texture_exponent))
             loaded = getattr(decoder, "model", None)
             if loaded is not None and loaded is not model:
                 timings["load_model_s"] = loaded.load_s
