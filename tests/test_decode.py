@@ -943,7 +943,9 @@ def test_windows_read_at_their_own_theta_agree_with_the_block_zone_on_the_field_
 def test_a_warmed_cache_serves_a_frames_decode_without_tracing(tmp_path, monkeypatch):
     """``warm_kernels`` traces every zone kernel a window's decode reads (evidence and AiF blocks) into the disk
     cache, and makes their evidence models: a second warm-up traces and makes nothing, and a fresh decoder (a new
-    process's) decodes the window reading every kernel and evidence model from disk. A region off the sensor is refused before any work."""
+    process's) decodes the window reading every kernel and evidence model from disk, with the prior's texture exponent
+    or the profiled one. A region off the sensor is refused before any work."""
+    from bmi_sdk.decode.classical import with_texture_exponent
     from bmi_sdk.runtime.classical import classical_decoder, warm_kernels
 
     monkeypatch.setenv("BMI_CACHE_DIR", str(tmp_path / "cache"))
@@ -961,6 +963,13 @@ def test_a_warmed_cache_serves_a_frames_decode_without_tracing(tmp_path, monkeyp
     assert out.valid.any() and decoder.zones.kernel_sets_computed > 0
     assert decoder.zones.psf_map.kernels_traced == 0 and out.stats["kernel_sets_traced"] == 0
     assert out.stats["models_computed"] == 0  # and every evidence model from the shards the warm-up wrote
+    # the profiled texture exponent reads every window with the exact model of three slopes: the warm-up makes those
+    profiled = with_texture_exponent(config, "profiled")
+    made = warm_kernels(camera, profiled, roi=roi)
+    assert made["kernel_sets_traced"] == 0 and made["evidence_models_made"] == first["kernel_sets"]
+    out = classical_decoder(camera, profiled).decode(raw, BLACK, WHITE, camera.sensor(), roi[0], roi[1],
+                                                     noise_profile=NoiseProfile.additive(0.005))
+    assert out.valid.any() and out.stats["models_computed"] == 0
     with pytest.raises(ValueError, match="not inside the"):
         warm_kernels(camera, config, roi=(4400, 0, 200, 200))
     with pytest.raises(ValueError, match="workers must be >= 1"):

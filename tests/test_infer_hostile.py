@@ -74,7 +74,7 @@ def test_a_texture_exponent_is_refused_by_a_decoder_whose_network_holds_its_own_
     out = tmp_path / "out"
     for decoder in ("learned", "cnn"):
         code, err = _infer(capsys, dng, "--out", out, "--decoder", decoder, "--texture-exponent", "profiled")
-        assert code == 2 and "texture exponent 'profiled'" in err and "classical, evidence decoders take it" in err, err
+        assert code == 2 and "--texture-exponent profiled: the " in err and "classical, evidence decoders take it" in err, err
         assert "Traceback" not in err and not out.exists()
     for value in ("natural", "", "nan"):
         code, err = _infer(capsys, dng, "--out", out, "--texture-exponent", value)

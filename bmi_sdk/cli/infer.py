@@ -110,7 +110,8 @@ def _run(args) -> int:
     try:
         refuse_texture_exponent(args.decoder, args.texture_exponent)
     except ValueError as exc:
-        raise OptionError(f"--texture-exponent {args.texture_exponent}: {exc}", "--texture-exponent") from None
+        raise OptionError(f"--texture-exponent {args.texture_exponent}: {str(exc).split(': ', 1)[-1]}",
+                          "--texture-exponent") from None
     if args.provider is not None:  # an unavailable provider fails here, naming the available ones, before any work
         from bmi_sdk.runtime.model import choose_providers
 

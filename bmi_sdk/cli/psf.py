@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from ._options import number, whole
+from ._options import OptionError, number, whole
 
 
 def kernel_png(kernel):
@@ -89,7 +89,7 @@ def _warm(args) -> int:
 
     from bmi_sdk.built_camera import BuiltCamera
     from bmi_sdk.runtime.classical import warm_kernels
-    from bmi_sdk.runtime.decoders import open_decoder
+    from bmi_sdk.runtime.decoders import DecoderOptions, open_decoder, refuse_texture_exponent
 
     roi = None
     if args.frame is not None:  # the camera that took the frame, as `bmi infer` builds it
@@ -105,7 +105,13 @@ def _warm(args) -> int:
         camera = BuiltCamera.from_calibration(load_calibration(args.calibration))
     else:
         camera = BuiltCamera(lens_name=args.lens)
-    stage = getattr(open_decoder(camera, args.decoder, args.model), "stage", None)  # the decoder, as bmi infer opens it
+    try:
+        refuse_texture_exponent(args.decoder, args.texture_exponent)
+    except ValueError as exc:
+        raise OptionError(f"--texture-exponent {args.texture_exponent}: {str(exc).split(': ', 1)[-1]}",
+                          "--texture-exponent") from None
+    options = DecoderOptions(texture_exponent=args.texture_exponent)
+    stage = getattr(open_decoder(camera, args.decoder, args.model, options=options), "stage", None)  # as bmi infer
     if stage is None:
         raise ValueError(f"--decoder {args.decoder} reads no kernels of the camera: nothing to warm")
     report = warm_kernels(camera, stage.config, roi=roi, workers=args.workers, progress=not args.quiet)
@@ -118,6 +124,7 @@ def _warm(args) -> int:
 
 
 def register(subparsers) -> None:
+    from bmi_sdk.decode.classical import TEXTURE_EXPONENTS
     from bmi_sdk.lenses import DEFAULT_LENS
     from bmi_sdk.runtime.decoders import DECODERS, DEFAULT_DECODER
 
@@ -169,6 +176,9 @@ def register(subparsers) -> None:
                    help=f"whose knobs (candidates) to trace for, e.g. the learned model's classical stage or the "
                         f"classical decoder's (default {DEFAULT_DECODER})")
     w.add_argument("--model", help="learned model whose manifest names its classical knobs (default: the packaged one)")
+    w.add_argument("--texture-exponent", choices=tuple(TEXTURE_EXPONENTS), default="prior",
+                   help="bmi infer's --texture-exponent: profiled makes the exact models of its three slopes "
+                        "(default prior)")
     w.add_argument("--lens", default=DEFAULT_LENS, help="lens of a nominal camera (without --calibration)")
     w.add_argument("--workers", type=whole(1, 64), default=1, help="processes tracing zones side by side (default 1)")
     w.add_argument("--json", action="store_true", help="print the report as JSON")

@@ -124,13 +124,15 @@ class _ZoneTracer:
 
 def _trace_ring(decoder: ClassicalDecoder, ring: list) -> tuple[int, int]:
     """Trace (or read) the kernels of one θ ring's zones, [(zone, candidate indices)], and make (or read) their
-    evidence models (the window model every window not gated to the exact one reads), into the disk cache; returns
-    the kernel sets traced and the models made. A ring is one job, so its zones share the process's pupil fits (the
-    design's depend on θ alone) and aims (every lens's)."""
+    evidence models (the window model every window not gated to the exact one reads: the exact model where the
+    config gates every window to it, ``exact_model_below`` ≥ 1), into the disk cache; returns the kernel sets traced
+    and the models made. A ring is one job, so its zones share the process's pupil fits (the design's depend on θ
+    alone) and aims (every lens's)."""
     traced, made = decoder.zones.psf_map.kernels_traced, decoder.zones.models_computed
+    exact = decoder.config.exact_model_below >= 1.0
     for zone, which in ring:
         decoder.zones.kernels(zone, which)
-        decoder.zones.models(zone, which)
+        decoder.zones.models(zone, which, exact)
     return decoder.zones.psf_map.kernels_traced - traced, decoder.zones.models_computed - made
 
 
