@@ -331,6 +331,19 @@ def test_paired_differences_subtract_the_reference_tile_by_tile_and_cancel_the_s
         paired_differences([rows[0], rows[1] | {"tile_absrel": new[:2]}], "evidence")
 
 
+def test_eval_refuses_a_texture_exponent_no_decoder_run_takes_and_an_unknown_one(capsys):
+    from bmi_sdk.cli import main
+    from bmi_sdk.nn.evaluate import Benchmark
+
+    assert main(["eval", "--decoder", "learned,cnn", "--texture-exponent", "profiled", "--conditions", "standard"]) == 2
+    captured = capsys.readouterr()
+    assert "--texture-exponent profiled" in captured.err and "rendering" not in captured.err + captured.out
+    with pytest.raises(SystemExit):
+        main(["eval", "--decoder", "classical", "--texture-exponent", "natural"])
+    with pytest.raises(ValueError, match="texture_exponent must be one of prior, profiled"):
+        Benchmark(texture_exponent="natural")
+
+
 def test_eval_refuses_a_reference_that_is_not_a_decoder_run(capsys):
     from bmi_sdk.cli import main
 

@@ -14,6 +14,7 @@ PAIRED_KEYS = ("tiles", "absrel_diff", "absrel_diff_se", "better_share")
 def register(subparsers) -> None:
     from bmi_sdk.bench.record import add_json_argument
     from bmi_sdk.cli.infer import WINDOW_KNOBS, add_classical_arguments
+    from bmi_sdk.decode.classical import TEXTURE_EXPONENTS
     from bmi_sdk.nn.evaluate import PAPER_SCENE_SCALE
     from bmi_sdk.nn.sampled_cameras import SAMPLED_CAMERAS
     from bmi_sdk.runtime.decoders import DECODERS, DEFAULT_DECODER
@@ -51,6 +52,9 @@ def register(subparsers) -> None:
     p.add_argument("--reference", default=None, metavar="KIND",
                    help="with two or more decoders: the decoder the others are compared with, tile by tile on the "
                         "same tiles (a third table; default the first --decoder)")
+    p.add_argument("--texture-exponent", choices=tuple(TEXTURE_EXPONENTS), default="prior",
+                   help="the texture model of the decoders that take one (evidence, classical), as bmi infer's "
+                        "(default prior)")
     p.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
     add_classical_arguments(p, WINDOW_KNOBS)
     p.add_argument("--jsonl", action="store_true", help="print one JSON object per line per condition, decoder, "
@@ -92,6 +96,7 @@ def _run(args) -> int:
     from dataclasses import replace
 
     from bmi_sdk.bench.record import check_record_path, write_record
+    from bmi_sdk.cli._options import OptionError
     from bmi_sdk.cli.infer import WINDOW_KNOBS, changed_classical_flags, classical_config
     from bmi_sdk.nn.eval_paired import paired_differences
     from bmi_sdk.nn.evaluate import Benchmark, run_benchmark
@@ -103,6 +108,10 @@ def _run(args) -> int:
     reference = args.reference if args.reference is not None else decoders[0]
     if reference not in decoders:
         raise ValueError(f"--reference {args.reference}: not one of the decoders run ({', '.join(decoders)})")
+    if args.texture_exponent != "prior" and not any(DECODERS[d].takes_texture_exponent for d in decoders):
+        raise OptionError(f"--texture-exponent {args.texture_exponent}: --decoder {','.join(decoders)} runs no "
+                          "decoder that takes a texture model (the evidence and classical decoders do)",
+                          "--texture-exponent")
     changed = changed_classical_flags(args, WINDOW_KNOBS)
     if changed and not any(DECODERS[d].takes_config for d in decoders):
         raise ValueError(f"{', '.join(changed)} set(s) the classical decoder's knobs, and --decoder "
@@ -115,7 +124,7 @@ def _run(args) -> int:
     scales = _scales(args)
     check_record_path(args.json, args.overwrite)
     bench = Benchmark(tiles=args.tiles, tile_px=args.tile_px, seed=args.seed, threads=args.threads,
-                      scene_scale=scales[0])
+                      scene_scale=scales[0], texture_exponent=args.texture_exponent)
     _check_memory(args, replace(bench, scene_scale=max(scales)))
     conditions = [c.strip() for c in args.conditions.split(",")] if args.conditions else None
     config = classical_config(args, WINDOW_KNOBS)

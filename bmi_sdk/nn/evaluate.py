@@ -161,6 +161,8 @@ class Benchmark:
     scheduler: str | None = None  # renders on Dask (``scaleout``: local:N or tcp://HOST:PORT); None: here
     scene_scale: float = 1.0  # > 1: each tile's scene is drawn this much larger and its centre kept (``scene``);
     #                           bmi eval runs at PAPER_SCENE_SCALE
+    texture_exponent: str = "prior"  # the decoders that take one read with this texture model
+    #                                  (``decode.classical.TEXTURE_EXPONENTS``; ``DecoderOptions.texture_exponent``)
 
     def __post_init__(self):
         if not self.scene_scale >= 1.0:
@@ -173,6 +175,11 @@ class Benchmark:
         if self.tile_px % 4:
             raise ValueError(f"benchmark tile_px must be a multiple of 4 (whole Bayer cells, the networks' size "
                              f"multiple), got {self.tile_px}")
+        from bmi_sdk.decode.classical import TEXTURE_EXPONENTS
+
+        if self.texture_exponent not in TEXTURE_EXPONENTS:
+            raise ValueError(f"benchmark texture_exponent must be one of {', '.join(TEXTURE_EXPONENTS)}, got "
+                             f"{self.texture_exponent!r}")
 
     @property
     def margin_px(self) -> int:
@@ -341,15 +348,18 @@ def open_tiles(kinds, camera: BuiltCamera, models: dict, config, bench: "Benchma
     """The registry's decoders of ``kinds`` opened once on ``camera`` (``open_decoder``), each as a ``FrameTiles``
     named ``kind + suffix``: ``models`` maps a kind to its model (a path or a loaded one; a kind without one reads its
     packaged model for the camera's lens), ``config`` goes to the decoders that take a ``ClassicalConfig``, and the
-    networks run with ``bench.threads`` threads on network tiles of ``bench.tile_px + NETWORK_MARGIN_PX``.
+    networks run with ``bench.threads`` threads on network tiles of ``bench.tile_px + NETWORK_MARGIN_PX``; the
+    decoders that take a texture model read with ``bench.texture_exponent``, the others with their own.
     ``skip_missing`` leaves out a kind that has no model for the lens (``ModelError``), as the fisheye has no learned
     refinement."""
     from bmi_sdk.model_manifest import ModelError
     from bmi_sdk.runtime.decoders import DECODERS, DecoderOptions, open_decoder
 
-    options = DecoderOptions(tile_px=bench.tile_px + NETWORK_MARGIN_PX, threads=bench.threads)
     out = []
     for kind in kinds:
+        texture = bench.texture_exponent if DECODERS[kind].takes_texture_exponent else "prior"
+        options = DecoderOptions(tile_px=bench.tile_px + NETWORK_MARGIN_PX, threads=bench.threads,
+                                 texture_exponent=texture)
         try:
             decoder = open_decoder(camera, kind, models.get(kind), config if DECODERS[kind].takes_config else None,
                                    options)
