@@ -89,7 +89,7 @@ def test_a_memory_refusal_names_the_option_its_value_the_estimate_and_the_limit(
         assert f"{option} 100000" in err and "GiB, more than the" in err and "GiB limit" in err, err
 
 
-def test_the_memory_estimate_refuses_no_default_decode_and_follows_each_option():
+def test_the_memory_estimate_refuses_no_default_decode_and_follows_each_option(monkeypatch):
     from dataclasses import replace
 
     from bmi_sdk.decode import ClassicalConfig
@@ -104,6 +104,17 @@ def test_the_memory_estimate_refuses_no_default_decode_and_follows_each_option()
     with pytest.raises(MemoryBudgetError, match=r"--window-px 100000 needs about") as caught:
         check_classical_memory(replace(default, window_px=100000))  # before the decoder allocates its taper
     assert caught.value.option == "--window-px"
+    # the profiled texture exponent holds each slope's curves and their pooled stack as well: counted, and a stride
+    # the prior's curves fit in is refused for it on a full frame
+    from bmi_sdk.decode.classical import with_texture_exponent
+
+    monkeypatch.setenv("BMI_MAX_MEMORY_MB", "4096")  # the default cap, whatever this machine has free
+    profiled = with_texture_exponent(default, "profiled")
+    assert classical_peak_bytes(profiled, 4500, 6000) > classical_peak_bytes(default, 4500, 6000)
+    check_classical_memory(profiled, 4500, 6000)
+    check_classical_memory(replace(default, stride_px=4), 4500, 6000)
+    with pytest.raises(MemoryBudgetError, match=r"--stride-px 4 needs about"):
+        check_classical_memory(replace(profiled, stride_px=4), 4500, 6000)
 
 
 def test_overlap_is_reported_as_given(capsys, dng, tmp_path):

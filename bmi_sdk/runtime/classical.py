@@ -29,8 +29,9 @@ def classical_peak_bytes(config: ClassicalConfig, height_px: int = 0, width_px: 
     read at once (``block_windows``² windows of n² float32 each, copied, tapered and transformed, on every
     thread), the kernel models (4 planes × slopes × candidates × n × (n/2 + 1) float32), the reflected planes
     (4 × (H/2 + n + stride/2) × (W/2 + n + stride/2) float32, stacked), the window grid's curves and pooled curves
-    (grid × candidates float32, five copies while pooling), the pooling's padded grid (reach 2 pool_sigma / stride
-    windows each side), the per-pixel maps (~40 bytes a pixel) and, where clipped samples are scored
+    (grid × candidates float32, five copies while pooling; with the exponent profiled per pool, each slope's curves
+    as well, float32, and their pooled stack, float64, three copies while profiling), the pooling's padded grid
+    (reach 2 pool_sigma / stride windows each side), the per-pixel maps (~40 bytes a pixel) and, where clipped samples are scored
     (``clipped_planes_per_frame`` > 0), the planes' clipped flags and weights (4 × 5 bytes a padded plane sample)
     and each thread's block of clipped pairs (up to 4 × ``block_windows``² of them, ~96 n² bytes each:
     ``decode.clipped.ClippedPairs``)."""
@@ -46,6 +47,8 @@ def classical_peak_bytes(config: ClassicalConfig, height_px: int = 0, width_px: 
     planes = 2 * padded_samples * 4
     rows, cols = -(-height_px // config.stride_px) + 1, -(-width_px // config.stride_px) + 1
     grid = rows * cols * (64 + 5 * 4 * depths)
+    if config.exponent_scope == "pooled" and len(config.slopes) > 1 and config.pool_sigma_px > 0:
+        grid += rows * cols * depths * len(config.slopes) * (4 + 3 * 8)
     reach = 2.0 * config.pool_sigma_px / config.stride_px
     pool = (rows + 2 * reach + 1) * (cols + 2 * reach + 1) * (depths + 4) * 4 if config.pool_sigma_px > 0 else 0
     pixels = 40 * height_px * width_px
