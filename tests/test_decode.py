@@ -1066,7 +1066,7 @@ def test_a_pooled_exponent_with_no_neighbour_in_reach_is_each_windows_own_profil
 
 
 @pytest.mark.parametrize("knobs, message", [({"exponent_scope": "frame"}, "exponent_scope must be one of"),
-                                            ({"exponent_scope": "pooled", "pool_sigma_px": 0.0}, "needs pool_sigma_px")])
+                                            ({"exponent_scope": "pooled", "pool_sigma_px": 0.0}, "needs pooling")])
 def test_an_exponent_scope_it_cannot_profile_is_refused(knobs, message):
     with pytest.raises(ValueError, match=message):
         ClassicalConfig(slopes=(1.5, 2.0, 2.5), **knobs)

@@ -76,6 +76,9 @@ def test_a_texture_exponent_is_refused_by_a_decoder_whose_network_holds_its_own_
         code, err = _infer(capsys, dng, "--out", out, "--decoder", decoder, "--texture-exponent", "profiled")
         assert code == 2 and "--texture-exponent profiled: the " in err and "classical, evidence decoders take it" in err, err
         assert "Traceback" not in err and not out.exists()
+    code, err = _infer(capsys, dng, "--out", out, "--decoder", "classical", "--pool-sigma-px", "0",
+                       "--texture-exponent", "profiled")  # it profiles each pool's exponent: no pools, no profile
+    assert code == 2 and "--texture-exponent profiled" in err and "--pool-sigma-px" in err and not out.exists(), err
     for value in ("natural", "", "nan"):
         code, err = _infer(capsys, dng, "--out", out, "--texture-exponent", value)
         assert code == 2 and "--texture-exponent" in err and "Traceback" not in err, err

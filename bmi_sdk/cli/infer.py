@@ -120,6 +120,14 @@ def _run(args) -> int:
                              "none (drop --provider or choose another --decoder)")
         choose_providers(args.provider)
     args.classical_config = classical_config(args) if takes_config else None
+    if args.classical_config is not None and args.texture_exponent != "prior":
+        from bmi_sdk.decode.classical import with_texture_exponent
+
+        try:  # the texture model's knobs with the classical flags given: refused here, naming both
+            with_texture_exponent(args.classical_config, args.texture_exponent)
+        except ValueError as exc:
+            raise OptionError(f"--texture-exponent {args.texture_exponent} with the classical flags given: {exc}",
+                              "--texture-exponent") from None
     if wants_batch(args):
         return infer_many(args)
     args.raw = args.raw[0]

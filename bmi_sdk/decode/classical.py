@@ -197,8 +197,8 @@ class ClassicalConfig:
         if self.exponent_scope not in EXPONENT_SCOPES:
             raise ValueError(f"exponent_scope must be one of {EXPONENT_SCOPES}, got {self.exponent_scope!r}")
         if self.exponent_scope == "pooled" and not self.pool_sigma_px > 0:
-            raise ValueError("exponent_scope 'pooled' profiles the exponent of the pooled curves: it needs "
-                             "pool_sigma_px > 0")
+            raise ValueError("exponent_scope 'pooled' profiles the exponent of the pooled curves: it needs pooling "
+                             "(pool_sigma_px > 0, bmi infer's --pool-sigma-px)")
         if not 0.0 <= self.exponent_gate_nats <= MAX_EXPONENT_GATE_NATS:
             raise ValueError(f"exponent_gate_nats must lie in [0, {MAX_EXPONENT_GATE_NATS:g}] (nats), got "
                              f"{self.exponent_gate_nats}")
