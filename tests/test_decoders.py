@@ -29,6 +29,7 @@ class PlaneDecoder:
     title = "plane at 2 m"
     model_kind = None
     takes_config = False
+    takes_texture_exponent = False
 
     def __init__(self, camera, model, config, options):
         self.camera = camera

@@ -110,6 +110,7 @@ class _FlatDecoder:
     title = "flat test decoder"
     model_kind = None
     takes_config = False
+    takes_texture_exponent = False
     frames: list = []
 
     def __init__(self, camera, model, config, options):
