@@ -53,6 +53,8 @@ def test_soak_with_faults_counters_match_ledger():
             except DeviceRemovedError:  # the last fault may have dropped the link
                 pass
             stats = dict(cam.stats)
+            last_header = cam._last_header_id  # the last frame id the link saw: frames that arrive while the host
+            #                                    stops are counted (their gaps as lost) but never delivered
     last = max(seen)
     ledger = {k: [i for i in v if i <= last] for k, v in dev.injector.ledger.items()}
     assert last >= FRAMES, "soak did not finish in its time bound"
@@ -60,7 +62,9 @@ def test_soak_with_faults_counters_match_ledger():
     by_status = {s: sorted(i for i, st in seen.items() if st == s) for s in FrameStatus}
     assert by_status[FrameStatus.CORRUPT] == ledger[Fault.CORRUPT]
     assert by_status[FrameStatus.INCOMPLETE] == sorted(ledger[Fault.INCOMPLETE] + ledger[Fault.DISCONNECT])
-    assert stats["lost"] == len(ledger[Fault.DROP]) and not set(seen) & set(ledger[Fault.DROP])
+    # the host counts a dropped frame when it sees the next header, which may come after the last delivered frame
+    assert stats["lost"] == len([i for i in dev.injector.ledger[Fault.DROP] if i < last_header])
+    assert not set(seen) & set(ledger[Fault.DROP])
     assert set(ledger[Fault.STALL]) <= set(by_status[FrameStatus.COMPLETE])
     # Every disconnect up to the last delivered frame is counted; one more may be counted when the device
     # drops the link on the frame after it (while the host stops): it is in the device's full ledger.
