@@ -58,6 +58,15 @@ WINDOW_KNOBS = ("window_px", "stride_px", "candidates")
 """The classical decoder's window grid options, which ``bmi eval`` takes too (``add_classical_arguments``)."""
 
 
+def check_texture_exponent(kind: str, texture_exponent: str) -> None:
+    """``--texture-exponent``: refused (``OptionError``, before any work) for a decoder that cannot read with it."""
+    from bmi_sdk.runtime.decoders import texture_exponent_refusal
+
+    reason = texture_exponent_refusal(kind, texture_exponent)
+    if reason is not None:
+        raise OptionError(f"--texture-exponent {texture_exponent}: {reason}", "--texture-exponent")
+
+
 def classical_defaults() -> dict:
     """{field: default} of ``CLASSICAL_FLAGS`` from ``decode.ClassicalConfig`` itself."""
     from dataclasses import fields
@@ -94,7 +103,7 @@ def _run(args) -> int:
     from bmi_sdk.cli._infer_many import infer_many, wants_batch
     from bmi_sdk.cli._logging import command_logger
     from bmi_sdk.runtime import DECODERS, run_job
-    from bmi_sdk.runtime.decoders import decoder_kind, refuse_texture_exponent
+    from bmi_sdk.runtime.decoders import decoder_kind
 
     if args.depth_range is not None:
         args.depth_range = depth_range(args.depth_range)
@@ -107,11 +116,7 @@ def _run(args) -> int:
     if knobs and not takes_config:
         raise ValueError(f"{', '.join(knobs)}: classical decoder options, not taken by the {args.decoder} decoder "
                          "(the learned one decodes with its model's own; use --decoder classical)")
-    try:
-        refuse_texture_exponent(args.decoder, args.texture_exponent)
-    except ValueError as exc:
-        raise OptionError(f"--texture-exponent {args.texture_exponent}: {str(exc).split(': ', 1)[-1]}",
-                          "--texture-exponent") from None
+    check_texture_exponent(args.decoder, args.texture_exponent)
     if args.provider is not None:  # an unavailable provider fails here, naming the available ones, before any work
         from bmi_sdk.runtime.model import choose_providers
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from ._options import OptionError, number, whole
+from ._options import number, whole
 
 
 def kernel_png(kernel):
@@ -88,8 +88,9 @@ def _warm(args) -> int:
     import json
 
     from bmi_sdk.built_camera import BuiltCamera
+    from bmi_sdk.cli.infer import check_texture_exponent
     from bmi_sdk.runtime.classical import warm_kernels
-    from bmi_sdk.runtime.decoders import DecoderOptions, open_decoder, refuse_texture_exponent
+    from bmi_sdk.runtime.decoders import DecoderOptions, open_decoder
 
     roi = None
     if args.frame is not None:  # the camera that took the frame, as `bmi infer` builds it
@@ -105,11 +106,7 @@ def _warm(args) -> int:
         camera = BuiltCamera.from_calibration(load_calibration(args.calibration))
     else:
         camera = BuiltCamera(lens_name=args.lens)
-    try:
-        refuse_texture_exponent(args.decoder, args.texture_exponent)
-    except ValueError as exc:
-        raise OptionError(f"--texture-exponent {args.texture_exponent}: {str(exc).split(': ', 1)[-1]}",
-                          "--texture-exponent") from None
+    check_texture_exponent(args.decoder, args.texture_exponent)
     options = DecoderOptions(texture_exponent=args.texture_exponent)
     stage = getattr(open_decoder(camera, args.decoder, args.model, options=options), "stage", None)  # as bmi infer
     if stage is None:

@@ -214,6 +214,12 @@ class ClassicalConfig:
             raise ValueError(f"noise_sigma must lie in (0, {NOISE_SIGMA_MAX}] (units of full scale), "
                              f"got {self.noise_sigma}")
 
+    @property
+    def exponent_per_pool(self) -> bool:
+        """Whether each window's pooled curve has its texture exponent profiled (several slopes, ``exponent_scope``
+        "pooled", pooling on): the decode then holds every slope's curves."""
+        return self.exponent_scope == "pooled" and len(self.slopes) > 1 and self.pool_sigma_px > 0
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["slopes"] = list(self.slopes)
@@ -374,7 +380,7 @@ class ClassicalDecoder:
             curves = np.full((grid_rows, grid_cols, n_cand), np.nan, np.float32)
             colour = np.zeros((grid_rows, grid_cols, 3), np.float32)
         n_slopes = len(cfg.slopes)
-        by_slope = pooling and cfg.exponent_scope == "pooled" and n_slopes > 1
+        by_slope = cfg.exponent_per_pool
         if by_slope:  # and each slope's, less the window's least NLL over every slope and candidate
             slope_curves = np.full((grid_rows, grid_cols, n_slopes, n_cand), np.nan, np.float32)
         evaluations = {"full": 0, "done": 0}

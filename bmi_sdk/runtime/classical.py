@@ -47,7 +47,7 @@ def classical_peak_bytes(config: ClassicalConfig, height_px: int = 0, width_px: 
     planes = 2 * padded_samples * 4
     rows, cols = -(-height_px // config.stride_px) + 1, -(-width_px // config.stride_px) + 1
     grid = rows * cols * (64 + 5 * 4 * depths)
-    if config.exponent_scope == "pooled" and len(config.slopes) > 1 and config.pool_sigma_px > 0:
+    if config.exponent_per_pool:
         grid += rows * cols * depths * len(config.slopes) * (4 + 3 * 8)
     reach = 2.0 * config.pool_sigma_px / config.stride_px
     pool = (rows + 2 * reach + 1) * (cols + 2 * reach + 1) * (depths + 4) * 4 if config.pool_sigma_px > 0 else 0

@@ -204,13 +204,20 @@ def camera_head(camera: BuiltCamera) -> dict:
     return camera.to_dict() | {"sha256": camera.sha256()}
 
 
+def texture_exponent_refusal(kind: str, texture_exponent: str) -> str | None:
+    """Why the ``kind`` decoder cannot read with ``texture_exponent`` (a texture model other than the prior's for a
+    decoder whose network holds its own, ``takes_texture_exponent`` False), or None when it can."""
+    if texture_exponent == "prior" or DECODERS[kind].takes_texture_exponent:
+        return None
+    takers = ", ".join(k for k, cls in DECODERS.items() if cls.takes_texture_exponent)
+    return f"the {kind} decoder reads with its model's own texture model (only 'prior'); the {takers} decoders take it"
+
+
 def refuse_texture_exponent(kind: str, texture_exponent: str) -> None:
-    """Refuse a texture model other than the prior's for a decoder whose network holds its own
-    (``takes_texture_exponent`` False)."""
-    if texture_exponent != "prior" and not DECODERS[kind].takes_texture_exponent:
-        takers = ", ".join(k for k, cls in DECODERS.items() if cls.takes_texture_exponent)
-        raise ValueError(f"texture exponent {texture_exponent!r}: the {kind} decoder reads with its model's own "
-                         f"texture model (only 'prior'); the {takers} decoders take it")
+    """Raise ``ValueError`` with ``texture_exponent_refusal``'s reason, if it has one."""
+    reason = texture_exponent_refusal(kind, texture_exponent)
+    if reason is not None:
+        raise ValueError(f"texture exponent {texture_exponent!r}: {reason}")
 
 
 @register
