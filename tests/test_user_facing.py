@@ -301,6 +301,11 @@ def test_diagnostics_go_through_logging_and_follow_v_and_q(model_path, tmp_path,
     assert code == 0 and "bmi infer: info: input " in captured.err and "execution provider CPU" in captured.err
     assert main(["-q", "infer", str(tmp_path / "missing.dng"), "--out", str(tmp_path / "m")]) == 1
     assert "bmi infer: error: no raw file" in capsys.readouterr().err      # -q never hides an error
+    bars = {}
+    for flags in ([], ["-q"]):  # infer's progress bar draws on stderr too: -q leaves errors only there
+        assert main(flags + infer[:-1] + ["--out", str(tmp_path / ("bar" + "".join(flags)))]) == 0
+        bars[tuple(flags)] = capsys.readouterr().err
+    assert "infer: 100%" in bars[()] and bars[("-q",)] == ""
 
 
 # -- DNG colour ----------------------------------------------------------------------------------------------------

@@ -30,7 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", dest="log_verbose", action="count", default=0,
                         help="more diagnostics on stderr (-v info, -vv debug)")
     parser.add_argument("-q", "--quiet", dest="log_quiet", action="count", default=0,
-                        help="errors only on stderr (no warnings or notes)")
+                        help="errors only on stderr (no warnings, notes or progress bars)")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
         if info.name.startswith("_"):  # __main__ and private helpers are not command groups

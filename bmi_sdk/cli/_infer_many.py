@@ -6,6 +6,8 @@ place; ``infer.py`` hands over here when its arguments name a batch or a schedul
 
 from __future__ import annotations
 
+from ._logging import bars_shown
+
 
 def wants_batch(args) -> bool:
     """True when the frames are several, a folder or a replay, or a scheduler is given."""
@@ -29,7 +31,7 @@ def infer_many(args) -> int:
                             depth_range_m=args.depth_range, texture_exponent=args.texture_exponent)
     t0 = time.perf_counter()
     with open_client(args.scheduler) as client:
-        summaries = run_batch(jobs, options, client=client, progress=not args.quiet)
+        summaries = run_batch(jobs, options, client=client, progress=not args.quiet and bars_shown())
     wall_s = time.perf_counter() - t0
     failed = [s for s in summaries if not s["ok"]]
     for s in summaries:

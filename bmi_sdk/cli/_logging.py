@@ -1,8 +1,8 @@
 """Diagnostics of the `bmi` command through ``logging``: one stderr handler, ``-v`` / ``-q`` set its level.
 
-Results and progress stay on stdout (``print``); warnings, notes and errors are log records, so a user
-can silence them (``-q``: errors only) or ask for more (``-v``: info, ``-vv``: debug, the library's own
-loggers included). Python warnings (``FrameQualityWarning``, ``PsfCacheWarning``) become log records
+Results stay on stdout (``print``); progress bars draw on stderr, and warnings, notes and errors are log
+records there, so a user can silence them (``-q``: errors only, no progress bars, ``bars_shown``) or ask for
+more (``-v``: info, ``-vv``: debug, the library's own loggers included). Python warnings (``FrameQualityWarning``, ``PsfCacheWarning``) become log records
 too, one line each instead of a warning with its source line.
 
 Dask (``--scheduler``) logs through its own handlers, in this process and in every worker process, at
@@ -19,6 +19,7 @@ import warnings
 
 LOGGER_NAME = "bmi"
 _command: str | None = None   # the running subcommand: Python warnings are logged under its name
+_bars = True                  # whether the command draws progress bars (not under -q)
 DASK_LEVEL_ENV = "DASK_LOGGING__DISTRIBUTED"
 """Dask's setting for its ``distributed`` loggers, read when it is imported, worker processes included."""
 _user_dask_level = os.environ.get(DASK_LEVEL_ENV)
@@ -54,8 +55,9 @@ def verbosity_level(verbose: int, quiet: int) -> int:
 def configure(verbose: int = 0, quiet: int = 0, command: str | None = None) -> None:
     """(Re)install the one stderr handler at the level ``-v``/``-q`` ask for, and route Python warnings to
     ``command``'s logger."""
-    global _command
+    global _command, _bars
     _command = command
+    _bars = not quiet
     root = logging.getLogger()
     for handler in [h for h in root.handlers if isinstance(h, _StderrHandler)]:
         root.removeHandler(handler)
@@ -65,6 +67,11 @@ def configure(verbose: int = 0, quiet: int = 0, command: str | None = None) -> N
     root.setLevel(verbosity_level(verbose, quiet))
     _quiet_dask(verbose, quiet)
     warnings.showwarning = _log_warning
+
+
+def bars_shown() -> bool:
+    """Whether the running command draws progress bars on stderr: not under ``-q`` (errors only)."""
+    return _bars
 
 
 def dask_level(verbose: int, quiet: int) -> str:

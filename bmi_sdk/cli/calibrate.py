@@ -6,6 +6,7 @@ import logging
 import time
 from pathlib import Path
 
+from ._logging import bars_shown
 from ._options import SEED, OptionError, whole
 
 
@@ -78,7 +79,7 @@ def _run(args) -> int:
     extraction = extract_spots(captures)
     for i, reason in extraction.rejected:
         print(f"source {i} rejected: {reason}")
-    with tqdm(total=args.max_outer + 2, desc="fit", unit="step") as bar:
+    with tqdm(total=args.max_outer + 2, desc="fit", unit="step", disable=not bars_shown()) as bar:
         result = fit_calibration(extraction, free=free, method=args.method, max_outer=args.max_outer,
                                  on_step=lambda stage, done, total: _show_step(bar, stage, done))
     calib = write_calibration(args.out, result, captures, extraction, method=args.method)

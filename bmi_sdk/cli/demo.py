@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._logging import bars_shown
 from ._options import whole
 
 DEFAULT_SIZE_PX = (1536, 1024)
@@ -51,7 +52,7 @@ class Stage:
 
     It prints its name when it starts and its time when it ends (recorded in ``timings``). A stage with no
     progress of its own (``ticker=True``) shows a live elapsed-time line on stderr (tqdm, like the
-    decoders' own bars), so no stage is silent for more than ``TICK_S``.
+    decoders' own bars), so no stage is silent for more than ``TICK_S``; none under ``bmi -q``.
     """
 
     def __init__(self, timings: dict, name: str, ticker: bool = True):
@@ -62,7 +63,7 @@ class Stage:
     def __enter__(self) -> Stage:
         print(f"▶ {self.name}", flush=True)
         self.t0 = time.perf_counter()
-        if self.ticker:
+        if self.ticker and bars_shown():
             from tqdm import tqdm
 
             bar = tqdm(total=None, desc=f"  {self.name}", bar_format="{desc}: {elapsed}", leave=False)
@@ -162,7 +163,7 @@ def _capture(scene, roi, seed: int, timings: dict, dng: Path):
     device.load_source(source)
     name = f"capture {roi.width_px}×{roi.height_px} at ({roi.x_px}, {roi.y_px}) through the lens (exact-mode render)"
     with Stage(timings, name, ticker=False):
-        bar = tqdm(total=None, desc="  render", unit="block", leave=False)
+        bar = tqdm(total=None, desc="  render", unit="block", leave=False, disable=not bars_shown())
 
         def on_progress(_frame_id: int, done: int, total: int) -> None:
             bar.total = total
@@ -224,7 +225,7 @@ def _run(args) -> int:
     model = getattr(decoder, "model", None)
     with Stage(timings, f"decode with the {kind} decoder + write outputs → {out}"):
         # the demo's folder is its own: a second run replaces its earlier set
-        decoded, report = run_job(frame, out, decoder=decoder, progress=True, overwrite=True,
+        decoded, report = run_job(frame, out, decoder=decoder, progress=bars_shown(), overwrite=True,
                                   ply_step_px=args.ply_step, input_path=out / "frame.dng")
     for name, value in report["stage_timings_s"].items():
         print(f"            {name.removesuffix('_s'):>16}: {value:7.2f} s")

@@ -6,6 +6,7 @@ import logging
 import sys
 import time
 
+from ._logging import bars_shown
 from ._options import SEED, OptionError, number, whole
 
 
@@ -145,7 +146,7 @@ def _acquire(args) -> int:
         _check_disk(out, args.count, cam.settings.roi)
         cam.start("oldest_first", buffers=4)
         try:
-            with tqdm(total=args.count, desc="acquire", unit="frame") as bar:
+            with tqdm(total=args.count, desc="acquire", unit="frame", disable=not bars_shown()) as bar:
                 while written < args.count:
                     try:
                         frame = cam.grab(timeout_s=args.timeout_s)

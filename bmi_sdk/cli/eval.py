@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import math
 
+from ._logging import bars_shown
+
 KEYS = ("absrel", "absrel_se", "rmse_m", "delta1", "delta2", "delta3", "psnr_db", "ssim")
 SIGMA_KEYS = ("confident_coverage", "confident_absrel", "sigma_z_rms", "sigma_z_std", "sigma_z_within_1")
 STRATUM_KEYS = ("pixel_share", "error_share", "absrel", "rmse_m", "delta1")
@@ -132,7 +134,7 @@ def _run(args) -> int:
     with scheduler_address(args.scheduler, announce=not args.jsonl) as scheduler:  # benchmark tiles render there
         for scale in scales:
             rows += run_benchmark(args.model, replace(bench, scheduler=scheduler, scene_scale=scale), conditions,
-                                  args.fisheye_model, progress=not args.jsonl, decoders=decoders,
+                                  args.fisheye_model, progress=not args.jsonl and bars_shown(), decoders=decoders,
                                   classical_config=config, cameras=args.cameras)
     tables = [eval_table(rows, bench), strata_table(rows, bench)]
     pairs = paired_differences(rows, reference)

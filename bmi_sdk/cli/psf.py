@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from ._logging import bars_shown
 from ._options import number, whole
 
 
@@ -77,7 +78,7 @@ def _build(args) -> int:
     spec = TensorSpec(channels=channels, kernel_px=args.kernel_px)
     tensor = PsfTensor(lens, spec, use_cache=False)  # from scratch, ignoring any cache
     start = time.perf_counter()
-    tensor.ensure_all(progress=True)
+    tensor.ensure_all(progress=bars_shown())
     elapsed = time.perf_counter() - start
     out = tensor.save(out, float16=args.float16)
     print(f"wrote {out} and {out.with_suffix('.json')}: {tensor.data.shape} in {elapsed:.1f} s")
@@ -111,7 +112,7 @@ def _warm(args) -> int:
     stage = getattr(open_decoder(camera, args.decoder, args.model, options=options), "stage", None)  # as bmi infer
     if stage is None:
         raise ValueError(f"--decoder {args.decoder} reads no kernels of the camera: nothing to warm")
-    report = warm_kernels(camera, stage.config, roi=roi, workers=args.workers, progress=not args.quiet)
+    report = warm_kernels(camera, stage.config, roi=roi, workers=args.workers, progress=not args.quiet and bars_shown())
     print(json.dumps(report) if args.json else
           f"camera {report['camera_sha256'][:12]}…: {report['zones']} zones, {report['kernel_sets_traced']} of "
           f"{report['kernel_sets']} kernel sets traced ({report['kernel_sets'] - report['kernel_sets_traced']} "

@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from ._logging import bars_shown
 from ._options import SEED, OptionError, number, whole
 
 MAX_SCENE_LEVEL = 1e6
@@ -225,7 +226,7 @@ def _run(args) -> int:
     device = FirmwareDevice(source=source, geometry=geometry, model=model, seed=args.seed, lens=lens_name)
     # The device renders as it reads out (minutes for a large scene or a cold PSF cache); its heartbeats
     # keep the capture alive and move this bar, so a slow render is told apart from a dead device.
-    with tqdm(desc="render", unit="block") as bar, \
+    with tqdm(desc="render", unit="block", disable=not bars_shown()) as bar, \
             open_camera("sim://", device=device, on_progress=lambda _id, done, total: _show(bar, done, total)) as cam:
         cam.settings.roi = Roi(col0, row0, width, height)
         frame = cam.capture()

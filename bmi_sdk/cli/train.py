@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ._logging import bars_shown
+
 
 def register(subparsers) -> None:
     from bmi_sdk.scaleout import add_scheduler_argument
@@ -93,9 +95,11 @@ def _run(args) -> int:
     errors += f"-x{args.scene_scale_max:g}" if args.scene_scale_max > 1 else ""
     cache = Path(args.cache or f".bmi_cache/train/{args.lens}-{args.samples}-{args.crop}-s{args.seed}{errors}")
     t0 = time.perf_counter()
-    build_cache(cache, spec, workers=args.render_workers, scheduler=args.scheduler)
+    build_cache(cache, spec, workers=args.render_workers, scheduler=args.scheduler,
+                progress=bars_shown())
     t_render = time.perf_counter() - t0
-    ckpt = train(config, args.out, cache, save_every=args.save_every, workers=args.render_workers)
+    ckpt = train(config, args.out, cache, save_every=args.save_every, workers=args.render_workers,
+                 progress=bars_shown())
     if args.no_export:
         return 0
     net, _ = load_weights(ckpt)
