@@ -49,3 +49,18 @@ def bmi():
         return done
 
     return run
+
+
+@pytest.fixture(scope="session")
+def exit_code():
+    """``bmi ARGV`` run in this process, as its exit status: ``main``'s return, or argparse's ``SystemExit`` code
+    (2) for a value an option's type refuses."""
+    from bmi_sdk.cli import main
+
+    def run(argv: list[str]) -> int:
+        try:
+            return main(argv)
+        except SystemExit as exc:
+            return int(exc.code)
+
+    return run

@@ -248,14 +248,15 @@ def test_eval_refuses_tiles_and_scene_scales_that_would_not_fit_in_memory_before
     assert evaluate.Benchmark(scene_scale=8.0).scene_bytes() == pytest.approx(4 * small.scene_bytes() * 16)
 
 
-def test_eval_refuses_an_unknown_decoder_and_no_cameras(capsys):
-    from bmi_sdk.cli import main
-
-    for argv, named in ((["--decoder", "classical", "--decoder", "nosuch"], "nosuch"),
-                        (["--decoder", "classical", "--cameras", "0"], "--cameras 0"),
-                        (["--decoder", "classical", "--tile-px", "0"], "--tile-px 0"),
+def test_eval_refuses_an_unknown_decoder_and_no_cameras(capsys, exit_code):
+    for argv, named in ((["--decoder", "classical", "--decoder", "nosuch"], "--decoder nosuch: unknown decoder"),
+                        (["--decoder", "classical", "--cameras", "0"], "--cameras: 0 is outside"),
+                        (["--decoder", "classical", "--tile-px", "0"], "--tile-px: 0 is outside"),
+                        (["--decoder", "classical", "--tile-px", "90"], "--tile-px 90: must be a multiple of 4"),
+                        (["--decoder", "classical", "--threads", "-1"], "--threads: -1 is outside"),
+                        (["--decoder", "classical", "--seed", "nan"], "--seed: 'nan' is not a whole number"),
                         (["--decoder", "classical", "--scene-scale", "0.5"], "--scene-scale")):
-        assert main(["eval", *argv]) == 1
+        assert exit_code(["eval", *argv]) == 2  # a bad option value is a usage error, as argparse's
         captured = capsys.readouterr()
         assert named in captured.err and "rendering" not in captured.err + captured.out
 
@@ -348,6 +349,6 @@ def test_eval_refuses_a_texture_exponent_no_decoder_run_takes_and_an_unknown_one
 def test_eval_refuses_a_reference_that_is_not_a_decoder_run(capsys):
     from bmi_sdk.cli import main
 
-    assert main(["eval", "--decoder", "classical", "--reference", "evidence", "--conditions", "standard"]) == 1
+    assert main(["eval", "--decoder", "classical", "--reference", "evidence", "--conditions", "standard"]) == 2
     captured = capsys.readouterr()
     assert "--reference evidence" in captured.err and "rendering" not in captured.err + captured.out

@@ -499,3 +499,18 @@ def test_a_replay_folder_shorter_than_count_is_copied_whole_and_reported(capsys,
     captured = capsys.readouterr()
     assert code == 1 and "wrote 2 DNG files" in captured.out
     assert "played 2 of the 3 frames asked for" in captured.err and "no frame for" not in captured.err
+
+
+# -- fit-fusion ----------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("option, value, expected", [
+    ("--tiles", "1000000", "--tiles 1000000 needs about"),   # its reads alone: ~33 TB
+    ("--tiles", "0", "argument --tiles: 0 is outside [1, inf)"),
+    ("--threads", "-1", "argument --threads: -1 is outside [1, 1024]"),
+    ("--pixels", "nan", "argument --pixels: 'nan' is not a whole number"),
+    ("--seed", "-1", "argument --seed: -1 is outside [0, 4294967295]"),
+    ("--scales", "nan", "--scales must be a comma list of numbers ≥ 1"),
+    ("--sigmas", "-1", "--sigmas must be a comma list of noise σs in (0, 1)"),
+])
+def test_fit_fusion_refuses_hostile_values_before_any_tile_renders(capsys, option, value, expected):
+    assert expected in _refusal(capsys, ["fit-fusion", "--dry-run", option, value])

@@ -410,19 +410,19 @@ def test_an_int8_copy_of_a_refinement_is_still_a_refinement(identity_model, tmp_
     assert model.decoder == "learned" and len(model.run(inputs[0])) == 3
 
 
-def test_eval_refuses_options_its_decoders_would_ignore_and_no_tiles(capsys):
+def test_eval_refuses_options_its_decoders_would_ignore_and_no_tiles(capsys, exit_code):
     """`bmi eval --decoder learned --model M` ran the shipped refinement and never read M; a classical knob with
-    another decoder was ignored too; `--tiles 0` printed an empty table. Each is refused before any tile renders."""
-    from bmi_sdk.cli import main
-    for argv, named in ((["--decoder", "learned", "--model", "nosuch.onnx"], "nosuch.onnx"),
-                        (["--decoder", "cnn,learned", "--window-px", "48"], "--window-px"),
-                        (["--decoder", "classical", "--tiles", "0"], "tiles"),
-                        (["--decoder", "classical", "--tiles", "-3"], "tiles"),
-                        (["--decoder", "classical", "--tile-px", "0"], "tile-px 0"),
-                        (["--decoder", "learned", "--tile-px", "32"], "64-px evidence window"),
-                        (["--decoder", "cnn", "--tile-px", "90"], "multiple of 4"),
-                        (["--decoder", "classical", "--seed", "-1"], "seed")):
-        assert main(["eval", *argv]) == 1
+    another decoder was ignored too; `--tiles 0` printed an empty table. Each is refused before any tile renders:
+    a bad option value exits 2 (a usage error, as argparse's), a missing model or a tile its decoder cannot read 1."""
+    for argv, named, code in ((["--decoder", "learned", "--model", "nosuch.onnx"], "nosuch.onnx", 1),
+                              (["--decoder", "cnn,learned", "--window-px", "48"], "--window-px", 2),
+                              (["--decoder", "classical", "--tiles", "0"], "tiles", 2),
+                              (["--decoder", "classical", "--tiles", "-3"], "tiles", 2),
+                              (["--decoder", "classical", "--tile-px", "0"], "tile-px: 0", 2),
+                              (["--decoder", "learned", "--tile-px", "32"], "64-px evidence window", 1),
+                              (["--decoder", "cnn", "--tile-px", "90"], "multiple of 4", 2),
+                              (["--decoder", "classical", "--seed", "-1"], "seed", 2)):
+        assert exit_code(["eval", *argv]) == code, argv
         captured = capsys.readouterr()
         assert named in captured.err and "rendering" not in captured.err + captured.out
 

@@ -6,6 +6,7 @@ import json
 import math
 
 from ._logging import bars_shown
+from ._options import SEED, OptionError, whole
 
 KEYS = ("absrel", "absrel_se", "rmse_m", "delta1", "delta2", "delta3", "psnr_db", "ssim")
 SIGMA_KEYS = ("confident_coverage", "confident_absrel", "sigma_z_rms", "sigma_z_std", "sigma_z_within_1")
@@ -37,9 +38,9 @@ def register(subparsers) -> None:
                    help="the same for the fisheye_standard condition (default: the packaged fisheye models; a "
                         "decoder with none for that lens is left out there)")
     p.add_argument("--conditions", default=None, help="comma list (default: all)")
-    p.add_argument("--tiles", type=int, default=12, help="tiles per field region")
-    p.add_argument("--tile-px", type=int, default=192)
-    p.add_argument("--seed", type=int, default=20260)
+    p.add_argument("--tiles", type=whole(1), default=12, help="tiles per field region")
+    p.add_argument("--tile-px", type=whole(4, unit="px"), default=192, help="tile side, a multiple of 4 (whole Bayer cells)")
+    p.add_argument("--seed", type=SEED, default=20260)
     p.add_argument("--scene-scale", type=float, default=PAPER_SCENE_SCALE, metavar="SCALE",
                    help="draw each tile's scene SCALE× larger and keep its centre: objects SCALE× larger against the "
                         "tile (default %(default)g, the seed paper's: a 640-px image in ~750 sensor px); 1 is the "
@@ -47,7 +48,7 @@ def register(subparsers) -> None:
     p.add_argument("--scales", default=None, metavar="S1,S2,…",
                    help="run at each of these scene scales, e.g. 1,4,16 (the stress test, the paper's, large "
                         "surfaces); replaces --scene-scale")
-    p.add_argument("--cameras", type=int, default=SAMPLED_CAMERAS,
+    p.add_argument("--cameras", type=whole(1), default=SAMPLED_CAMERAS,
                    help="built_camera_sampled: cameras drawn from the calibration's error prior, each captured and "
                         "fitted (~35 s median, up to ~150 s each on 2 cores) and read with its fitted errors "
                         "(default %(default)s)")
@@ -57,7 +58,7 @@ def register(subparsers) -> None:
     p.add_argument("--texture-exponent", choices=tuple(TEXTURE_EXPONENTS), default="prior",
                    help="the texture model of the decoders that take one (evidence, classical), as bmi infer's "
                         "(default prior)")
-    p.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
+    p.add_argument("--threads", type=whole(1, 1024), default=2, help="onnxruntime intra-op threads")
     add_classical_arguments(p, WINDOW_KNOBS)
     p.add_argument("--jsonl", action="store_true", help="print one JSON object per line per condition, decoder, "
                                                        "region and scale instead of the tables")
@@ -73,12 +74,12 @@ def _scales(args) -> list[float]:
         try:
             values = [float(s) for s in args.scales.split(",") if s.strip()]
         except ValueError:
-            raise ValueError(f"--scales {args.scales}: give a comma list of numbers >= 1, e.g. 1,4,16") from None
+            raise OptionError(f"--scales {args.scales}: give a comma list of numbers >= 1, e.g. 1,4,16", "--scales") from None
     bad = [v for v in values if not v >= 1.0]
     if not values or bad:
         flag = "--scales" if args.scales is not None else "--scene-scale"
-        raise ValueError(f"{flag} {args.scales or args.scene_scale}: scene scales must be numbers >= 1 (1: the "
-                         "tile's own scale)")
+        raise OptionError(f"{flag} {args.scales or args.scene_scale}: scene scales must be numbers >= 1 (1: the "
+                          "tile's own scale)", flag)
     return values
 
 
@@ -98,7 +99,6 @@ def _run(args) -> int:
     from dataclasses import replace
 
     from bmi_sdk.bench.record import check_record_path, write_record
-    from bmi_sdk.cli._options import OptionError
     from bmi_sdk.cli.infer import WINDOW_KNOBS, changed_classical_flags, classical_config
     from bmi_sdk.nn.eval_paired import paired_differences
     from bmi_sdk.nn.evaluate import Benchmark, run_benchmark
@@ -106,23 +106,26 @@ def _run(args) -> int:
     from bmi_sdk.scaleout import scheduler_address
 
     named = [d.strip() for given in args.decoder or [DEFAULT_DECODER] for d in given.split(",") if d.strip()]
+    unknown = [d for d in named if d not in DECODERS]
+    if unknown:
+        raise OptionError(f"--decoder {','.join(unknown)}: unknown decoder; one of {', '.join(DECODERS)}", "--decoder")
     decoders = tuple(dict.fromkeys(decoder_kind(d) for d in named))
     reference = args.reference if args.reference is not None else decoders[0]
     if reference not in decoders:
-        raise ValueError(f"--reference {args.reference}: not one of the decoders run ({', '.join(decoders)})")
+        raise OptionError(f"--reference {args.reference}: not one of the decoders run ({', '.join(decoders)})",
+                          "--reference")
     if args.texture_exponent != "prior" and not any(DECODERS[d].takes_texture_exponent for d in decoders):
         raise OptionError(f"--texture-exponent {args.texture_exponent}: --decoder {','.join(decoders)} runs no "
                           "decoder that takes a texture model (the evidence and classical decoders do)",
                           "--texture-exponent")
     changed = changed_classical_flags(args, WINDOW_KNOBS)
     if changed and not any(DECODERS[d].takes_config for d in decoders):
-        raise ValueError(f"{', '.join(changed)} set(s) the classical decoder's knobs, and --decoder "
-                         f"{','.join(decoders)} runs no decoder that takes them (a learned refinement decodes with "
-                         "the knobs its manifest was trained with)")
-    for flag, value, least in (("--tiles", args.tiles, 1), ("--tile-px", args.tile_px, 4), ("--seed", args.seed, 0),
-                               ("--cameras", args.cameras, 1)):
-        if value < least:
-            raise ValueError(f"{flag} {value}: must be a whole number >= {least}")
+        raise OptionError(f"{', '.join(changed)} set(s) the classical decoder's knobs, and --decoder "
+                          f"{','.join(decoders)} runs no decoder that takes them (a learned refinement decodes with "
+                          "the knobs its manifest was trained with)", changed[0])
+    if args.tile_px % 4:
+        raise OptionError(f"--tile-px {args.tile_px}: must be a multiple of 4 (whole Bayer cells, the networks' size "
+                          "multiple)", "--tile-px")
     scales = _scales(args)
     check_record_path(args.json, args.overwrite)
     bench = Benchmark(tiles=args.tiles, tile_px=args.tile_px, seed=args.seed, threads=args.threads,

@@ -4,6 +4,12 @@ from __future__ import annotations
 
 import logging
 
+from ._options import SEED, OptionError, whole
+
+READ_BYTES_PER_PX = 6 * 8
+"""What the fit holds per valid pixel of every tile it decodes (``nn.fusion_fit.collect_reads``): six float64
+columns (both reads, both 1σ, the truth and the depth variation)."""
+
 
 def register(subparsers) -> None:
     from bmi_sdk.nn.fusion_fit import FIT_PIXELS_PER_SET, FIT_SCALES, FIT_SEED, FIT_SIGMAS
@@ -18,18 +24,18 @@ def register(subparsers) -> None:
                     "fitted one per set of tiles; and write the weights into the model's manifest, which bmi infer "
                     "and bmi eval read. Re-running it gives the same weights.")
     p.add_argument("--model", default=None, help="learned refinement ONNX model (default: the shipped learned.onnx)")
-    p.add_argument("--seed", type=int, default=FIT_SEED,
+    p.add_argument("--seed", type=SEED, default=FIT_SEED,
                    help=f"benchmark seed of the fit's tiles (default {FIT_SEED}; 20260 is the benchmark's own)")
     p.add_argument("--scales", default=",".join(f"{s:g}" for s in FIT_SCALES),
                    help="comma list of scene scales, each weighing the same (default: %(default)s)")
-    p.add_argument("--tiles", type=int, default=12, help="tiles per field region, scale and noise σ (default 12)")
+    p.add_argument("--tiles", type=whole(1), default=12, help="tiles per field region, scale and noise σ (default 12)")
     p.add_argument("--sigmas", default=",".join(f"{s:g}" for s in FIT_SIGMAS),
                    help="comma list of noise σs (fraction of full scale) the tiles are taken at, each with every "
                         "scale; the weights are fitted at each and interpolated in log σ between them (default: "
                         "%(default)s)")
-    p.add_argument("--pixels", type=int, default=FIT_PIXELS_PER_SET,
+    p.add_argument("--pixels", type=whole(100), default=FIT_PIXELS_PER_SET,
                    help="pixels per set of tiles the fit reads, drawn from the tiles' valid ones (default %(default)s)")
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--threads", type=whole(1, 1024), default=2)
     p.add_argument("--dry-run", action="store_true", help="print the fit; leave the manifest as it is")
     p.set_defaults(handler=_run)
 
@@ -55,9 +61,8 @@ def _run(args) -> int:
     if model_decoder(manifest) != "learned":
         raise ValueError(f"--model {model} is not a learned refinement: it has no classical read to fuse with")
     scales = _numbers(args.scales, "--scales", "numbers ≥ 1", lambda s: s >= 1.0)
-    if args.tiles < 1 or args.pixels < 100:
-        raise ValueError(f"--tiles must be ≥ 1 and --pixels ≥ 100, got {args.tiles} and {args.pixels}")
     sigmas = _numbers(args.sigmas, "--sigmas", "noise σs in (0, 1)", lambda s: 0 < s < 1)
+    _check_memory(args, scales, sigmas)
     if args.seed == Benchmark.seed:
         logging.getLogger("bmi.fit-fusion").warning(
             "seed %d is the benchmark's own: bmi eval's numbers would no longer be held out", args.seed)
@@ -105,5 +110,17 @@ def _numbers(text: str, option: str, what: str, ok) -> list[float]:
     except ValueError:
         values = []
     if not values or not all(ok(v) for v in values):
-        raise ValueError(f"{option} must be a comma list of {what}, got {text!r}")
+        raise OptionError(f"{option} must be a comma list of {what}, got {text!r}", option)
     return values
+
+
+def _check_memory(args, scales: list[float], sigmas: list[float]) -> None:
+    """Refuse, before any tile renders, a fit whose reads (every set's tiles, ``READ_BYTES_PER_PX``) with one set's
+    renders and its largest scene would not fit in memory (``memory_budget``), naming ``--tiles``."""
+    from bmi_sdk.memory_budget import check_allocation
+    from bmi_sdk.nn.evaluate import Benchmark
+
+    largest = Benchmark(tiles=args.tiles, seed=args.seed, scene_scale=max(scales))
+    reads = len(scales) * len(sigmas) * 2 * args.tiles * largest.tile_px ** 2 * READ_BYTES_PER_PX
+    check_allocation("--tiles", args.tiles, reads + largest.renders_bytes() + largest.scene_bytes(),
+                     "fewer tiles, scales or σs")
