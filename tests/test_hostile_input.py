@@ -514,3 +514,24 @@ def test_a_replay_folder_shorter_than_count_is_copied_whole_and_reported(capsys,
 ])
 def test_fit_fusion_refuses_hostile_values_before_any_tile_renders(capsys, option, value, expected):
     assert expected in _refusal(capsys, ["fit-fusion", "--dry-run", option, value])
+
+
+# -- train ---------------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("option, value, expected", [
+    ("--steps", "-1", "argument --steps: -1 is outside [1, inf)"),        # ran, then exported an untrained network
+    ("--samples", "-1", "argument --samples: -1 is outside [1, inf)"),    # a KeyError traceback
+    ("--samples", "1000000000", "--samples 1000000000: 1000000000 pairs of 128² px need about"),  # disk
+    ("--batch", "100000", "--batch/--crop 100000/128 needs about"),      # ~3.5 TB a step
+    ("--lr", "nan", "argument --lr: nan is not a finite number"),
+    ("--threads", "0", "argument --threads: 0 is outside [1, 1024]"),     # a RuntimeError traceback
+    ("--sigma", "-1", "argument --sigma: -1 is outside (0, 1)"),
+    ("--scene-scale-max", "1e9", "--scene-scale-max 1000000000.0 needs about"),
+    ("--preset", "nosuch", "--preset nosuch: unknown preset"),
+    ("--crop", "90", "--crop must be a multiple of 4, got 90"),
+])
+def test_train_refuses_hostile_values_before_any_pair_renders(capsys, tmp_path, option, value, expected):
+    line = _refusal(capsys, ["train", "--out", str(tmp_path / "run"), "--cache", str(tmp_path / "cache"), option,
+                             value])
+    assert expected in line
+    assert not list(tmp_path.iterdir())   # no run folder, no cache
