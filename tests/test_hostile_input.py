@@ -535,3 +535,21 @@ def test_train_refuses_hostile_values_before_any_pair_renders(capsys, tmp_path, 
                              value])
     assert expected in line
     assert not list(tmp_path.iterdir())   # no run folder, no cache
+
+
+# -- bench targets -------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv, expected", [
+    (["device", "--sim-frames", "-1"], "argument --sim-frames: -1 is outside [1, 1000]"),   # an UnboundLocalError
+    (["device", "--frames", "0"], "argument --frames: 0 is outside [1, 10000]"),
+    (["calibrate", "--seeds", "-1"], "argument --seeds: -1 is outside [1, inf)"),            # an IndexError
+    (["scaleout", "--shard-samples", "0"], "argument --shard-samples: 0 is outside [1, inf)"),  # a ZeroDivisionError
+    (["scaleout", "--crop", "90"], "argument --crop: 90 is outside [16, 1024] px, a multiple of 4"),
+    (["scaleout", "--frame-px", "99999999x5"], "argument --frame-px: 99999999 is outside [64, 6000] px"),
+    (["infer", "--seam-frame", "512"], "argument --seam-frame: '512' is not a size written HxW"),
+    (["infer", "--frame-tiles", "512,-5"], "argument --frame-tiles: -5 is outside [64, 4096] px"),
+    (["infer", "--peak-gflops", "nan"], "argument --peak-gflops: nan is not a finite number"),
+    (["model", "--tiles", "1000000000"], "argument --tiles: 1000000000 is outside [1, 1000]"),
+])
+def test_bench_targets_refuse_hostile_values_before_measuring(capsys, argv, expected):
+    assert expected in _refusal(capsys, ["bench", *argv])

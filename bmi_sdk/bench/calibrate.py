@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..option_values import whole
 from . import add_json_argument, check_record_path, emit, markdown_table
 
 RECOVERY_SEEDS_QUICK = 8
@@ -124,7 +125,7 @@ def register(subparsers) -> None:
                               "iterations against time", description=__doc__)
     p.add_argument("--full", action="store_true", help=f"{RECOVERY_SEEDS_FULL} recovery seeds instead of "
                    f"{RECOVERY_SEEDS_QUICK} (about a minute each here)")
-    p.add_argument("--seeds", type=int, default=None, help="number of recovery seeds (overrides --full)")
+    p.add_argument("--seeds", type=whole(1), default=None, help="number of recovery seeds (overrides --full)")
     p.add_argument("--records", default=None, metavar="PATH",
                    help="also write every seed's fit to this JSON file as it goes")
     add_json_argument(p)

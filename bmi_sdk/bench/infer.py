@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..option_values import number, size_hw, whole, whole_list
 from . import add_json_argument, check_record_path
 
 
@@ -28,13 +29,13 @@ def register(subparsers) -> None:
     p.add_argument("--model", action="append", default=None, help="ONNX model with manifest (repeatable)")
     p.add_argument("--presets", default="tiny,small",
                    help="bmi_sdk.nn presets to export untrained when no --model is given (default tiny,small)")
-    p.add_argument("--tile-px", type=int, default=512)
-    p.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: all cores)")
-    p.add_argument("--frame-tiles", default="512,768,1024",
+    p.add_argument("--tile-px", type=whole(64, 4096, unit="px"), default=512)
+    p.add_argument("--threads", type=whole(1, 1024), default=None, help="onnxruntime intra-op threads (default: all cores)")
+    p.add_argument("--frame-tiles", type=whole_list(64, 4096, unit="px"), default="512,768,1024",
                    help="tile sizes for the full-frame time/memory table of the first model")
-    p.add_argument("--seam-tiles", default="256,512", help="tile sizes for the seam table")
-    p.add_argument("--seam-frame", default="512x768", help="H×W of the frame run whole and tiled")
-    p.add_argument("--peak-gflops", type=float, default=175.0,
+    p.add_argument("--seam-tiles", type=whole_list(64, 4096, unit="px"), default="256,512", help="tile sizes for the seam table")
+    p.add_argument("--seam-frame", type=size_hw(64, 4096), default="512x768", help="H×W of the frame run whole and tiled")
+    p.add_argument("--peak-gflops", type=number(0, lo_open=True), default=175.0,
                    help="the machine's practical onnxruntime peak, GFLOP/s (PACKAGES.md: 150–200 on 2 cores)")
     p.add_argument("--work-dir", default="out/bench_infer")
     add_json_argument(p)
@@ -173,7 +174,7 @@ def _run(args) -> int:
     # 1b. tile size against full-frame time and memory (first model): the overlap is fixed by the model,
     # so bigger tiles recompute less of it, at the cost of a bigger session arena and band
     rows1b = []
-    for tile in [int(t) for t in args.frame_tiles.split(",") if t]:
+    for tile in args.frame_tiles:
         r = rows_by_tile.get(tile) or _full_frame(models[0], dng, tile, args.threads)
         computed_mp = r["tiles"] * tile * tile / 1e6
         rows1b.append([tile, r["overlap_px"], r["tiles"], f"{computed_mp / 27.0:.2f}", r["wall_s"],
@@ -184,9 +185,9 @@ def _run(args) -> int:
     sections.append(f"### Tile size, model {models[0].name}\n\n{table1b}")
 
     # 2. seams on a window run whole and tiled (first model)
-    h, w = (int(v) for v in args.seam_frame.lower().split("x"))
+    h, w = args.seam_frame
     window = ((frame.data.shape[0] - h) // 4 * 2, (frame.data.shape[1] - w) // 4 * 2, h, w)
-    seam, ctx = _seam_rows(models[0], frame, window, [int(t) for t in args.seam_tiles.split(",")], args.threads)
+    seam, ctx = _seam_rows(models[0], frame, window, args.seam_tiles, args.threads)
     table2 = markdown_table(["tile px", "overlap px", "", "tiles", "time s", "AiF MAD", "depth MAD m"], seam)
     sections.append(f"### Seams: tiled vs untiled, {h}×{w} window, model {models[0].name}\n\n{table2}")
     print(table2, flush=True)

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..option_values import whole
 from . import add_json_argument, check_record_path, emit, markdown_table
 
 TILE_PX = 512
@@ -149,7 +150,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("model", help="network presets: accuracy against inference/training time, fp32 vs int8")
     p.add_argument("--presets", default=",".join(PRESET_NAMES))
     p.add_argument("--models", default="", help="comma list NAME=PATH of trained ONNX models to score")
-    p.add_argument("--tiles", type=int, default=12, help="benchmark tiles per field region")
+    p.add_argument("--tiles", type=whole(1, 1000), default=12, help="benchmark tiles per field region")
     add_json_argument(p)
     p.set_defaults(handler=_handler)
 

@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
 def _user_error_types() -> tuple[type, ...]:
     """Errors that carry a message for the user (bad input, a refused file, a camera that refused or failed,
     an extra that is not installed). One that names a command-line option (its ``option`` attribute:
-    ``_options.OptionError``, ``memory_budget.MemoryBudgetError`` from ``check_allocation``) exits 2.
+    ``option_values.OptionError``, ``memory_budget.MemoryBudgetError`` from ``check_allocation``) exits 2.
 
     ``devices.errors.CameraError`` is looked up in ``sys.modules`` rather than
     imported: a command that raised one has loaded it, and ``bmi --help``

@@ -1,90 +1,16 @@
 """Checked option values for the `bmi` commands: a bad value is one line naming the option and its valid range.
 
-``number(...)`` and ``whole(...)`` are argparse ``type=`` callables: argparse prints
-``bmi simulate: error: argument --field-deg: -20 is outside [0, 60] °`` and exits 2 before
-the handler runs. A value that can only be judged inside the handler (a depth map, an output folder)
-raises ``OptionError``, which ``bmi_sdk.cli.main`` also turns into exit 2.
+The argparse types (``number``, ``whole``, ``SEED``) and ``OptionError`` live in ``bmi_sdk.option_values``, which the
+benchmark targets share; here are the checks that need the project: output files and folders, and perturbations.
 """
 
 from __future__ import annotations
 
-import argparse
-import math
 import os
 import tempfile
-from collections.abc import Callable
 from pathlib import Path
 
-
-class OptionError(ValueError):
-    """A command-line option's value is refused; ``option`` names it (``bmi`` exits 2, as for argparse)."""
-
-    def __init__(self, message: str, option: str):
-        super().__init__(message)
-        self.option = option
-
-
-def _num(value: float) -> str:
-    return str(value) if isinstance(value, int) else f"{value:g}"
-
-
-def _range_text(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool, unit: str) -> str:
-    left = "(-inf" if lo is None else f"{'(' if lo_open else '['}{_num(lo)}"
-    right = "inf)" if hi is None else f"{_num(hi)}{')' if hi_open else ']'}"
-    return f"{left}, {right}" + (f" {unit}" if unit else "")
-
-
-def _check_range(value: float, text: str, lo: float | None, hi: float | None, lo_open: bool, hi_open: bool,
-                 unit: str, allow_inf: bool) -> None:
-    valid = _range_text(lo, hi, lo_open, hi_open, unit)
-    if math.isnan(value) or (math.isinf(value) and not allow_inf):
-        raise argparse.ArgumentTypeError(f"{text} is not a finite number; valid: {valid}")
-    if math.isinf(value) and allow_inf and value > 0:
-        return
-    if lo is not None and (value < lo or (lo_open and value == lo)) or \
-            hi is not None and (value > hi or (hi_open and value == hi)):
-        raise argparse.ArgumentTypeError(f"{text} is outside {valid}")
-
-
-def number(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False, hi_open: bool = False,
-           unit: str = "", allow_inf: bool = False) -> Callable[[str], float]:
-    """An argparse type: a float within [lo, hi] (open ends with ``lo_open``/``hi_open``; None: unbounded).
-    NaN is always refused, +inf only with ``allow_inf`` (written ``inf``)."""
-
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a number; valid: "
-                                             f"{_range_text(lo, hi, lo_open, hi_open, unit)}") from None
-        _check_range(value, text, lo, hi, lo_open, hi_open, unit, allow_inf)
-        return value
-
-    parse.__name__ = "number"
-    return parse
-
-
-def whole(lo: int | None = None, hi: int | None = None, *, unit: str = "", odd: bool = False,
-          even: bool = False) -> Callable[[str], int]:
-    """An argparse type: a whole number within [lo, hi] (None: unbounded), odd or even when asked."""
-
-    def parse(text: str) -> int:
-        valid = _range_text(lo, hi, False, False, unit) + (", odd" if odd else ", even" if even else "")
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number; valid: {valid}") from None
-        if (lo is not None and value < lo) or (hi is not None and value > hi) or \
-                (odd and value % 2 == 0) or (even and value % 2):
-            raise argparse.ArgumentTypeError(f"{text} is outside {valid}")
-        return value
-
-    parse.__name__ = "whole number"
-    return parse
-
-
-SEED = whole(0, 2**32 - 1)
-"""A noise or scene seed: NumPy's generators take 0 … 2³²−1 as a plain seed."""
+from ..option_values import OptionError
 
 
 def check_output_file(option: str, path: str | os.PathLike, suffixes: tuple[str, ...]) -> Path:

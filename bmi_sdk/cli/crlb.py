@@ -7,7 +7,7 @@ import logging
 import sys
 import time
 
-from ._options import number, whole
+from ..option_values import number, whole
 
 LENS_PROFILES = {"monocentric": "bmi_monocentric", "fisheye": "fisheye"}
 """--lenses name → the lens profile (bmi_sdk.lenses) it stands for."""

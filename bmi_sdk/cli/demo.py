@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..option_values import whole
 from ._logging import bars_shown
-from ._options import whole
 
 DEFAULT_SIZE_PX = (1536, 1024)
 """The captured window (width, height), holding the optical axis (``centred_roi``): 1.6 MP, 1/17 of the sensor;

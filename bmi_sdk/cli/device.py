@@ -6,8 +6,8 @@ import logging
 import sys
 import time
 
+from ..option_values import SEED, OptionError, number, whole
 from ._logging import bars_shown
-from ._options import SEED, OptionError, number, whole
 
 
 def register(subparsers) -> None:
@@ -122,9 +122,8 @@ def _acquire(args) -> int:
 
     from tqdm import tqdm
 
+    from bmi_sdk.cli._options import check_writable_folder
     from devices import GrabTimeoutError, ReplayCamera
-
-    from ._options import check_writable_folder
 
     uri = args.device
     scheme = urlsplit(uri).scheme

@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 import math
 
+from ..option_values import SEED, OptionError, whole
 from ._logging import bars_shown
-from ._options import SEED, OptionError, whole
 
 KEYS = ("absrel", "absrel_se", "rmse_m", "delta1", "delta2", "delta3", "psnr_db", "ssim")
 SIGMA_KEYS = ("confident_coverage", "confident_absrel", "sigma_z_rms", "sigma_z_std", "sigma_z_within_1")

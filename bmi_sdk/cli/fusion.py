@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 
-from ._options import SEED, OptionError, whole
+from ..option_values import SEED, OptionError, whole
 
 READ_BYTES_PER_PX = 6 * 8
 """What the fit holds per valid pixel of every tile it decodes (``nn.fusion_fit.collect_reads``): six float64

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import time
 
+from ..option_values import OptionError, number, whole
 from ._logging import bars_shown
-from ._options import OptionError, number, whole
 
 
 def window_px(text: str) -> int:

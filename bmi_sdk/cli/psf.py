@@ -6,8 +6,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from ..option_values import number, whole
 from ._logging import bars_shown
-from ._options import number, whole
 
 
 def kernel_png(kernel):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ..option_values import SEED, OptionError, number, whole
 from ._logging import bars_shown
-from ._options import SEED, OptionError, number, whole
 
 PAIR_BYTES_PER_CROP_PX = 21
 """Disk space of one cached training pair per pixel of its crop: optical and RGB in float16 and range in float32
