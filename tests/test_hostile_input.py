@@ -528,7 +528,7 @@ def test_fit_fusion_refuses_hostile_values_before_any_tile_renders(capsys, optio
     ("--sigma", "-1", "argument --sigma: -1 is outside (0, 1)"),
     ("--scene-scale-max", "1e9", "--scene-scale-max 1000000000.0 needs about"),
     ("--preset", "nosuch", "--preset nosuch: unknown preset"),
-    ("--crop", "90", "--crop must be a multiple of 4, got 90"),
+    ("--crop", "90", "argument --crop: 90 is outside [4, inf) px, a multiple of 4"),
 ])
 def test_train_refuses_hostile_values_before_any_pair_renders(capsys, tmp_path, option, value, expected):
     line = _refusal(capsys, ["train", "--out", str(tmp_path / "run"), "--cache", str(tmp_path / "cache"), option,

@@ -69,6 +69,13 @@ def test_every_numeric_option_refuses_huge_negative_zero_nan_and_inf_in_one_line
         assert not out.exists(), (option, value)
 
 
+def test_a_tile_size_that_is_not_a_multiple_of_4_is_an_option_error(dng, tmp_path, capsys, no_decode):
+    """--tile-px 90 was refused by the network's tiling after the frame was read, exit 1; it is a usage error."""
+    code, err = _infer(capsys, dng, "--out", tmp_path / "out", "--decoder", "cnn", "--tile-px", "90")
+    assert code == 2 and "argument --tile-px: 90 is outside [4, inf), a multiple of 4" in err, err
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_texture_exponent_is_refused_by_a_decoder_whose_network_holds_its_own_and_an_unknown_one_by_name(
         dng, tmp_path, capsys, no_decode):
     out = tmp_path / "out"

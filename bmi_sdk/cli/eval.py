@@ -39,7 +39,7 @@ def register(subparsers) -> None:
                         "decoder with none for that lens is left out there)")
     p.add_argument("--conditions", default=None, help="comma list (default: all)")
     p.add_argument("--tiles", type=whole(1), default=12, help="tiles per field region")
-    p.add_argument("--tile-px", type=whole(4, unit="px"), default=192, help="tile side, a multiple of 4 (whole Bayer cells)")
+    p.add_argument("--tile-px", type=whole(4, unit="px", multiple_of=4), default=192, help="tile side, a multiple of 4 (whole Bayer cells)")
     p.add_argument("--seed", type=SEED, default=20260)
     p.add_argument("--scene-scale", type=float, default=PAPER_SCENE_SCALE, metavar="SCALE",
                    help="draw each tile's scene SCALE× larger and keep its centre: objects SCALE× larger against the "
@@ -123,9 +123,6 @@ def _run(args) -> int:
         raise OptionError(f"{', '.join(changed)} set(s) the classical decoder's knobs, and --decoder "
                           f"{','.join(decoders)} runs no decoder that takes them (a learned refinement decodes with "
                           "the knobs its manifest was trained with)", changed[0])
-    if args.tile_px % 4:
-        raise OptionError(f"--tile-px {args.tile_px}: must be a multiple of 4 (whole Bayer cells, the networks' size "
-                          "multiple)", "--tile-px")
     scales = _scales(args)
     check_record_path(args.json, args.overwrite)
     bench = Benchmark(tiles=args.tiles, tile_px=args.tile_px, seed=args.seed, threads=args.threads,

@@ -26,7 +26,7 @@ def register(subparsers) -> None:
     p.add_argument("--out", required=True, help="run folder: checkpoint, logs, model.onnx")
     p.add_argument("--lens", default="bmi_monocentric", choices=["bmi_monocentric", "fisheye"])
     p.add_argument("--samples", type=whole(1), default=768, help="rendered pairs in the cache")
-    p.add_argument("--crop", type=whole(4, unit="px"), default=128, help="training crop size in pixels (multiple of 4)")
+    p.add_argument("--crop", type=whole(4, unit="px", multiple_of=4), default=128, help="training crop size in pixels (multiple of 4)")
     p.add_argument("--batch", type=whole(1), default=8)
     p.add_argument("--lr", type=number(0, 1, lo_open=True), default=5e-4, help="initial learning rate (cosine decay to 1e-6)")
     p.add_argument("--decoder", default="cnn", choices=["cnn", "learned"],
@@ -75,8 +75,6 @@ def _run(args) -> int:
     from bmi_sdk.nn.export import export_with_manifest
     from bmi_sdk.nn.train import TrainConfig, check_sigma_head_source, load_weights, train
 
-    if args.crop % 4:
-        raise OptionError(f"--crop must be a multiple of 4, got {args.crop}", "--crop")
     _check_memory(args)
     torch.set_num_threads(args.threads)
     spec = CacheSpec(lens=args.lens, samples=args.samples, crop_px=args.crop, seed=args.seed,
