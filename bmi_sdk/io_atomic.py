@@ -6,6 +6,7 @@ A crash or Ctrl-C never leaves a half-written file under the final name.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import os
 import tempfile
@@ -63,3 +64,51 @@ def write_json(path: str | os.PathLike, obj: Any, replace: bool = True) -> None:
 def save_npy(path: str | os.PathLike, array: np.ndarray) -> None:
     with atomic_path(path, suffix=".npy") as tmp:
         np.save(tmp, array, allow_pickle=False)
+
+
+class FolderBusyError(FileExistsError):
+    """Another running process holds the folder's lock (``lock_folder``): it is writing there."""
+
+
+def lock_folder(path: Path, error: type[FolderBusyError] = FolderBusyError) -> int:
+    """An open descriptor of ``path`` (a lock file in the folder one run at a time writes) holding its exclusive
+    ``flock``, with this process's id written in it; ``error`` (naming the holder) when another process holds it.
+    The kernel drops the lock of a process that dies, so a dead run's lock is taken over.
+
+    Taken on the file that is at ``path`` when the lock is granted: a holder unlinks the file as it lets go, so a
+    lock won on a file unlinked in between is dropped and tried again on the new one."""
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            raise error(f"{path.parent} is being written by another run (process {holder}); "
+                                        "wait for it to finish, or choose another folder") from None
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(path))
+        except FileNotFoundError:
+            same = False
+        if same:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            return fd
+        os.close(fd)
+
+
+def unlock_folder(path: Path, fd: int) -> None:
+    with contextlib.suppress(FileNotFoundError):
+        path.unlink()  # while still holding the lock: a waiting run then locks a new file, never this one
+    os.close(fd)
+
+
+@contextlib.contextmanager
+def locked_folder(path: Path, error: type[FolderBusyError] = FolderBusyError) -> Iterator[None]:
+    """Hold ``lock_folder(path)`` for the block (its folder created first), then let go."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = lock_folder(path, error)
+    try:
+        yield
+    finally:
+        unlock_folder(path, fd)

@@ -553,3 +553,24 @@ def test_train_refuses_hostile_values_before_any_pair_renders(capsys, tmp_path, 
 ])
 def test_bench_targets_refuse_hostile_values_before_measuring(capsys, argv, expected):
     assert expected in _refusal(capsys, ["bench", *argv])
+
+
+def test_a_second_train_into_a_folder_another_run_is_writing_is_refused_before_rendering(capsys, tmp_path):
+    """Two `bmi train --out RUN` at once both rendered, trained and wrote their checkpoints and model over each
+    other's. The run holds RUN/.bmi-train.lock until its model is exported; a second is refused, naming the first's
+    process, before a pair renders."""
+    import os
+
+    from bmi_sdk.cli.train import LOCK_NAME
+    from bmi_sdk.io_atomic import lock_folder, unlock_folder
+
+    run = tmp_path / "run"
+    run.mkdir()
+    fd = lock_folder(run / LOCK_NAME)  # another run's lock
+    try:
+        code = main(["train", "--out", str(run), "--cache", str(tmp_path / "cache"), "--steps", "1"])
+    finally:
+        unlock_folder(run / LOCK_NAME, fd)
+    err = capsys.readouterr().err
+    assert code == 1 and f"{run} is being written by another run (process {os.getpid()})" in err, err
+    assert not (tmp_path / "cache").exists() and not list(run.iterdir())

@@ -8,6 +8,10 @@ from pathlib import Path
 from ..option_values import SEED, OptionError, number, whole
 from ._logging import bars_shown
 
+LOCK_NAME = ".bmi-train.lock"
+"""The lock one run holds in its --out from before its pairs render until its model is exported
+(``io_atomic.lock_folder``): a second run into the same folder is refused, naming the first's process."""
+
 PAIR_BYTES_PER_CROP_PX = 21
 """Disk space of one cached training pair per pixel of its crop: optical and RGB in float16 and range in float32
 over the crop and its render margin (a shard of 4 pairs at --crop 128 holds 1.33 MB)."""
@@ -71,6 +75,7 @@ def _run(args) -> int:
 
     import torch
 
+    from bmi_sdk.io_atomic import locked_folder
     from bmi_sdk.nn.data import STANDARD_SIGMA, CacheSpec, build_cache
     from bmi_sdk.nn.export import export_with_manifest
     from bmi_sdk.nn.train import TrainConfig, check_sigma_head_source, load_weights, train
@@ -99,24 +104,25 @@ def _run(args) -> int:
     errors += f"-x{args.scene_scale_max:g}" if args.scene_scale_max > 1 else ""
     cache = Path(args.cache or f".bmi_cache/train/{args.lens}-{args.samples}-{args.crop}-s{args.seed}{errors}")
     _check_disk(cache, args.samples, args.crop)
-    t0 = time.perf_counter()
-    build_cache(cache, spec, workers=args.render_workers, scheduler=args.scheduler,
-                progress=bars_shown())
-    t_render = time.perf_counter() - t0
-    ckpt = train(config, args.out, cache, save_every=args.save_every, workers=args.render_workers,
-                 progress=bars_shown())
-    if args.no_export:
+    with locked_folder(Path(args.out) / LOCK_NAME):  # one run at a time trains into --out
+        t0 = time.perf_counter()
+        build_cache(cache, spec, workers=args.render_workers, scheduler=args.scheduler,
+                    progress=bars_shown())
+        t_render = time.perf_counter() - t0
+        ckpt = train(config, args.out, cache, save_every=args.save_every, workers=args.render_workers,
+                     progress=bars_shown())
+        if args.no_export:
+            return 0
+        net, _ = load_weights(ckpt)
+        log = json.loads((Path(args.out) / "train_log.json").read_text())
+        training = {"command": "bmi train " + " ".join(_argv(args)), "config": config.to_dict(),
+                    "train_seconds": sum(s["seconds"] for s in log["sessions"]),
+                    "cache_seconds_this_call": round(t_render, 1), "final_loss": log["curve"][-1] if log["curve"] else None}
+        classical = refine.classical_config().to_dict() if refine is not None else None
+        manifest = export_with_manifest(net, Path(args.out) / "model.onnx", preset=args.preset, lens=args.lens,
+                                        training=training, classical_config=classical)
+        print(f"exported {Path(args.out) / 'model.onnx'} ({manifest.name})")
         return 0
-    net, _ = load_weights(ckpt)
-    log = json.loads((Path(args.out) / "train_log.json").read_text())
-    training = {"command": "bmi train " + " ".join(_argv(args)), "config": config.to_dict(),
-                "train_seconds": sum(s["seconds"] for s in log["sessions"]),
-                "cache_seconds_this_call": round(t_render, 1), "final_loss": log["curve"][-1] if log["curve"] else None}
-    classical = refine.classical_config().to_dict() if refine is not None else None
-    manifest = export_with_manifest(net, Path(args.out) / "model.onnx", preset=args.preset, lens=args.lens,
-                                    training=training, classical_config=classical)
-    print(f"exported {Path(args.out) / 'model.onnx'} ({manifest.name})")
-    return 0
 
 
 def _argv(args) -> list[str]:

@@ -26,13 +26,13 @@ be writing them) and warns that it did (``LeftoverStagingWarning``).
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import os
 import shutil
 import tempfile
 import warnings
 from pathlib import Path
 
+from ..io_atomic import FolderBusyError, lock_folder, unlock_folder
 from .outputs import OUTPUT_NAMES, SIGMA_OUTPUT_NAMES
 
 REPORT_NAME = "report.json"
@@ -42,43 +42,12 @@ STAGING_PREFIX = ".bmi-infer-"
 LOCK_NAME = ".bmi-infer.lock"
 
 
-class OutputFolderBusyError(FileExistsError):
+class OutputFolderBusyError(FolderBusyError):
     """Another running process is writing its outputs into the same folder."""
 
 
 class LeftoverStagingWarning(UserWarning):
     """Staging folders of an interrupted run (killed before it could clean up) were found and removed."""
-
-
-def _lock(path: Path) -> int:
-    """An open descriptor of ``path`` holding its exclusive ``flock``, with this process's id written in it.
-
-    Taken on the file that is at ``path`` when the lock is granted: a holder unlinks the file as it lets go, so a
-    lock won on a file unlinked in between is dropped and tried again on the new one."""
-    while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
-            os.close(fd)
-            raise OutputFolderBusyError(f"{path.parent} is being written by another run (process {holder}); "
-                                        "wait for it to finish, or choose another folder") from None
-        try:
-            same = os.path.samestat(os.fstat(fd), os.stat(path))
-        except FileNotFoundError:
-            same = False
-        if same:
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-            return fd
-        os.close(fd)
-
-
-def _unlock(path: Path, fd: int) -> None:
-    with contextlib.suppress(FileNotFoundError):
-        path.unlink()  # while still holding the lock: a waiting run then locks a new file, never this one
-    os.close(fd)
 
 
 class OutputSet:
@@ -107,7 +76,7 @@ class OutputSet:
         try:
             self._created = not self.out_dir.exists()
             self.out_dir.mkdir(parents=True, exist_ok=True)
-            self._lock_fd = _lock(self.out_dir / LOCK_NAME)
+            self._lock_fd = lock_folder(self.out_dir / LOCK_NAME, OutputFolderBusyError)
         except OutputFolderBusyError:
             self._release()
             raise
@@ -166,7 +135,7 @@ class OutputSet:
     def _release(self) -> None:
         """Let go of the lock and remove an output folder this run created and left empty (failed before commit)."""
         if self._lock_fd is not None:
-            _unlock(self.out_dir / LOCK_NAME, self._lock_fd)
+            unlock_folder(self.out_dir / LOCK_NAME, self._lock_fd)
             self._lock_fd = None
         if self._created:
             with contextlib.suppress(OSError):
