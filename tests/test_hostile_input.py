@@ -574,3 +574,9 @@ def test_a_second_train_into_a_folder_another_run_is_writing_is_refused_before_r
     err = capsys.readouterr().err
     assert code == 1 and f"{run} is being written by another run (process {os.getpid()})" in err, err
     assert not (tmp_path / "cache").exists() and not list(run.iterdir())
+
+
+def test_psf_warm_names_an_unknown_lens_as_one_not_as_a_missing_model(capsys):
+    """`bmi psf warm --lens nosuch` said no evidence model was shipped for that lens."""
+    line = _refusal(capsys, ["psf", "warm", "--lens", "nosuch"])
+    assert "argument --lens: invalid choice: 'nosuch'" in line and "bmi_monocentric" in line

@@ -123,7 +123,7 @@ def _warm(args) -> int:
 
 def register(subparsers) -> None:
     from bmi_sdk.decode.classical import TEXTURE_EXPONENTS
-    from bmi_sdk.lenses import DEFAULT_LENS
+    from bmi_sdk.lenses import DEFAULT_LENS, LENS_KERNEL_PX
     from bmi_sdk.runtime.decoders import DECODERS, DEFAULT_DECODER
 
     p = subparsers.add_parser("psf", help="export one PSF or build the PSF tensor",
@@ -177,7 +177,8 @@ def register(subparsers) -> None:
     w.add_argument("--texture-exponent", choices=tuple(TEXTURE_EXPONENTS), default="prior",
                    help="bmi infer's --texture-exponent: profiled makes the exact models of its three slopes "
                         "(default prior)")
-    w.add_argument("--lens", default=DEFAULT_LENS, help="lens of a nominal camera (without --calibration)")
+    w.add_argument("--lens", default=DEFAULT_LENS, choices=tuple(LENS_KERNEL_PX),
+                   help="lens of a nominal camera (without --calibration)")
     w.add_argument("--workers", type=whole(1, 64), default=1, help="processes tracing zones side by side (default 1)")
     w.add_argument("--json", action="store_true", help="print the report as JSON")
     w.add_argument("--quiet", action="store_true", help="no progress bar")
