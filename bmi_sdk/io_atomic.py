@@ -85,7 +85,7 @@ def lock_folder(path: Path, error: type[FolderBusyError] = FolderBusyError) -> i
             holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
             os.close(fd)
             raise error(f"{path.parent} is being written by another run (process {holder}); "
-                                        "wait for it to finish, or choose another folder") from None
+                        "wait for it to finish, or choose another folder") from None
         try:
             same = os.path.samestat(os.fstat(fd), os.stat(path))
         except FileNotFoundError:
@@ -98,6 +98,7 @@ def lock_folder(path: Path, error: type[FolderBusyError] = FolderBusyError) -> i
 
 
 def unlock_folder(path: Path, fd: int) -> None:
+    """Let go of ``lock_folder``'s lock on ``path`` (its descriptor ``fd``) and remove the lock file."""
     with contextlib.suppress(FileNotFoundError):
         path.unlink()  # while still holding the lock: a waiting run then locks a new file, never this one
     os.close(fd)

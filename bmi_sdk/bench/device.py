@@ -21,7 +21,8 @@ from . import add_json_argument, check_record_path, emit
 def register(subparsers) -> None:
     p = subparsers.add_parser("device", help="camera link frame rate, host CPU/memory per frame, simulated frame time")
     p.add_argument("--frames", type=whole(1, 10000), default=20, help="full-resolution frames to stream over TCP")
-    p.add_argument("--sim-frames", type=whole(1, 1000), default=3, help="full-resolution frames to simulate (per scene)")
+    p.add_argument("--sim-frames", type=whole(1, 1000), default=3,
+                   help="full-resolution frames to simulate (per scene)")
     add_json_argument(p)
     p.set_defaults(handler=_run)
 

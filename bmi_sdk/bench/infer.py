@@ -30,11 +30,14 @@ def register(subparsers) -> None:
     p.add_argument("--presets", default="tiny,small",
                    help="bmi_sdk.nn presets to export untrained when no --model is given (default tiny,small)")
     p.add_argument("--tile-px", type=whole(64, 4096, unit="px"), default=512)
-    p.add_argument("--threads", type=whole(1, 1024), default=None, help="onnxruntime intra-op threads (default: all cores)")
+    p.add_argument("--threads", type=whole(1, 1024), default=None,
+                   help="onnxruntime intra-op threads (default: all cores)")
     p.add_argument("--frame-tiles", type=whole_list(64, 4096, unit="px"), default="512,768,1024",
                    help="tile sizes for the full-frame time/memory table of the first model")
-    p.add_argument("--seam-tiles", type=whole_list(64, 4096, unit="px"), default="256,512", help="tile sizes for the seam table")
-    p.add_argument("--seam-frame", type=size_hw(64, 4096), default="512x768", help="H×W of the frame run whole and tiled")
+    p.add_argument("--seam-tiles", type=whole_list(64, 4096, unit="px"), default="256,512",
+                   help="tile sizes for the seam table")
+    p.add_argument("--seam-frame", type=size_hw(64, 4096), default="512x768",
+                   help="H×W of the frame run whole and tiled")
     p.add_argument("--peak-gflops", type=number(0, lo_open=True), default=175.0,
                    help="the machine's practical onnxruntime peak, GFLOP/s (PACKAGES.md: 150–200 on 2 cores)")
     p.add_argument("--work-dir", default="out/bench_infer")

@@ -42,10 +42,12 @@ def register(subparsers) -> None:
     p.add_argument("--scheduler", action="append", default=None, metavar="local:N|tcp://HOST:PORT",
                    help="a scheduler to measure (repeatable; default local:1 and local:2); in-process is always run")
     p.add_argument("--samples", type=whole(1, 100000), default=32, help="pairs rendered per cache run (default 32)")
-    p.add_argument("--crop", type=whole(16, 1024, unit="px", multiple_of=4), default=64, help="training crop in pixels (default 64)")
+    p.add_argument("--crop", type=whole(16, 1024, unit="px", multiple_of=4), default=64,
+                   help="training crop in pixels (default 64)")
     p.add_argument("--shard-samples", type=whole(1), default=4, help="pairs a shard (task) holds (default 4)")
     p.add_argument("--frames", type=whole(1, 1000), default=4, help="frames decoded per run (default 4)")
-    p.add_argument("--frame-px", type=size_hw(64, 6000, multiple_of=2), default="1024x1536", help="H×W of each ROI capture (default 1024x1536)")
+    p.add_argument("--frame-px", type=size_hw(64, 6000, multiple_of=2), default="1024x1536",
+                   help="H×W of each ROI capture (default 1024x1536)")
     p.add_argument("--work-dir", default="out/bench_scaleout")
     add_json_argument(p)
     p.set_defaults(handler=_run)
@@ -113,8 +115,9 @@ def _infer_row(args, work: Path, frames: list[Path], scheduler: str | None) -> l
     shutil.rmtree(out, ignore_errors=True)
     if failures:
         raise ValueError(f"decoding failed: {failures[0]['error']}")
-    return ["frame decoding", scheduler or "in-process", f"{len(frames)} frames of {args.frame_px[0]}x{args.frame_px[1]} px", start_s, job_s,
-            cpu_s, cpu_s / job_s, f"{len(frames) / job_s:.3f} frames/s"]
+    height_px, width_px = args.frame_px
+    return ["frame decoding", scheduler or "in-process", f"{len(frames)} frames of {height_px}x{width_px} px", start_s,
+            job_s, cpu_s, cpu_s / job_s, f"{len(frames) / job_s:.3f} frames/s"]
 
 
 def _run(args) -> int:

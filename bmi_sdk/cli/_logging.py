@@ -2,8 +2,9 @@
 
 Results stay on stdout (``print``); progress bars draw on stderr, and warnings, notes and errors are log
 records there, so a user can silence them (``-q``: errors only, no progress bars, ``bars_shown``) or ask for
-more (``-v``: info, ``-vv``: debug, the library's own loggers included). Python warnings (``FrameQualityWarning``, ``PsfCacheWarning``) become log records
-too, one line each instead of a warning with its source line.
+more (``-v``: info, ``-vv``: debug, the library's own loggers included). Python warnings
+(``FrameQualityWarning``, ``PsfCacheWarning``) become log records too, one line each instead of a warning with
+its source line.
 
 Dask (``--scheduler``) logs through its own handlers, in this process and in every worker process, at
 INFO by default (some 40 lines for one run). Those loggers stay at WARNING unless ``-vv`` asks for

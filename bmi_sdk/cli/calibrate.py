@@ -41,12 +41,12 @@ def _run(args) -> int:
     # resolves ``calibration`` as a namespace package outside the repository root.
     from tqdm import tqdm
 
-    from bmi_sdk.cli._options import check_output_file, check_writable_folder, perturbation_option
     from calibration.extract import extract_spots
     from calibration.fit import fit_calibration
     from calibration.io import write_calibration
     from calibration.targets import CalibrationError, CapturePlan, load_captures, simulate_captures, standard_target
 
+    from ._options import check_output_file, check_writable_folder, perturbation_option
     from ._outputs import refuse_existing
 
     if bool(args.captures) == bool(args.simulate):

@@ -275,7 +275,8 @@ def register(subparsers) -> None:
     p.add_argument("--decoder", choices=tuple(DECODERS), default=None,
                    help=f"decoder (default: the kind of --model, else the SDK's default, {DEFAULT_DECODER})")
     p.add_argument("--model", default=None, help="ONNX model + manifest for the decoder (default: the packaged one)")
-    p.add_argument("--tile-px", type=whole(4, multiple_of=4), default=512, help="inference tile size, a multiple of 4 (default 512)")
+    p.add_argument("--tile-px", type=whole(4, multiple_of=4), default=512,
+                   help="inference tile size, a multiple of 4 (default 512)")
     p.add_argument("--ply-step", type=whole(1), default=DEFAULT_PLY_STEP_PX,
                    help=f"one point per N×N pixels in points.ply (default {DEFAULT_PLY_STEP_PX})")
     p.set_defaults(handler=_run)

@@ -122,8 +122,9 @@ def _acquire(args) -> int:
 
     from tqdm import tqdm
 
-    from bmi_sdk.cli._options import check_writable_folder
     from devices import GrabTimeoutError, ReplayCamera
+
+    from ._options import check_writable_folder
 
     uri = args.device
     scheme = urlsplit(uri).scheme

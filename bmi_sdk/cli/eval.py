@@ -39,7 +39,8 @@ def register(subparsers) -> None:
                         "decoder with none for that lens is left out there)")
     p.add_argument("--conditions", default=None, help="comma list (default: all)")
     p.add_argument("--tiles", type=whole(1), default=12, help="tiles per field region")
-    p.add_argument("--tile-px", type=whole(4, unit="px", multiple_of=4), default=192, help="tile side, a multiple of 4 (whole Bayer cells)")
+    p.add_argument("--tile-px", type=whole(4, unit="px", multiple_of=4), default=192,
+                   help="tile side, a multiple of 4 (whole Bayer cells)")
     p.add_argument("--seed", type=SEED, default=20260)
     p.add_argument("--scene-scale", type=float, default=PAPER_SCENE_SCALE, metavar="SCALE",
                    help="draw each tile's scene SCALE× larger and keep its centre: objects SCALE× larger against the "
@@ -74,7 +75,8 @@ def _scales(args) -> list[float]:
         try:
             values = [float(s) for s in args.scales.split(",") if s.strip()]
         except ValueError:
-            raise OptionError(f"--scales {args.scales}: give a comma list of numbers >= 1, e.g. 1,4,16", "--scales") from None
+            raise OptionError(f"--scales {args.scales}: give a comma list of numbers >= 1, e.g. 1,4,16",
+                              "--scales") from None
     bad = [v for v in values if not v >= 1.0]
     if not values or bad:
         flag = "--scales" if args.scales is not None else "--scene-scale"

@@ -237,7 +237,8 @@ def register(subparsers) -> None:
     p.add_argument("--calibration", default=None, metavar="FILE",
                    help="calibration file from bmi calibrate (validated once; the camera's fitted errors: its "
                         "kernels and rays)")
-    p.add_argument("--tile-px", type=whole(4, multiple_of=4), default=512, help="tile size, a multiple of 4 (default 512)")
+    p.add_argument("--tile-px", type=whole(4, multiple_of=4), default=512,
+                   help="tile size, a multiple of 4 (default 512)")
     p.add_argument("--overlap-px", type=whole(0), default=None,
                    help="tile overlap (default: the model's receptive field, from its manifest: tiled equals untiled)")
     p.add_argument("--provider", default=None, metavar="NAME",

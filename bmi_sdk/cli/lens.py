@@ -21,7 +21,8 @@ def _print_table(report: dict) -> None:
 def _lens(name: str):
     """The lens ``--lens`` names; a name or file that is none, one line naming the option."""
     from bmi_sdk.optics import get_lens
-    from bmi_sdk.option_values import OptionError
+
+    from ..option_values import OptionError
 
     try:
         return get_lens(name)
@@ -33,9 +34,10 @@ def _run(args) -> int:
     from bmi_sdk.optics import lens_report
 
     if args.write_sensor_mapping:
-        from bmi_sdk.cli._options import check_output_file
         from bmi_sdk.io_atomic import write_json
         from bmi_sdk.optics.report import sensor_mapping
+
+        from ._options import check_output_file
 
         check_output_file("--write-sensor-mapping", args.write_sensor_mapping, (".json",))
         write_json(args.write_sensor_mapping, sensor_mapping(_lens(args.lens)))

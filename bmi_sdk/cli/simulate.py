@@ -196,12 +196,12 @@ def _scene(args, geometry, tensor):
 def _run(args) -> int:
     from tqdm import tqdm
 
-    from bmi_sdk.cli._options import check_output_file, perturbation_option
     from bmi_sdk.lenses import lens_geometry, lens_tensor
     from bmi_sdk.sensor import SensorModel
     from devices import Roi, open_camera
     from firmware_sim import FirmwareDevice, RenderedScene
 
+    from ._options import check_output_file, perturbation_option
     from ._outputs import refuse_existing
 
     check_output_file("--out", args.out, (".dng",))  # a wrong name or folder fails before minutes of rendering

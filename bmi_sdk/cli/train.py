@@ -30,9 +30,11 @@ def register(subparsers) -> None:
     p.add_argument("--out", required=True, help="run folder: checkpoint, logs, model.onnx")
     p.add_argument("--lens", default="bmi_monocentric", choices=["bmi_monocentric", "fisheye"])
     p.add_argument("--samples", type=whole(1), default=768, help="rendered pairs in the cache")
-    p.add_argument("--crop", type=whole(4, unit="px", multiple_of=4), default=128, help="training crop size in pixels (multiple of 4)")
+    p.add_argument("--crop", type=whole(4, unit="px", multiple_of=4), default=128,
+                   help="training crop size in pixels (multiple of 4)")
     p.add_argument("--batch", type=whole(1), default=8)
-    p.add_argument("--lr", type=number(0, 1, lo_open=True), default=5e-4, help="initial learning rate (cosine decay to 1e-6)")
+    p.add_argument("--lr", type=number(0, 1, lo_open=True), default=5e-4,
+                   help="initial learning rate (cosine decay to 1e-6)")
     p.add_argument("--decoder", default="cnn", choices=["cnn", "learned"],
                    help="cnn: the end-to-end network; learned: the refinement of the classical decoder "
                         "(its channels in, a depth σ out; docs/decoder.md)")
@@ -44,7 +46,8 @@ def register(subparsers) -> None:
     p.add_argument("--sigma-head-only", action="store_true",
                    help="--decoder learned: train only the σ head of the --init-from refinement, on this run's pairs "
                         "(a --seed whose pairs its trunk never saw): its depth and AiF stay the source model's")
-    p.add_argument("--refine-sigma", type=number(0, 1, lo_open=True, hi_open=True), nargs=2, default=(0.003, 0.012), metavar=("MIN", "MAX"),
+    p.add_argument("--refine-sigma", type=number(0, 1, lo_open=True, hi_open=True), nargs=2, default=(0.003, 0.012),
+                   metavar=("MIN", "MAX"),
                    help="--decoder learned: noise σ range of the decoded training frames (log-uniform)")
     p.add_argument("--camera-errors", type=number(0, 1), default=0.0, metavar="FRACTION",
                    help="each pair's camera draws hardware errors within FRACTION of the paper's ranges (shift 0.5 px, "
@@ -117,7 +120,8 @@ def _run(args) -> int:
         log = json.loads((Path(args.out) / "train_log.json").read_text())
         training = {"command": "bmi train " + " ".join(_argv(args)), "config": config.to_dict(),
                     "train_seconds": sum(s["seconds"] for s in log["sessions"]),
-                    "cache_seconds_this_call": round(t_render, 1), "final_loss": log["curve"][-1] if log["curve"] else None}
+                    "cache_seconds_this_call": round(t_render, 1),
+                    "final_loss": log["curve"][-1] if log["curve"] else None}
         classical = refine.classical_config().to_dict() if refine is not None else None
         manifest = export_with_manifest(net, Path(args.out) / "model.onnx", preset=args.preset, lens=args.lens,
                                         training=training, classical_config=classical)

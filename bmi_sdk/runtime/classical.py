@@ -31,10 +31,10 @@ def classical_peak_bytes(config: ClassicalConfig, height_px: int = 0, width_px: 
     (4 × (H/2 + n + stride/2) × (W/2 + n + stride/2) float32, stacked), the window grid's curves and pooled curves
     (grid × candidates float32, five copies while pooling; with the exponent profiled per pool, each slope's curves
     as well, float32, and their pooled stack, float64, three copies while profiling), the pooling's padded grid
-    (reach 2 pool_sigma / stride windows each side), the per-pixel maps (~40 bytes a pixel) and, where clipped samples are scored
-    (``clipped_planes_per_frame`` > 0), the planes' clipped flags and weights (4 × 5 bytes a padded plane sample)
-    and each thread's block of clipped pairs (up to 4 × ``block_windows``² of them, ~96 n² bytes each:
-    ``decode.clipped.ClippedPairs``)."""
+    (reach 2 pool_sigma / stride windows each side), the per-pixel maps (~40 bytes a pixel) and, where clipped
+    samples are scored (``clipped_planes_per_frame`` > 0), the planes' clipped flags and weights (4 × 5 bytes a
+    padded plane sample) and each thread's block of clipped pairs (up to 4 × ``block_windows``² of them, ~96 n²
+    bytes each: ``decode.clipped.ClippedPairs``)."""
     n = config.window_px // 2
     m = n // 2 + 1
     depths = config.candidates
