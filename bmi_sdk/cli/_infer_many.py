@@ -31,7 +31,7 @@ def infer_many(args) -> int:
                             depth_range_m=args.depth_range, texture_exponent=args.texture_exponent)
     t0 = time.perf_counter()
     with open_client(args.scheduler) as client:
-        summaries = run_batch(jobs, options, client=client, progress=not args.quiet and bars_shown())
+        summaries = run_batch(jobs, options, client=client, progress=bars_shown(args.quiet))
     wall_s = time.perf_counter() - t0
     failed = [s for s in summaries if not s["ok"]]
     for s in summaries:

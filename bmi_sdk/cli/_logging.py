@@ -70,9 +70,10 @@ def configure(verbose: int = 0, quiet: int = 0, command: str | None = None) -> N
     warnings.showwarning = _log_warning
 
 
-def bars_shown() -> bool:
-    """Whether the running command draws progress bars on stderr: not under ``-q`` (errors only)."""
-    return _bars
+def bars_shown(no_bar: bool = False) -> bool:
+    """Whether the running command draws progress bars on stderr: not under ``-q`` (errors only), nor where the
+    command's own options ask for none (``no_bar``: its ``--quiet``, or output meant for a program)."""
+    return _bars and not no_bar
 
 
 def dask_level(verbose: int, quiet: int) -> str:

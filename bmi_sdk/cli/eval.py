@@ -108,10 +108,13 @@ def _run(args) -> int:
     from bmi_sdk.scaleout import scheduler_address
 
     named = [d.strip() for given in args.decoder or [DEFAULT_DECODER] for d in given.split(",") if d.strip()]
-    unknown = [d for d in named if d not in DECODERS]
-    if unknown:
-        raise OptionError(f"--decoder {','.join(unknown)}: unknown decoder; one of {', '.join(DECODERS)}", "--decoder")
-    decoders = tuple(dict.fromkeys(decoder_kind(d) for d in named))
+    kinds = []
+    for name in named:
+        try:
+            kinds.append(decoder_kind(name))
+        except ValueError as exc:  # the registry's own refusal of a name it does not hold
+            raise OptionError(f"--decoder {name}: {exc}", "--decoder") from None
+    decoders = tuple(dict.fromkeys(kinds))
     reference = args.reference if args.reference is not None else decoders[0]
     if reference not in decoders:
         raise OptionError(f"--reference {args.reference}: not one of the decoders run ({', '.join(decoders)})",
@@ -136,7 +139,7 @@ def _run(args) -> int:
     with scheduler_address(args.scheduler, announce=not args.jsonl) as scheduler:  # benchmark tiles render there
         for scale in scales:
             rows += run_benchmark(args.model, replace(bench, scheduler=scheduler, scene_scale=scale), conditions,
-                                  args.fisheye_model, progress=not args.jsonl and bars_shown(), decoders=decoders,
+                                  args.fisheye_model, progress=bars_shown(args.jsonl), decoders=decoders,
                                   classical_config=config, cameras=args.cameras)
     tables = [eval_table(rows, bench), strata_table(rows, bench)]
     pairs = paired_differences(rows, reference)

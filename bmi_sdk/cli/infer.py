@@ -143,7 +143,7 @@ def _run(args) -> int:
     _, report = run_job(args.raw, args.out, decoder=args.decoder, model_path=args.model,
                         calibration_path=args.calibration, classical_config=args.classical_config,
                         tile_px=args.tile_px, threads=args.threads, overlap_px=args.overlap_px,
-                        providers=args.provider, ply_step_px=args.ply_step, progress=not args.quiet and bars_shown(),
+                        providers=args.provider, ply_step_px=args.ply_step, progress=bars_shown(args.quiet),
                         overwrite=args.overwrite, allow_test_pattern=args.allow_test_pattern,
                         depth_range_m=args.depth_range, texture_exponent=args.texture_exponent)
     wall_s = time.perf_counter() - t0

@@ -112,7 +112,7 @@ def _warm(args) -> int:
     stage = getattr(open_decoder(camera, args.decoder, args.model, options=options), "stage", None)  # as bmi infer
     if stage is None:
         raise ValueError(f"--decoder {args.decoder} reads no kernels of the camera: nothing to warm")
-    report = warm_kernels(camera, stage.config, roi=roi, workers=args.workers, progress=not args.quiet and bars_shown())
+    report = warm_kernels(camera, stage.config, roi=roi, workers=args.workers, progress=bars_shown(args.quiet))
     print(json.dumps(report) if args.json else
           f"camera {report['camera_sha256'][:12]}…: {report['zones']} zones, {report['kernel_sets_traced']} of "
           f"{report['kernel_sets']} kernel sets traced ({report['kernel_sets'] - report['kernel_sets_traced']} "

@@ -81,8 +81,13 @@ def _run(args) -> int:
     from bmi_sdk.io_atomic import locked_folder
     from bmi_sdk.nn.data import STANDARD_SIGMA, CacheSpec, build_cache
     from bmi_sdk.nn.export import export_with_manifest
+    from bmi_sdk.nn.model import preset_config
     from bmi_sdk.nn.train import TrainConfig, check_sigma_head_source, load_weights, train
 
+    try:
+        preset_config(args.preset)
+    except ValueError as e:
+        raise OptionError(f"--preset {args.preset}: {e}", "--preset") from None
     _check_memory(args)
     torch.set_num_threads(args.threads)
     spec = CacheSpec(lens=args.lens, samples=args.samples, crop_px=args.crop, seed=args.seed,
@@ -157,17 +162,12 @@ def _argv(args) -> list[str]:
 
 def _check_memory(args) -> None:
     """Refuse, before any pair renders, a training step (``--batch`` × ``--crop``², ``nn.train.TRAIN_BYTES_PER_PX``
-    of the preset) or a training scene (a crop drawn ``--scene-scale-max`` × larger) that would not fit in memory
-    (``memory_budget``), naming the option that sized it."""
+    of the preset, a known one) or a training scene (a crop drawn ``--scene-scale-max`` × larger) that would not
+    fit in memory (``memory_budget``), naming the option that sized it."""
     from bmi_sdk.memory_budget import check_allocation
     from bmi_sdk.nn.evaluate import SCENE_DRAW_BYTES_PER_PX
-    from bmi_sdk.nn.model import preset_config
     from bmi_sdk.nn.train import TRAIN_BYTES_PER_PX
 
-    try:
-        preset_config(args.preset)
-    except ValueError as e:
-        raise OptionError(f"--preset {args.preset}: {e}", "--preset") from None
     per_px = TRAIN_BYTES_PER_PX[args.preset.partition("-")[0]]
     check_allocation("--batch/--crop", f"{args.batch}/{args.crop}", per_px * args.batch * args.crop ** 2,
                      "a smaller batch or crop")
