@@ -40,8 +40,8 @@ CHECKPOINT = "checkpoint.pt"
 LR_FINAL = 1e-6
 TRAIN_BYTES_PER_PX = {"tiny": 2300, "small": 4700, "paper": 18000}
 """Peak memory of one training step per pixel of the batch (``--batch`` × ``--crop``²) by preset: the growth of peak
-RSS from batch 1 (2 for tiny) to 5 (32) at crop 128, measured with ``/usr/bin/time bmi -q train --preset P --steps 2
---samples 4 --crop 128 --batch B --no-export`` (tiny 2.2, small 4.5, paper 17.4 KB/px)."""
+RSS from batch 1 (2 for tiny) to 5 (32) at crop 128, rounded up (2256, 4649 and 17802 bytes measured;
+docs/benchmarks.md, "Training memory per batch pixel")."""
 
 
 @dataclass(frozen=True)
