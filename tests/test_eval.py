@@ -252,7 +252,8 @@ def test_eval_refuses_an_unknown_decoder_and_no_cameras(capsys, exit_code):
     for argv, named in ((["--decoder", "classical", "--decoder", "nosuch"], "--decoder nosuch: unknown decoder"),
                         (["--decoder", "classical", "--cameras", "0"], "--cameras: 0 is outside"),
                         (["--decoder", "classical", "--tile-px", "0"], "--tile-px: 0 is outside"),
-                        (["--decoder", "classical", "--tile-px", "90"], "--tile-px: 90 is outside [4, inf) px, a multiple of 4"),
+                        (["--decoder", "classical", "--tile-px", "90"],
+                         "--tile-px: 90 is outside [4, inf) px, a multiple of 4"),
                         (["--decoder", "classical", "--threads", "-1"], "--threads: -1 is outside"),
                         (["--decoder", "classical", "--seed", "nan"], "--seed: 'nan' is not a whole number"),
                         (["--decoder", "classical", "--scene-scale", "0.5"], "--scene-scale")):
