@@ -266,6 +266,25 @@ def test_a_cache_rendered_through_another_geometry_is_refused(tmp_path):
         build_cache(tmp_path / "cache", spec, progress=False)
 
 
+def test_a_small_cache_builds_only_the_psf_field_angles_its_renders_touch(tmp_path, monkeypatch):
+    """A cache of one pair traces the tensor's field angles its window renders through, every depth of each,
+    before rendering: the renders then trace nothing more (the PSF cache holds exactly those shards), and the
+    whole tensor (101 field angles, minutes on one core) is not built."""
+    from bmi_sdk.lenses import lens_tensor
+    from bmi_sdk.nn.data import build_cache, tensor_fields
+
+    monkeypatch.setenv("BMI_CACHE_DIR", str(tmp_path / "psf cache"))
+    spec = CacheSpec(samples=1, crop_px=16, jitter_px=2, seed=3)
+    fields = tensor_fields(spec, [0])
+    build_cache(tmp_path / "cache", spec, progress=False)
+    tensor = lens_tensor(spec.lens)
+    shards = sorted(int(p.stem.removeprefix("theta_")) for p in tensor.cache_dir.glob("theta_*.npz"))
+    assert shards == fields and 1 <= len(fields) < len(tensor.field_deg) / 10
+    for i in fields:  # every depth of each field angle, as the whole tensor's build makes it
+        tensor._load_shard(i)
+        assert tensor.filled[:, i].all()
+
+
 def test_dihedral_roundtrip():
     a = np.arange(12).reshape(3, 4)
     assert np.array_equal(dihedral(dihedral(a, 3), 3), a)

@@ -264,7 +264,7 @@ def render_sample(spec: CacheSpec, index: int, tensor, geometry: SensorGeometry,
     rng = np.random.default_rng([spec.seed, index])
     size = spec.stored_px + 2 * spec.margin_px
     if scenes is None:
-        row0, col0 = sample_window(geometry, size, rng)
+        row0, col0 = sample_window(geometry, size, rng)  # the first draw: ``tensor_fields`` replays it
         rgb, range_m = draw_scene(spec.stored_px + 2 * SCENE_MARGIN_PX, spec.scene_scale_max, rng)
         rgb, range_m = mirror_extend(rgb, range_m, spec.margin_px - SCENE_MARGIN_PX)
     else:
@@ -352,6 +352,23 @@ def _remove_stale_temporaries(cache_dir: Path) -> None:
             tmp.unlink(missing_ok=True)
 
 
+def tensor_fields(spec: CacheSpec, indices: Sequence[int]) -> list[int]:
+    """The PSF tensor's field indices that the procedural samples ``indices`` of ``spec`` render through: each
+    sample's window (``render_sample``'s first draw, replayed) split into the renderer's zones, each zone's θ
+    bracketed by two field angles. A few samples touch a few of the tensor's field angles, not all of them."""
+    from bmi_sdk.render import PsfMap
+    from bmi_sdk.render.compose import render_zones
+
+    tensor, geometry = lens_tensor(spec.lens), lens_geometry(spec.lens)
+    psf_map = PsfMap(tensor, geometry, mode="tensor")
+    size = spec.stored_px + 2 * spec.margin_px
+    fields: set[int] = set()
+    for index in indices:
+        row0, col0 = sample_window(geometry, size, np.random.default_rng([spec.seed, index]))
+        fields.update(psf_map.field_indices(render_zones(geometry, tensor, row0, col0, size, size)[1]))
+    return sorted(fields)
+
+
 def build_cache(cache_dir: str | Path, spec: CacheSpec, scenes: Sequence | None = None,
                 progress: bool = True, workers: int = 1, scheduler: str | None = None,
                 shard_samples: int = SHARD_SAMPLES) -> Path:
@@ -382,7 +399,11 @@ def build_cache(cache_dir: str | Path, spec: CacheSpec, scenes: Sequence | None 
     todo = [s for s in range(n_shards) if not shard_path(cache_dir, s).exists()]
     if todo:
         if not spec.camera_errors:  # exact-kernel renders (sampled cameras) trace their kernels, not the tensor's
-            lens_tensor(spec.lens).ensure_all(progress=progress, workers=workers)  # every θ is touched: build once
+            # the field angles the renders touch, built once here rather than by each worker
+            tensor = lens_tensor(spec.lens)
+            fields = range(len(tensor.field_deg)) if scenes is not None else tensor_fields(
+                spec, [i for s in todo for i in shard_sample_range(spec, s, shard_samples)])
+            tensor.ensure_fields(fields, progress=progress, workers=workers)
         sizes = [len(shard_sample_range(spec, s, shard_samples)) for s in todo]
         jobs = [(cache_dir, spec, s, shard_samples) for s in todo]
         how = dict(state=ShardRenderer(spec.lens, scenes), desc=f"rendering {spec.lens} pairs", unit="pair",

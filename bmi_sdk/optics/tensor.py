@@ -309,14 +309,21 @@ class PsfTensor:
         return len(missing)
 
     def ensure_all(self, progress: bool = False, workers: int | None = None) -> None:
-        """Fill every entry, one field angle per task, spread over ``workers`` processes.
+        """Fill every entry (``ensure_fields`` of every field angle)."""
+        self.ensure_fields(range(len(self.spec.field_deg)), progress, workers)
+
+    def ensure_fields(self, field_indices, progress: bool = False, workers: int | None = None) -> None:
+        """Fill every depth of these field angles, one field angle per task, spread over ``workers`` processes.
 
         Each process runs numpy single-threaded on its own shard, which uses
         the cores better than BLAS threads on these small transforms.
         """
-        for i in range(len(self.spec.field_deg)):
+        fields = sorted({int(i) for i in field_indices})
+        for i in fields:
             self._load_shard(i)
-        todo = [i for i in range(len(self.spec.field_deg)) if not self.filled[:, i].all()]
+        todo = [i for i in fields if not self.filled[:, i].all()]
+        if not todo:
+            return
         workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))
         depths = np.asarray(self.spec.depth_m)
         jobs = [(self.lens, self.spec, np.full(len(depths), self.spec.field_deg[i]), depths, self.perturbation)

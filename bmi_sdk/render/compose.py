@@ -84,6 +84,20 @@ def _convolve_into(acc, box, images, kernels, rows, cols):
             full[:, r0 - top:r1 - top, c0 - left:c1 - left]
 
 
+def render_zones(geometry: SensorGeometry, tensor: PsfTensor, row0: int, col0: int, height: int, width: int,
+                 zone_px: int | None = None, ramp_px: int | None = None) -> tuple[list, np.ndarray, np.ndarray]:
+    """(zones, θ°, φ° of each zone's centre) of the ``height`` × ``width`` window at (row0, col0) as ``render_coded``
+    renders it (its ``zone_px`` and ``ramp_px`` defaults); θ outside the image circle is the tensor's last field."""
+    if zone_px is None:
+        zone_px = DEFAULT_ZONE_PX
+    if ramp_px is None:
+        ramp_px = max(1, min(DEFAULT_RAMP_PX, zone_px // 8))
+    zone_list = zones(height, width, zone_px, row0, col0, ramp_px)
+    theta, phi = geometry.field_angles(np.array([row0 + z.row for z in zone_list]),
+                                       np.array([col0 + z.col for z in zone_list]))
+    return zone_list, np.nan_to_num(theta, nan=float(tensor.field_deg[-1])), phi
+
+
 def render_coded(rgb: np.ndarray, range_m: np.ndarray, tensor: PsfTensor, geometry: SensorGeometry = BMI_SENSOR,
                  row0: int = 0, col0: int = 0, *, zone_px: int | None = None, ramp_px: int | None = None,
                  interpolation: str = "linear", psf_mode: str = "exact", psf_map: PsfMap | None = None,
@@ -109,14 +123,7 @@ def render_coded(rgb: np.ndarray, range_m: np.ndarray, tensor: PsfTensor, geomet
     elif psf_map.tensor is not tensor or psf_map.geometry != geometry:
         raise ValueError("psf_map was built for another tensor or geometry")
     kpx = psf_map.kernel_px
-    if zone_px is None:
-        zone_px = DEFAULT_ZONE_PX
-    if ramp_px is None:
-        ramp_px = max(1, min(DEFAULT_RAMP_PX, zone_px // 8))
-    zone_list = zones(height, width, zone_px, row0, col0, ramp_px)
-    theta, phi = geometry.field_angles(np.array([row0 + z.row for z in zone_list]),
-                                       np.array([col0 + z.col for z in zone_list]))
-    theta = np.nan_to_num(theta, nan=float(tensor.field_deg[-1]))
+    zone_list, theta, phi = render_zones(geometry, tensor, row0, col0, height, width, zone_px, ramp_px)
     # Layers present near each zone (support dilated by one kernel width, see module doc).
     near = []
     for z in zone_list:

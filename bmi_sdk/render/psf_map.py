@@ -353,8 +353,11 @@ class PsfMap:
         """Make the tensor entries that these fields and depths need available (batched; tensor mode)."""
         if self.mode == "exact":
             return
-        needed = sorted({i for t in np.atleast_1d(theta_deg) for i in self._bracket(float(t))[0]})
-        self.tensor.ensure(needed, depth_indices)
+        self.tensor.ensure(self.field_indices(theta_deg), depth_indices)
+
+    def field_indices(self, theta_deg) -> list[int]:
+        """The tensor's field indices whose kernels make the kernels at these θ (°): each θ's bracketing pair."""
+        return sorted({i for t in np.atleast_1d(theta_deg) for i in self._bracket(float(t))[0]})
 
     def kernel_sets(self, theta_deg: float, phi_deg: float, depth_indices) -> list[np.ndarray]:
         """[(C, K, K) float32 unit-sum kernels per depth index] for one field position. In exact mode they are this
