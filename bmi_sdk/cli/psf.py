@@ -1,12 +1,12 @@
-"""`bmi psf export|build|warm`: one pixel-integrated PSF, the whole PSF tensor, or a camera's decoder kernels traced
-ahead of its first frame."""
+"""`bmi psf export|build|warm|cache`: one pixel-integrated PSF, the whole PSF tensor, a camera's decoder kernels traced
+ahead of its first frame, or what the PSF cache holds (and pruning it)."""
 
 from __future__ import annotations
 
 import time
 from pathlib import Path
 
-from ..option_values import number, whole
+from ..option_values import OptionError, number, whole
 from ._logging import bars_shown
 
 
@@ -121,6 +121,44 @@ def _warm(args) -> int:
     return 0
 
 
+def _cache(args) -> int:
+    import json
+    import time
+
+    from bmi_sdk.optics.cache_store import cache_entries, prune
+    from bmi_sdk.optics.tensor import default_cache_dir
+
+    root = default_cache_dir()
+    if args.prune and args.older_than_days is None and args.max_gb is None:
+        raise OptionError("--prune needs --older-than-days DAYS, --max-gb GB or both", "--prune")
+    if not args.prune and (args.older_than_days is not None or args.max_gb is not None or args.dry_run):
+        raise OptionError("--older-than-days, --max-gb and --dry-run go with --prune", "--prune")
+    removed = []
+    if args.prune:
+        removed = prune(root, None if args.older_than_days is None else args.older_than_days * 86400.0,
+                        None if args.max_gb is None else int(args.max_gb * 1e9), dry_run=args.dry_run)
+    entries = [e for e in cache_entries(root) if args.dry_run or e.path.exists()]
+    gone = {e.path for e in removed}
+    kept = [e for e in entries if e.path not in gone]
+    if args.json:
+        print(json.dumps({"cache_dir": str(root), "entries": [e.to_dict(root) for e in kept],
+                          "size_bytes": sum(e.size_bytes for e in kept),
+                          "removed": [e.to_dict(root) for e in removed], "dry_run": args.dry_run,
+                          "removed_bytes": sum(e.size_bytes for e in removed)}))
+        return 0
+    now = time.time()
+    verb = "would remove" if args.dry_run else "removed"
+    for e in removed:
+        print(f"{verb} {e.path.relative_to(root)} ({e.kind}, {e.size_bytes / 1e6:.1f} MB, last used "
+              f"{(now - e.last_used) / 86400:.1f} days ago)")
+    for e in kept:
+        print(f"{e.size_bytes / 1e6:9.1f} MB  {(now - e.last_used) / 86400:7.1f} days  {e.kind:7s} "
+              f"{e.path.relative_to(root)}")
+    print(f"{root}: {len(kept)} folders, {sum(e.size_bytes for e in kept) / 1e6:.1f} MB"
+          + (f"; {verb} {len(removed)}, {sum(e.size_bytes for e in removed) / 1e6:.1f} MB" if args.prune else ""))
+    return 0
+
+
 def register(subparsers) -> None:
     from bmi_sdk.decode.classical import TEXTURE_EXPONENTS
     from bmi_sdk.lenses import DEFAULT_LENS, LENS_KERNEL_PX
@@ -183,4 +221,18 @@ def register(subparsers) -> None:
     w.add_argument("--json", action="store_true", help="print the report as JSON")
     w.add_argument("--quiet", action="store_true", help="no progress bar")
     w.set_defaults(handler=_warm)
+    c = sub.add_parser("cache", help="list the PSF cache's folders with their size and last use, or prune them",
+                       description="Lists every folder of the PSF cache ($BMI_CACHE_DIR/psf): a lens's PSF tensor, a "
+                                   "camera's exact kernels, a camera's evidence models of one kind and model code; "
+                                   "each with its size and the days since a decode last read or wrote it. --prune "
+                                   "removes whole folders, least recently used first; a decode running meanwhile "
+                                   "recomputes what it no longer finds.")
+    c.add_argument("--prune", action="store_true", help="remove folders (needs --older-than-days, --max-gb or both)")
+    c.add_argument("--older-than-days", type=number(0, 1e5, unit="days"), metavar="DAYS",
+                   help="with --prune: remove the folders unused for more than DAYS days")
+    c.add_argument("--max-gb", type=number(0, 1e6, unit="GB"), metavar="GB",
+                   help="with --prune: then remove the least recently used folders until the rest hold at most GB")
+    c.add_argument("--dry-run", action="store_true", help="with --prune: say what would go, remove nothing")
+    c.add_argument("--json", action="store_true", help="print the listing (and what was removed) as JSON")
+    c.set_defaults(handler=_cache)
     p.set_defaults(handler=lambda args: p.print_help() or 2)

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io_atomic import atomic_path
+from ..optics.cache_store import mark_used
 from ..optics.tensor import PsfCacheWarning, arrays_digest, read_npz_arrays
 from .evidence import expected_periodogram, folded_model
 
@@ -105,9 +106,12 @@ class ModelCache:
         try:
             models, depth_index = self._checked(path)
         except ValueError as exc:
+            if not path.exists():  # pruned meanwhile (``optics.cache_store``)
+                return {}
             warnings.warn(f"evidence model cache shard {path} is unusable ({exc}); recomputing it", PsfCacheWarning,
                           stacklevel=2)
             return {}
+        mark_used(path.parent)
         return {int(j): models[n].copy() for n, j in enumerate(depth_index)}  # copies: no view keeps the shard
 
     def _checked(self, path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -143,6 +147,7 @@ class ModelCache:
         try:
             with atomic_path(path, suffix=".npz") as tmp:
                 np.savez(tmp, models=stacked, depth_index=depth_index, sha256=np.array(_digest(stacked, depth_index)))
+            mark_used(path.parent)
         except OSError as exc:
             self.writable = False
             warnings.warn(f"cannot write the evidence model cache at {path.parent} ({exc}); this decoder keeps its "

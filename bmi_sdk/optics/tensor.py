@@ -30,6 +30,7 @@ from ..io_atomic import atomic_path, write_json
 from ..json_files import read_json_object
 from ..parallel import map_jobs
 from . import spectral
+from .cache_store import mark_used
 from .prescription import Lens, load_lens
 from .psf import DEFAULT_GUARD, DEFAULT_OVERSAMPLE, psf_from_pupil
 from .pupil import fit_pupils
@@ -195,16 +196,21 @@ def usable_kernel_shard(path: Path, psf_shape: tuple, stacklevel: int = 2, spars
     fails its checks.
 
     A failing shard (truncated, edited, non-finite, another shape) is never used: a ``PsfCacheWarning``
-    names it (``stacklevel`` counts from the caller), and its entries are recomputed and written again.
+    names it (``stacklevel`` counts from the caller), and its entries are recomputed and written again. A shard
+    read marks its folder used (``cache_store.mark_used``).
     """
     if not path.exists():
         return None
     try:
-        return read_kernel_shard(path, psf_shape, sparse)
+        shard = read_kernel_shard(path, psf_shape, sparse)
     except ValueError as exc:
+        if not path.exists():  # pruned meanwhile (``cache_store``): as if it had never been there
+            return None
         warnings.warn(f"PSF cache shard {path} is unusable ({exc}); recomputing it", PsfCacheWarning,
                       stacklevel=stacklevel + 1)
         return None
+    mark_used(path.parent)
+    return shard
 
 
 def write_kernel_shard(path: Path, psf: np.ndarray, filled: np.ndarray, depth_index: np.ndarray | None = None) -> None:
@@ -214,6 +220,7 @@ def write_kernel_shard(path: Path, psf: np.ndarray, filled: np.ndarray, depth_in
     extra = {} if depth_index is None else {"depth_index": np.asarray(depth_index, dtype=np.int64)}
     with atomic_path(path, suffix=".npz") as tmp:
         np.savez(tmp, psf=psf, filled=filled, sha256=np.array(_shard_digest(psf, filled, depth_index)), **extra)
+    mark_used(path.parent)
 
 
 def _field_kernels(_state, job) -> np.ndarray:
