@@ -48,18 +48,20 @@ def _row(depth: np.ndarray, sigma: np.ndarray, truth: np.ndarray, ok: np.ndarray
     return [m["absrel"], m["delta1"], float(np.std(z)) if z.size else math.nan, confident]
 
 
-def _variants(shipped, colour_sigma: float) -> list[tuple[str, object, float]]:
-    """(row name, support knobs or None, colour scale) of each read the bench measures: one knob moved at a time
-    from the shipped ``shipped`` support and ``colour_sigma``."""
+def _variants(shipped, colour_sigma: float, select) -> list[tuple[str, object, float, object]]:
+    """(row name, support knobs or None, colour scale, pixel selection or None) of each read the bench measures: the
+    shipped read (``shipped`` support, ``colour_sigma``, the pixel selection ``select``), then one knob moved at a time
+    from it with the pixel selection off (it was fitted on the shipped support read)."""
     from dataclasses import replace
 
-    rows = [("support off", None, colour_sigma)]
-    rows += [(f"support radius {r}" + (" (shipped)" if r == shipped.radius_windows else ""),
-              replace(shipped, radius_windows=r), colour_sigma) for r in SUPPORT_RADII]
-    rows += [(f"support τ {t:g}", replace(shipped, spread_scale=t if math.isfinite(t) else 1e12), colour_sigma)
+    rows = [("as shipped" + (", pixel selection" if select is not None else ""), shipped, colour_sigma, select),
+            ("support off", None, colour_sigma, None)]
+    rows += [(f"support radius {r}" + (", pixel selection off" if r == shipped.radius_windows else ""),
+              replace(shipped, radius_windows=r), colour_sigma, None) for r in SUPPORT_RADII]
+    rows += [(f"support τ {t:g}", replace(shipped, spread_scale=t if math.isfinite(t) else 1e12), colour_sigma, None)
              for t in SPREAD_SCALES if t != shipped.spread_scale]
-    rows += [(f"support {name}", support, colour_sigma) for name, support in _other_reads(shipped)]
-    rows += [(f"colour σ {c:g}", shipped, c if math.isfinite(c) else 1e6) for c in COLOUR_SIGMAS
+    rows += [(f"support {name}", support, colour_sigma, None) for name, support in _other_reads(shipped)]
+    rows += [(f"colour σ {c:g}", shipped, c if math.isfinite(c) else 1e6, None) for c in COLOUR_SIGMAS
              if c != colour_sigma]
     return rows
 
@@ -75,16 +77,23 @@ def _other_reads(shipped) -> list[tuple[str, object]]:
             + [(f"attribution {a}", replace(shipped, attribution=a)) for a in ATTRIBUTIONS if a != shipped.attribution])
 
 
-def pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, colour_sigma: float, config) -> tuple[np.ndarray, np.ndarray]:
+def pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, colour_sigma: float, config,
+               select=None) -> tuple[np.ndarray, np.ndarray]:
     """(depth_m, 1σ) at every pixel of the network's window read: the support read (None: off), then the guided
-    upsampling, as ``runtime.evidence.decode_evidence`` does."""
+    upsampling, then (with a support read) the pixel selection ``select`` (``decode.pixel_select``; None: off), as
+    ``runtime.evidence.decode_evidence`` does."""
+    from ..decode.pixel_select import Grids, select_depth
     from ..decode.support import frame_support_read
     from ..decode.volume import guided_upsample
 
-    inv, var = inv_grid, sig_grid.astype(np.float32) ** 2
+    own = inv_grid, sig_grid.astype(np.float32) ** 2
+    inv, var = own
     if support is not None:
         inv, var = frame_support_read(inv, var, rgb, support, config.window_px, config.stride_px)
     inv_px, var_px = guided_upsample(inv, var, log_rgb, config.stride_px, colour_sigma, threads=2)
+    if select is not None and support is not None:
+        grids = Grids.of_frame(inv, var, *own, rgb, log_rgb, config.stride_px, config.window_px, support.dark_floor)
+        select_depth(select, grids, inv_px, var_px)
     depth = np.where(inv_px > 0, 1.0 / np.where(inv_px > 0, inv_px, 1.0), np.nan)
     return depth, np.sqrt(var_px) * depth ** 2
 
@@ -116,7 +125,7 @@ def _planes(network, stages, geometry) -> str:
                     inv_grid, sig_grid = network.read_decode(result)
                     rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
                     read, _ = pixel_read(inv_grid, sig_grid, rgb, pixel_log_colour(rgb), network.support,
-                                         network.colour_sigma, stage.config)
+                                         network.colour_sigma, stage.config, network.pixel_select)
                     truth = np.full(raw.shape, depth_m, np.float32)
                     draws.append([depth_metrics(d, truth, result.valid)["absrel"] for d in (result.depth_m, read)])
                 classical, evidence = np.array(draws).T
@@ -158,13 +167,17 @@ def _full_frame(network, stages, geometry) -> str:
         log_rgb = pixel_log_colour(rgb)
         rows.append([kernels, "classical", *_row(result.depth_m, result.depth_sigma_m, range_m, result.valid),
                      f"{stage_s:.1f}"])
-        shipped = "evidence, support as shipped"
-        reads = [("evidence, support off", None), (shipped, network.support)]
+        shipped = "evidence as shipped"
+        reads = [("evidence, support off", None, None), (shipped, network.support, network.pixel_select)]
         if network.support is not None:
-            reads += [(f"evidence, support {name}", support) for name, support in _other_reads(network.support)]
-        for name, support in reads:
+            if network.pixel_select is not None:
+                reads += [("evidence, pixel selection off", network.support, None)]
+            reads += [(f"evidence, support {name}, pixel selection off", support, None)
+                      for name, support in _other_reads(network.support)]
+        for name, support, select in reads:
             t0 = time.perf_counter()
-            depth, sigma = pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, network.colour_sigma, stage.config)
+            depth, sigma = pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, network.colour_sigma, stage.config,
+                                      select)
             metrics = _row(depth, sigma, range_m, result.valid)
             rows.append([kernels, name, *metrics, f"{time.perf_counter() - t0:.1f}"])
             if name == shipped:
@@ -216,7 +229,7 @@ def _gate_rows(kernels: str, stage, network, raw, rgb, log_rgb, range_m, valid, 
             absrel = shipped_absrel
         else:
             depth, sigma = pixel_read(*network.read_decode(result), rgb, log_rgb, network.support, network.colour_sigma,
-                                      config)
+                                      config, network.pixel_select)
             absrel = _row(depth, sigma, range_m, valid)[0]
         rows.append([kernels, label, absrel, f"{seconds:.1f}", f"{result.stats['timings_s']['kernels_s']:.1f}"])
     return rows
@@ -241,7 +254,7 @@ def run(full: bool = False) -> str:
     network = EvidenceNetwork(select_model(bench.lens, "evidence"), threads=2)
     config = network.stage_config()
     stage = ClassicalDecoder.for_psf_map(PsfMap(tensor, geometry, mode="tensor"), config)
-    variants = _variants(network.support or SupportConfig(), network.colour_sigma)
+    variants = _variants(network.support or SupportConfig(), network.colour_sigma, network.pixel_select)
     rows: dict[str, list] = {}
     seconds: dict[str, float] = {}
     pixels = 0
@@ -255,10 +268,10 @@ def run(full: bool = False) -> str:
         rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
         log_rgb = pixel_log_colour(rgb)
         pixels += raw.size
-        for name, support, colour_sigma in variants:
+        for name, support, colour_sigma, select in variants:
             name = f"evidence, {name}"
             t0 = time.perf_counter()
-            depth, sigma = pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, colour_sigma, config)
+            depth, sigma = pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, colour_sigma, config, select)
             seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
             rows.setdefault(name, []).append(_row(depth, sigma, truth, result.valid))
     table = []

@@ -57,11 +57,13 @@ def decoder_reads_sigma(raw, row0: int, col0: int, stages: dict, network, suppor
     rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
     log_rgb = pixel_log_colour(rgb)
     read = lambda support: pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, network.colour_sigma,  # noqa: E731
-                                      stages["evidence"].config)
+                                      stages["evidence"].config,
+                                      network.pixel_select if support is network.support else None)
     classical = decode(stages["classical"])
     reads = dict(zip(DECODER_NAMES, (read(network.support), (classical.depth_m, classical.depth_sigma_m))))
     reads |= {name: read(support) for name, support in (supports or {}).items()}
     for name, stage in (volumes or {}).items():
         inv_grid, sig_grid = network.read_decode(decode(stage))
-        reads[name] = pixel_read(inv_grid, sig_grid, rgb, log_rgb, network.support, network.colour_sigma, stage.config)
+        reads[name] = pixel_read(inv_grid, sig_grid, rgb, log_rgb, network.support, network.colour_sigma, stage.config,
+                                 network.pixel_select)
     return reads

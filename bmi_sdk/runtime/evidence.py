@@ -15,7 +15,8 @@ Steps for one frame (docs/decoder.md):
    read of the windows that see one surface of its colour;
 4. 1/d and its variance go to every pixel by colour-guided upsampling (``decode.volume.guided_upsample``) over
    the demosaiced frame: a pixel between windows takes those of its own colour, and its σ includes the
-   spread of the windows it mixes;
+   spread of the windows it mixes; where a pixel's windows disagree, its depth is the mixture of the 4 × 4 windows'
+   reads around it scored by the manifest's fitted ``pixel_select`` (``decode.pixel_select``);
 5. the AiF is the Wiener deconvolution of the frame with the kernels at that depth
    (``ClassicalDecoder.restore_aif`` without a prior).
 
@@ -33,6 +34,7 @@ import numpy as np
 from ..built_camera import BuiltCamera
 from ..decode import ClassicalConfig, ClassicalDecoder
 from ..decode.classical import with_texture_exponent
+from ..decode.pixel_select import Grids, PixelSelect, select_depth
 from ..decode.support import SupportConfig, frame_support_read
 from ..decode.volume import guided_upsample, pixel_log_colour, posterior, volume_inputs
 from ..model_io import raw_to_rgb
@@ -70,6 +72,7 @@ class EvidenceNetwork:
         self.colour_sigma = float(self.manifest["upsample_colour_sigma"])
         self.sigma_source = self.manifest.get("sigma_source", "network")
         self.support = self._support(self.manifest.get("support"))
+        self.pixel_select = self._pixel_select(self.manifest.get("pixel_select"))
         self.session = ort.InferenceSession(str(self.path), sess_options=session_options(threads),
                                             providers=choose_providers(providers))
         self.provider = self.session.get_providers()[0]
@@ -88,6 +91,18 @@ class EvidenceNetwork:
             return SupportConfig(**{"estimate": "mean", "attribution": "cell", **knobs})
         except (TypeError, ValueError) as e:
             raise ModelError(f"manifest of {self.path.name}: its support knobs {knobs!r} are not valid: {e}") from None
+
+    def _pixel_select(self, weights) -> PixelSelect | None:
+        """The manifest's fitted ``pixel_select`` scorer (``decode.pixel_select``); None (the guided read everywhere)
+        without. It scores the support read's candidates, so a manifest with it needs ``support``."""
+        if weights is None:
+            return None
+        if self.support is None:
+            raise ModelError(f"manifest of {self.path.name}: pixel_select scores support reads, but it has no support")
+        try:
+            return PixelSelect.from_dict(weights)
+        except ValueError as e:
+            raise ModelError(f"manifest of {self.path.name}: its pixel_select weights are not valid: {e}") from None
 
     def stage_config(self, threads: int | None = None) -> ClassicalConfig:
         """The classical decoder's knobs that make this network's volume (its manifest's), on ``threads`` threads."""
@@ -164,20 +179,31 @@ def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, ca
     t0 = time.perf_counter()
     rgb = raw_to_rgb(frame.data, frame.black_level_dn, frame.white_level_dn, frame.cfa)
     stride_px = stage.config.stride_px
-    var_grid = sig_grid.astype(np.float32) ** 2
+    inv_own, var_own = inv_grid, sig_grid.astype(np.float32) ** 2
+    inv_grid, var_grid = inv_own, var_own
     if network.support is not None:
         t1 = time.perf_counter()
-        inv_grid, var_grid = frame_support_read(inv_grid, var_grid, rgb, network.support, stage.config.window_px,
+        inv_grid, var_grid = frame_support_read(inv_own, var_own, rgb, network.support, stage.config.window_px,
                                                 stride_px, stage.threads)
         timings["support_s"] = time.perf_counter() - t1
     log_rgb = pixel_log_colour(rgb)
-    del rgb
     inv_px, var_px = guided_upsample(inv_grid, var_grid, log_rgb, stride_px, network.colour_sigma,
                                      threads=stage.threads)
+    pixels_selected = 0
+    if network.pixel_select is not None:
+        t1 = time.perf_counter()
+        assert network.support is not None  # a manifest with pixel_select and no support is refused on loading
+        grids = Grids.of_frame(inv_grid, var_grid, inv_own, var_own, rgb, log_rgb, stride_px, stage.config.window_px,
+                               network.support.dark_floor, stage.threads)
+        pixels_selected = select_depth(network.pixel_select, grids, inv_px, var_px, stage.threads)
+        del grids
+        timings["pixel_select_s"] = time.perf_counter() - t1
+    del rgb
     valid = result.valid & np.isfinite(inv_px) & (inv_px > 0)
     depth = np.where(valid, np.float32(1.0) / np.where(valid, inv_px, np.float32(1.0)), np.float32(np.nan))
     sigma = np.where(valid, np.sqrt(np.maximum(var_px, np.float32(0.0))) * depth * depth, np.float32(np.nan))
-    timings["upsample_s"] = time.perf_counter() - t0 - timings.get("support_s", 0.0)
+    timings["upsample_s"] = (time.perf_counter() - t0 - timings.get("support_s", 0.0)
+                             - timings.get("pixel_select_s", 0.0))
     t0 = time.perf_counter()
     noise = NoiseProfile(**result.stats["noise_profile"])  # the noise the stage decoded with
     aif = stage.restore_aif(frame.data, frame.black_level_dn, frame.white_level_dn, frame.geometry, depth, None,
@@ -189,7 +215,9 @@ def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, ca
               "confident_coverage": float(confident.sum() / max(valid.sum(), 1)),
               "blocks_run": stats["blocks_run"], "blocks_skipped": stats["blocks_skipped"],
               "support": None if network.support is None else network.support.to_dict(),
+              "pixels_selected": pixels_selected,
               "decoder_stats": stats, "timings_s": {**stats["timings_s"], **timings}}
     return DecodedFrame(aif, depth, valid, sigma, report,
-                        {"classical": result, "grid_inv_depth": inv_grid, "grid_sigma_inv": np.sqrt(var_grid)})
+                        {"classical": result, "grid_inv_depth": inv_grid, "grid_sigma_inv": np.sqrt(var_grid),
+                       "grid_inv_depth_own": inv_own, "grid_sigma_inv_own": np.sqrt(var_own)})
 
