@@ -29,15 +29,19 @@ def _grids(rng, rows=6, cols=7, height=80, width=96, step_col=None) -> Grids:
     jump from 0.2 to 1 m⁻¹ at that grid column (two surfaces) and are uniform on each side."""
     inv = rng.uniform(0.2, 1.0, (rows, cols)).astype(np.float32)
     if step_col is not None:
-        inv = np.where(np.arange(cols)[None, :] < step_col, 0.2, 1.0).astype(np.float32) * np.ones((rows, 1), np.float32)
+        inv = np.where(np.arange(cols)[None, :] < step_col, 0.2, 1.0) * np.ones((rows, 1))
+        inv = inv.astype(np.float32)
     rgb = rng.uniform(0.0, 1.0, (height, width, 3)).astype(np.float32)
     log_rgb = np.log(np.maximum(rgb, 1e-3))
-    return Grids(inv, rng.uniform(1e-4, 1e-2, (rows, cols)).astype(np.float32),
-                 rng.uniform(0.2, 1.0, (rows, cols)).astype(np.float32),
-                 rng.uniform(1e-4, 1e-2, (rows, cols)).astype(np.float32),
-                 rng.normal(size=(rows, cols, 3)).astype(np.float32), rng.normal(size=(rows, cols, 3)).astype(np.float32),
-                 rng.normal(size=(rows, cols, 3)).astype(np.float32), rng.uniform(0, 1, (rows, cols)).astype(np.float32),
-                 log_rgb, np.log(rgb + 0.01).astype(np.float32), STRIDE)
+    def draw(kind, *args):
+        return getattr(rng, kind)(*args).astype(np.float32)
+
+    colours = (rows, cols, 3)
+    grid = (rows, cols)
+    return Grids(inv, draw("uniform", 1e-4, 1e-2, grid), draw("uniform", 0.2, 1.0, grid),
+                 draw("uniform", 1e-4, 1e-2, grid), draw("normal", 0, 1, colours), draw("normal", 0, 1, colours),
+                 draw("normal", 0, 1, colours), draw("uniform", 0, 1, grid), log_rgb,
+                 np.log(rgb + 0.01).astype(np.float32), STRIDE)
 
 
 def _zero_scorer() -> PixelSelect:

@@ -246,7 +246,7 @@ def select_depth(select: PixelSelect, grids: Grids, inv_px: np.ndarray, var_px: 
     def chunk(a: int) -> None:
         r, c = rows[a:a + CHUNK_PX], cols[a:a + CHUNK_PX]
         feats, inv, var, ok = candidate_features(grids, r, c)
-        any_ok = ok.any(1)
+        any_ok = np.asarray(ok.any(axis=1))
         score = np.where(ok, select.scores(feats), -np.inf)
         score = np.where(any_ok[:, None], score, 0.0)
         w = np.where(ok, np.exp(score - score.max(1, keepdims=True)), 0.0)

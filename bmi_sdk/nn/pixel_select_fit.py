@@ -4,7 +4,8 @@
 
 Every tile of the benchmark at the given seed (6 per field region, scene scales 1, 4 and 16, noise σ 0.005 and 0.02,
 the design camera's tensor kernels, as ``bmi eval`` renders them) is decoded by the evidence network; every
-``SUBSAMPLE_PX``-th pixel on each axis whose 2 × 2 windows disagree (``FIT_DISAGREEMENT``) gives its 32 candidates' features
+``SUBSAMPLE_PX``-th pixel on each axis whose 2 × 2 windows disagree (``FIT_DISAGREEMENT``) gives its 32 candidates'
+features
 (``pixel_select.candidate_features``) and its true range. A perceptron (``HIDDEN`` units twice, ReLU; Adam, seeded) is
 fitted to the least mean relative range error of the candidates' softmax mixture, each (scale, σ, region) group
 weighted equally. The weights go into the manifest's ``pixel_select`` (written atomically), with the fit's command
@@ -39,10 +40,10 @@ pixel (AbsRel −0.0164 against −0.0199 per row) and scores 54 % as many of a 
 def collect(seed: int, tiles: int, scales=(1.0, 4.0, 16.0), sigmas=(0.005, 0.02), manifest: str | None = None,
             progress: bool = True) -> dict[str, np.ndarray]:
     """{"features", "inv", "usable", "range_m", "group"} of the scored pixels of the benchmark's tiles (module doc)."""
+    from bmi_sdk.decode.volume import pixel_log_colour
     from bmi_sdk.lenses import lens_geometry
     from bmi_sdk.model_io import raw_to_rgb
     from bmi_sdk.nn.evaluate import Benchmark, BenchmarkCamera, open_tiles, tile_frame, tile_raw
-    from bmi_sdk.decode.volume import pixel_log_colour
     from bmi_sdk.sensor import NoiseProfile
 
     out: dict[str, list] = {"features": [], "inv": [], "usable": [], "range_m": [], "group": []}
@@ -148,7 +149,8 @@ def main(argv=None) -> int:
     select, errors = fit(data)
     manifest = json.loads(manifest_path.read_text())
     manifest["pixel_select"] = select.to_dict()
-    manifest["pixel_select_fit"] = {"command": "python -m bmi_sdk.nn.pixel_select_fit " + " ".join(argv or sys.argv[1:]),
+    command = "python -m bmi_sdk.nn.pixel_select_fit " + " ".join(argv or sys.argv[1:])
+    manifest["pixel_select_fit"] = {"command": command,
                                     "seed": args.seed, "tiles_per_region": args.tiles,
                                     "pixels": int(len(data["range_m"])), **errors}
     write_json(manifest_path, manifest)
