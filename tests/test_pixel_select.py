@@ -143,3 +143,24 @@ def test_the_shipped_weights_round_trip_through_their_dictionary():
     again = PixelSelect.from_dict(json.loads(json.dumps(select.to_dict())))
     x = np.random.default_rng(4).normal(size=(len(FEATURES), 5)).astype(np.float32)
     np.testing.assert_array_equal(select.scores(x), again.scores(x))
+
+
+def test_two_threads_score_the_same_bits_as_one(monkeypatch):
+    """Chunks are independent: scored on 2 threads, many small chunks give the one-thread result bit for bit."""
+    from bmi_sdk.decode import pixel_select
+
+    monkeypatch.setattr(pixel_select, "CHUNK_PX", 256)
+    rng = np.random.default_rng(5)
+    g = _grids(rng)
+    n = len(FEATURES)
+    scorer = PixelSelect(np.zeros(n, np.float32), np.ones(n, np.float32),
+                         ((rng.normal(size=(n, 8)).astype(np.float32), rng.normal(size=8).astype(np.float32)),
+                          (rng.normal(size=(8, 1)).astype(np.float32), np.zeros(1, np.float32))), 0.0)
+    reads = []
+    for threads in (1, 2):
+        inv_px, var_px = np.full((80, 96), 0.5, np.float32), np.full((80, 96), 1e-3, np.float32)
+        assert select_depth(scorer, g, inv_px, var_px, threads) > 4 * 256
+        reads.append((inv_px, var_px))
+    np.testing.assert_array_equal(reads[0][0], reads[1][0])
+    np.testing.assert_array_equal(reads[0][1], reads[1][1])
+    assert not np.all(reads[0][0] == 0.5)

@@ -37,6 +37,7 @@ from functools import cached_property
 
 import numpy as np
 
+from ..parallel import map_threads
 from .support import cell_colours, colour_spread, evidence_colours
 from .volume import cell_colour
 
@@ -227,8 +228,9 @@ def disagreeing_blocks(inv_support: np.ndarray, threshold: float, block_rows: in
 
 def select_depth(select: PixelSelect, grids: Grids, inv_px: np.ndarray, var_px: np.ndarray, threads: int = 1) -> int:
     """Replace, in place, the 1/d and variance of the pixels of disagreeing blocks (``disagreeing_blocks``) by their
-    scored candidates' mixture (module doc), ``CHUNK_PX`` pixels at a time on ``threads`` threads (numpy releases the
-    GIL; each chunk writes its own pixels); returns how many pixels were scored."""
+    scored candidates' mixture (module doc), ``CHUNK_PX`` pixels at a time on ``threads`` threads
+    (``parallel.map_threads``; each chunk writes its own pixels, so any thread count gives the same bits); returns how
+    many pixels were scored."""
     height, width = inv_px.shape
     s = grids.stride_px
     blocks = disagreeing_blocks(grids.inv_support, select.disagreement, -(-height // s), -(-width // s))
@@ -256,13 +258,6 @@ def select_depth(select: PixelSelect, grids: Grids, inv_px: np.ndarray, var_px: 
         inv_px[r[any_ok], c[any_ok]] = mean[any_ok]
         var_px[r[any_ok], c[any_ok]] = mix[any_ok]
 
-    starts = range(0, rows.size, CHUNK_PX)
-    if threads > 1:
-        from concurrent.futures import ThreadPoolExecutor
-
-        with ThreadPoolExecutor(threads) as pool:
-            list(pool.map(chunk, starts))
-    else:
-        for a in starts:
-            chunk(a)
+    for _ in map_threads(chunk, range(0, rows.size, CHUNK_PX), threads, name="pixel-select"):
+        pass  # each chunk writes its own pixels
     return int(rows.size)
