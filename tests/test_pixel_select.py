@@ -40,8 +40,7 @@ def _grids(rng, rows=6, cols=7, height=80, width=96, step_col=None) -> Grids:
     grid = (rows, cols)
     return Grids(inv, draw("uniform", 1e-4, 1e-2, grid), draw("uniform", 0.2, 1.0, grid),
                  draw("uniform", 1e-4, 1e-2, grid), draw("normal", 0, 1, colours), draw("normal", 0, 1, colours),
-                 draw("normal", 0, 1, colours), draw("uniform", 0, 1, grid), log_rgb,
-                 np.log(rgb + 0.01).astype(np.float32), STRIDE)
+                 draw("normal", 0, 1, colours), draw("uniform", 0, 1, grid), log_rgb, rgb, 0.01, STRIDE)
 
 
 def _zero_scorer() -> PixelSelect:
@@ -52,10 +51,11 @@ def _zero_scorer() -> PixelSelect:
 
 
 def test_the_gradient_at_pixels_is_scipys_sobel_magnitude_edges_included():
-    image = np.random.default_rng(0).normal(size=(9, 11, 3)).astype(np.float32)
+    rgb = np.random.default_rng(0).uniform(-0.05, 1.0, size=(9, 11, 3)).astype(np.float32)  # some below black
+    image = np.log(np.maximum(rgb, 0.0) + 0.01)
     want = np.sqrt(sum(ndimage.sobel(image[..., c].astype(np.float64), a) ** 2 for c in range(3) for a in (0, 1)))
     rows, cols = np.mgrid[0:9, 0:11]
-    got = gradient_at(image, rows.ravel(), cols.ravel()).reshape(9, 11)
+    got = gradient_at(rgb, rows.ravel(), cols.ravel(), 0.01).reshape(9, 11)
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
 
 
@@ -69,17 +69,18 @@ def test_a_pixels_candidates_are_the_4x4_windows_around_it_read_directly_from_th
     assert feats.shape == (len(FEATURES), 1, 32) and ok.all()
     fy, fx = (37 % 16 + 0.5) / 16, (50 % 16 + 0.5) / 16
     median = np.median(np.log([g.inv_support[r, c] for r in (2, 3) for c in (3, 4)]))
-    grad = np.log1p(gradient_at(g.floored, np.array([37]), np.array([50]))[0])
+    grad = np.log1p(gradient_at(g.rgb, np.array([37]), np.array([50]), 0.01)[0])
+    floored = np.log(np.maximum(g.rgb, 0.0) + 0.01)
     n = 0
     for grid_inv, grid_var, own in ((g.inv_support, g.var_support, 0.0), (g.inv_own, g.var_own, 1.0)):
         for r in (1, 2, 3, 4):
             for c in (2, 3, 4, 5):
                 dy, dx = r - 2 - fy, c - 3 - fx
-                floored = ((g.floored[37, 50] - g.cells[r, c]) ** 2).sum()
+                floored_cell = ((floored[37, 50] - g.cells[r, c]) ** 2).sum()
                 want = [dy ** 2, dx ** 2, abs(dy), abs(dx), ((g.log_rgb[37, 50] - g.cell_log[r, c]) ** 2).sum(),
-                        floored, ((g.floored[37, 50] - g.evidence[r, c]) ** 2).sum(), g.spread[r, c],
+                        floored_cell, ((floored[37, 50] - g.evidence[r, c]) ** 2).sum(), g.spread[r, c],
                         np.log(np.sqrt(grid_var[r, c]) / grid_inv[r, c]), np.log(grid_inv[r, c]) - median, own,
-                        grad * floored, grad, np.log(grid_inv[r, c])]
+                        grad * floored_cell, grad, np.log(grid_inv[r, c])]
                 np.testing.assert_allclose(feats[:, 0, n], want, rtol=1e-5, atol=1e-6)
                 assert inv[0, n] == grid_inv[r, c] and var[0, n] == grid_var[r, c]
                 n += 1

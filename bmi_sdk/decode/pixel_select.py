@@ -117,8 +117,13 @@ class Grids:
     evidence: np.ndarray      # (R, C, 3) the colour each window's evidence came from
     spread: np.ndarray        # (R, C)
     log_rgb: np.ndarray       # (H, W, 3) floored log colour (``volume.pixel_log_colour``)
-    floored: np.ndarray       # (H, W, 3) log(colour + dark floor)
+    rgb: np.ndarray           # (H, W, 3) linear colour
+    dark_floor: float         # the support read's: pixels are compared as log(colour + dark floor)
     stride_px: int
+
+    def floored_at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """(n, 3) log(colour + dark floor) of the given pixels (taken where needed, not for the whole frame)."""
+        return floored_log(self.rgb[rows, cols], self.dark_floor)
 
     @cached_property
     def window_table(self) -> np.ndarray:
@@ -130,25 +135,36 @@ class Grids:
 
     @classmethod
     def of_frame(cls, inv_support, var_support, inv_own, var_own, rgb, log_rgb, stride_px: int, window_px: int,
-                 dark_floor: float, threads: int = 1) -> "Grids":
+                 dark_floor: float, threads: int = 1, colours: tuple | None = None) -> "Grids":
+        """The grids of a frame; ``colours``: the (cells, cells holding pixels, reads' colours) the support read
+        compared (``support.support_colours``), reused rather than taken again (the reads' colours are taken here
+        when the support read compared cell colours only)."""
         shape = inv_support.shape
-        cells, cell_ok = cell_colours(rgb, stride_px, shape, dark_floor)
+        cells, cell_ok, evidence = colours if colours is not None else (*cell_colours(rgb, stride_px, shape,
+                                                                                      dark_floor), None)
+        if evidence is None:
+            evidence = evidence_colours(rgb, stride_px, shape, window_px, dark_floor, threads)
         return cls(inv_support, var_support, inv_own, var_own, cell_colour(log_rgb, stride_px, shape), cells,
-                   evidence_colours(rgb, stride_px, shape, window_px, dark_floor, threads),
-                   colour_spread(cells, cell_ok, window_px, stride_px),
-                   log_rgb, np.log(np.maximum(rgb, 0.0) + np.float32(dark_floor)).astype(np.float32), stride_px)
+                   evidence, colour_spread(cells, cell_ok, window_px, stride_px), log_rgb, rgb, dark_floor,
+                   stride_px)
 
 
-def gradient_at(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """Sobel gradient magnitude √(Σ_c (S_r g_c)² + (S_c g_c)²) of an H × W × 3 image at the given pixels, the
-    image mirrored about its edges (``scipy.ndimage.sobel``'s "reflect"), from their 3 × 3 neighbourhoods only."""
-    height, width = image.shape[:2]
+def floored_log(rgb: np.ndarray, dark_floor: float) -> np.ndarray:
+    """log(max(colour, 0) + dark floor), float32."""
+    return np.log(np.maximum(rgb, 0.0) + np.float32(dark_floor)).astype(np.float32)
+
+
+def gradient_at(rgb: np.ndarray, rows: np.ndarray, cols: np.ndarray, dark_floor: float) -> np.ndarray:
+    """Sobel gradient magnitude √(Σ_c (S_r g_c)² + (S_c g_c)²) of the floored log colour g = ``floored_log`` of an
+    H × W × 3 linear image at the given pixels, g mirrored about the frame's edges (``scipy.ndimage.sobel``'s
+    "reflect"), from their 3 × 3 neighbourhoods only."""
+    height, width = rgb.shape[:2]
 
     def at(dr: int, dc: int) -> np.ndarray:
         r, c = rows + dr, cols + dc
         r = np.where(r < 0, -r - 1, np.where(r >= height, 2 * height - r - 1, r))
         c = np.where(c < 0, -c - 1, np.where(c >= width, 2 * width - c - 1, c))
-        return image[r, c].astype(np.float64)
+        return floored_log(rgb[r, c], dark_floor).astype(np.float64)
 
     n = {(dr, dc): at(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)}
     along_rows = (n[1, -1] + 2 * n[1, 0] + n[1, 1]) - (n[-1, -1] + 2 * n[-1, 0] + n[-1, 1])
@@ -173,7 +189,7 @@ def candidate_features(grids: Grids, rows: np.ndarray, cols: np.ndarray
     inside = (r_all >= 0) & (r_all < n_rows) & (c_all >= 0) & (c_all < n_cols)
     r, c = np.clip(r_all, 0, n_rows - 1), np.clip(c_all, 0, n_cols - 1)
     dy, dx = off_r.astype(np.float32) - fy[:, None], off_c.astype(np.float32) - fx[:, None]
-    pixel_floored = grids.floored[rows, cols][:, None, :]
+    pixel_floored = grids.floored_at(rows, cols)[:, None, :]
     window = np.take(grids.window_table, r * n_cols + c, axis=0)  # (n, 16, 14)
 
     def distance(pixel: np.ndarray, colours: np.ndarray) -> np.ndarray:
@@ -184,7 +200,7 @@ def candidate_features(grids: Grids, rows: np.ndarray, cols: np.ndarray
     floored_cell = distance(pixel_floored, window[..., 3:6])
     evidence = distance(pixel_floored, window[..., 6:9])
     spread = window[..., 9]
-    grad = np.log1p(gradient_at(grids.floored, rows, cols))[:, None]
+    grad = np.log1p(gradient_at(grids.rgb, rows, cols, grids.dark_floor))[:, None]
     centre = grids.inv_support[np.clip(kr[:, None] + np.array([0, 0, 1, 1]), 0, n_rows - 1),
                                np.clip(kc[:, None] + np.array([0, 1, 0, 1]), 0, n_cols - 1)]
     with warnings.catch_warnings():

@@ -260,12 +260,21 @@ def relative_median(inv_depths: np.ndarray, weights: np.ndarray) -> np.ndarray:
     return np.take_along_axis(sorted_inv, first_past_half[None], axis=0)[0]
 
 
-def frame_support_read(inv_grid: np.ndarray, var_grid: np.ndarray, rgb: np.ndarray, config: SupportConfig,
-                       window_px: int, stride_px: int, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """``support_read`` of a frame's window grid, its cell colours taken from the frame's H × W × 3 linear RGB
-    (``cell_colours`` at the config's dark floor), and with the config's ``attribution`` "evidence" its reads'
-    colours too (``evidence_colours``, on ``threads`` threads): the step the evidence decoder runs."""
-    cells, cell_ok = cell_colours(rgb, stride_px, inv_grid.shape, config.dark_floor)
-    source = (evidence_colours(rgb, stride_px, inv_grid.shape, window_px, config.dark_floor, threads)
+def support_colours(rgb: np.ndarray, config: SupportConfig, grid_shape: tuple[int, int], window_px: int,
+                    stride_px: int, threads: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(cells, cells holding pixels, the reads' colours or None) a frame's support read compares: its cell colours
+    from the frame's H × W × 3 linear RGB (``cell_colours`` at the config's dark floor) and, with the config's
+    ``attribution`` "evidence", its reads' colours (``evidence_colours``, on ``threads`` threads)."""
+    cells, cell_ok = cell_colours(rgb, stride_px, grid_shape, config.dark_floor)
+    source = (evidence_colours(rgb, stride_px, grid_shape, window_px, config.dark_floor, threads)
               if config.attribution == "evidence" and config.radius_windows > 0 else None)
+    return cells, cell_ok, source
+
+
+def frame_support_read(inv_grid: np.ndarray, var_grid: np.ndarray, rgb: np.ndarray, config: SupportConfig,
+                       window_px: int, stride_px: int, threads: int = 1,
+                       colours: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``support_read`` of a frame's window grid with the colours ``support_colours`` takes from the frame's linear
+    RGB (or ``colours``, those already taken): the step the evidence decoder runs."""
+    cells, cell_ok, source = colours or support_colours(rgb, config, inv_grid.shape, window_px, stride_px, threads)
     return support_read(inv_grid, var_grid, cells, cell_ok, config, window_px, stride_px, source)

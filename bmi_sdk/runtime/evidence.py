@@ -35,7 +35,7 @@ from ..built_camera import BuiltCamera
 from ..decode import ClassicalConfig, ClassicalDecoder
 from ..decode.classical import with_texture_exponent
 from ..decode.pixel_select import Grids, PixelSelect, select_depth
-from ..decode.support import SupportConfig, frame_support_read
+from ..decode.support import SupportConfig, frame_support_read, support_colours
 from ..decode.volume import guided_upsample, pixel_log_colour, posterior, volume_inputs
 from ..model_io import raw_to_rgb
 from ..model_manifest import ModelError, verify_model
@@ -181,10 +181,13 @@ def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, ca
     stride_px = stage.config.stride_px
     inv_own, var_own = inv_grid, sig_grid.astype(np.float32) ** 2
     inv_grid, var_grid = inv_own, var_own
+    colours = None
     if network.support is not None:
         t1 = time.perf_counter()
+        colours = support_colours(rgb, network.support, inv_own.shape, stage.config.window_px, stride_px,
+                                  stage.threads)
         inv_grid, var_grid = frame_support_read(inv_own, var_own, rgb, network.support, stage.config.window_px,
-                                                stride_px, stage.threads)
+                                                stride_px, stage.threads, colours)
         timings["support_s"] = time.perf_counter() - t1
     log_rgb = pixel_log_colour(rgb)
     inv_px, var_px = guided_upsample(inv_grid, var_grid, log_rgb, stride_px, network.colour_sigma,
@@ -194,11 +197,11 @@ def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, ca
         t1 = time.perf_counter()
         assert network.support is not None  # a manifest with pixel_select and no support is refused on loading
         grids = Grids.of_frame(inv_grid, var_grid, inv_own, var_own, rgb, log_rgb, stride_px, stage.config.window_px,
-                               network.support.dark_floor, stage.threads)
+                               network.support.dark_floor, stage.threads, colours)
         pixels_selected = select_depth(network.pixel_select, grids, inv_px, var_px, stage.threads)
         del grids
         timings["pixel_select_s"] = time.perf_counter() - t1
-    del rgb
+    del rgb, colours
     valid = result.valid & np.isfinite(inv_px) & (inv_px > 0)
     depth = np.where(valid, np.float32(1.0) / np.where(valid, inv_px, np.float32(1.0)), np.float32(np.nan))
     sigma = np.where(valid, np.sqrt(np.maximum(var_px, np.float32(0.0))) * depth * depth, np.float32(np.nan))
