@@ -77,25 +77,17 @@ def _other_reads(shipped) -> list[tuple[str, object]]:
             + [(f"attribution {a}", replace(shipped, attribution=a)) for a in ATTRIBUTIONS if a != shipped.attribution])
 
 
-def pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, colour_sigma: float, config,
+def pixel_read(inv_grid, sig_grid, rgb, support, colour_sigma: float, config,
                select=None) -> tuple[np.ndarray, np.ndarray]:
-    """(depth_m, 1σ) at every pixel of the network's window read: the support read (None: off), then the guided
-    upsampling, then (with a support read) the pixel selection ``select`` (``decode.pixel_select``; None: off), as
-    ``runtime.evidence.decode_evidence`` does."""
-    from ..decode.pixel_select import Grids, select_depth
-    from ..decode.support import frame_support_read
-    from ..decode.volume import guided_upsample
+    """(depth_m, 1σ) at every pixel of the network's window read, as ``runtime.evidence.decode_evidence`` reads it
+    (``read_pixels``): the support read (None: off), the guided upsampling, then the pixel selection ``select``
+    (``decode.pixel_select``; None: off)."""
+    from ..runtime.evidence import read_pixels
 
-    own = inv_grid, sig_grid.astype(np.float32) ** 2
-    inv, var = own
-    if support is not None:
-        inv, var = frame_support_read(inv, var, rgb, support, config.window_px, config.stride_px)
-    inv_px, var_px = guided_upsample(inv, var, log_rgb, config.stride_px, colour_sigma, threads=2)
-    if select is not None and support is not None:
-        grids = Grids.of_frame(inv, var, *own, rgb, log_rgb, config.stride_px, config.window_px, support.dark_floor)
-        select_depth(select, grids, inv_px, var_px)
-    depth = np.where(inv_px > 0, 1.0 / np.where(inv_px > 0, inv_px, 1.0), np.nan)
-    return depth, np.sqrt(var_px) * depth ** 2
+    reads = read_pixels(inv_grid, sig_grid.astype(np.float32) ** 2, rgb, support, colour_sigma, select,
+                        config.window_px, config.stride_px, threads=2)
+    depth = np.where(reads.inv_px > 0, 1.0 / np.where(reads.inv_px > 0, reads.inv_px, 1.0), np.nan)
+    return depth, np.sqrt(reads.var_px) * depth ** 2
 
 
 def _planes(network, stages, geometry) -> str:
@@ -103,7 +95,6 @@ def _planes(network, stages, geometry) -> str:
     ``PLANE_FIELDS_DEG``, one per draw of ``PLANE_SEEDS``, each rendered and decoded with the same kernels of every
     (name, classical stage) of ``stages``, read by the classical stage and by the evidence decoder: the mean AbsRel over
     the draws, and the evidence decoder's worst."""
-    from ..decode.volume import pixel_log_colour
     from ..metrics import depth_metrics
     from ..model_io import raw_to_rgb
     from ..nn.data import STANDARD_SIGMA
@@ -124,7 +115,7 @@ def _planes(network, stages, geometry) -> str:
                                           noise_profile=NoiseProfile.additive(STANDARD_SIGMA), aif=False)
                     inv_grid, sig_grid = network.read_decode(result)
                     rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
-                    read, _ = pixel_read(inv_grid, sig_grid, rgb, pixel_log_colour(rgb), network.support,
+                    read, _ = pixel_read(inv_grid, sig_grid, rgb, network.support,
                                          network.colour_sigma, stage.config, network.pixel_select)
                     truth = np.full(raw.shape, depth_m, np.float32)
                     draws.append([depth_metrics(d, truth, result.valid)["absrel"] for d in (result.depth_m, read)])
@@ -144,7 +135,6 @@ def _full_frame(network, stages, geometry) -> str:
     read off, as shipped and with its other point estimates and read attribution; then the shipped read's error by
     range, by distance to a depth edge and by signal (``nn.eval_strata``, as ``bmi eval`` breaks a row down); and where the stage scores dark
     windows with the exact model, that gate's error and time against none (``_gate_rows``)."""
-    from ..decode.volume import pixel_log_colour
     from ..model_io import raw_to_rgb
     from ..nn.data import STANDARD_SIGMA, simulate_raw
     from ..nn.eval_strata import StrataSums, edge_distance_px
@@ -164,7 +154,6 @@ def _full_frame(network, stages, geometry) -> str:
         stage_s = time.perf_counter() - t0
         inv_grid, sig_grid = network.read_decode(result)
         rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
-        log_rgb = pixel_log_colour(rgb)
         rows.append([kernels, "classical", *_row(result.depth_m, result.depth_sigma_m, range_m, result.valid),
                      f"{stage_s:.1f}"])
         shipped = "evidence as shipped"
@@ -176,7 +165,7 @@ def _full_frame(network, stages, geometry) -> str:
                       for name, support in _other_reads(network.support)]
         for name, support, select in reads:
             t0 = time.perf_counter()
-            depth, sigma = pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, network.colour_sigma, stage.config,
+            depth, sigma = pixel_read(inv_grid, sig_grid, rgb, support, network.colour_sigma, stage.config,
                                       select)
             metrics = _row(depth, sigma, range_m, result.valid)
             rows.append([kernels, name, *metrics, f"{time.perf_counter() - t0:.1f}"])
@@ -189,9 +178,9 @@ def _full_frame(network, stages, geometry) -> str:
                                 for group in ("by_range", "by_edge", "by_signal")
                                 for stratum, m in summary[group].items()]
         if stage.config.exact_model_below > 0:
-            gate_rows += _gate_rows(kernels, stage, network, raw, rgb, log_rgb, range_m, result.valid, geometry,
+            gate_rows += _gate_rows(kernels, stage, network, raw, rgb, range_m, result.valid, geometry,
                                     shipped_absrel)
-        del result, raw, rgb, log_rgb, signal
+        del result, raw, rgb, signal
     header = ["kernels", "decoder", "AbsRel", "δ1", "std(error/σ)", "confident coverage",
               "s (stage, or read after it)"]
     return ("### The full 6000×4500 procedural frame (seed 7, σ 0.005; rendered and decoded with one kernel model; "
@@ -204,7 +193,7 @@ def _full_frame(network, stages, geometry) -> str:
                                  "of which evidence models, CPU s"], gate_rows) if gate_rows else ""))
 
 
-def _gate_rows(kernels: str, stage, network, raw, rgb, log_rgb, range_m, valid, geometry, shipped_absrel: float
+def _gate_rows(kernels: str, stage, network, raw, rgb, range_m, valid, geometry, shipped_absrel: float
                ) -> list[list]:
     """The exact model's gate (``ClassicalConfig.exact_model_below``) on the full frame: the stage decoded with the
     tapered model in every window and again as shipped, each timed with the kernels already in memory (the shipped
@@ -228,7 +217,7 @@ def _gate_rows(kernels: str, stage, network, raw, rgb, log_rgb, range_m, valid, 
         if config is stage.config:
             absrel = shipped_absrel
         else:
-            depth, sigma = pixel_read(*network.read_decode(result), rgb, log_rgb, network.support, network.colour_sigma,
+            depth, sigma = pixel_read(*network.read_decode(result), rgb, network.support, network.colour_sigma,
                                       config, network.pixel_select)
             absrel = _row(depth, sigma, range_m, valid)[0]
         rows.append([kernels, label, absrel, f"{seconds:.1f}", f"{result.stats['timings_s']['kernels_s']:.1f}"])
@@ -239,7 +228,6 @@ def run(full: bool = False) -> str:
     from ..built_camera import BuiltCamera
     from ..decode import ClassicalDecoder
     from ..decode.support import SupportConfig
-    from ..decode.volume import pixel_log_colour
     from ..lenses import lens_geometry, lens_tensor
     from ..model_io import raw_to_rgb
     from ..nn.evaluate import Benchmark, tile_raw
@@ -266,12 +254,11 @@ def run(full: bool = False) -> str:
         rows.setdefault("classical", []).append(_row(result.depth_m, result.depth_sigma_m, truth, result.valid))
         inv_grid, sig_grid = network.read_decode(result)
         rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
-        log_rgb = pixel_log_colour(rgb)
         pixels += raw.size
         for name, support, colour_sigma, select in variants:
             name = f"evidence, {name}"
             t0 = time.perf_counter()
-            depth, sigma = pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, colour_sigma, config, select)
+            depth, sigma = pixel_read(inv_grid, sig_grid, rgb, support, colour_sigma, config, select)
             seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
             rows.setdefault(name, []).append(_row(depth, sigma, truth, result.valid))
     table = []

@@ -41,7 +41,6 @@ def decoder_reads_sigma(raw, row0: int, col0: int, stages: dict, network, suppor
     {name: ``decode.support.SupportConfig``} of ``supports``, the evidence decoder's volume read with that support read
     instead of its manifest's; and for each {name: classical stage} of ``volumes``, that stage's volume read by the
     network as the evidence decoder reads its own."""
-    from ..decode.volume import pixel_log_colour
     from ..lenses import lens_geometry
     from ..model_io import raw_to_rgb
     from ..nn.data import STANDARD_SIGMA
@@ -55,8 +54,7 @@ def decoder_reads_sigma(raw, row0: int, col0: int, stages: dict, network, suppor
     result = decode(stages["evidence"])
     inv_grid, sig_grid = network.read_decode(result)
     rgb = raw_to_rgb(raw, BLACK_LEVEL_DN, WHITE_LEVEL_DN)
-    log_rgb = pixel_log_colour(rgb)
-    read = lambda support: pixel_read(inv_grid, sig_grid, rgb, log_rgb, support, network.colour_sigma,  # noqa: E731
+    read = lambda support: pixel_read(inv_grid, sig_grid, rgb, support, network.colour_sigma,  # noqa: E731
                                       stages["evidence"].config,
                                       network.pixel_select if support is network.support else None)
     classical = decode(stages["classical"])
@@ -64,6 +62,6 @@ def decoder_reads_sigma(raw, row0: int, col0: int, stages: dict, network, suppor
     reads |= {name: read(support) for name, support in (supports or {}).items()}
     for name, stage in (volumes or {}).items():
         inv_grid, sig_grid = network.read_decode(decode(stage))
-        reads[name] = pixel_read(inv_grid, sig_grid, rgb, log_rgb, network.support, network.colour_sigma, stage.config,
+        reads[name] = pixel_read(inv_grid, sig_grid, rgb, network.support, network.colour_sigma, stage.config,
                                  network.pixel_select)
     return reads

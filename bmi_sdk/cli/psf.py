@@ -137,9 +137,8 @@ def _cache(args) -> int:
     if args.prune:
         removed = prune(root, None if args.older_than_days is None else args.older_than_days * 86400.0,
                         None if args.max_gb is None else int(args.max_gb * 1e9), dry_run=args.dry_run)
-    entries = [e for e in cache_entries(root) if args.dry_run or e.path.exists()]
-    gone = {e.path for e in removed}
-    kept = [e for e in entries if e.path not in gone]
+    gone = {e.path for e in removed}  # a dry run's are still listed
+    kept = [e for e in cache_entries(root) if e.path not in gone]
     if args.json:
         print(json.dumps({"cache_dir": str(root), "entries": [e.to_dict(root) for e in kept],
                           "size_bytes": sum(e.size_bytes for e in kept),

@@ -256,6 +256,12 @@ def draw_scene(draw_px: int, scale_max: float, rng: np.random.Generator) -> tupl
     return scene_crop(draw_px, big, rng, (int(r0), int(c0)))
 
 
+def procedural_window(spec: CacheSpec, rng: np.random.Generator, geometry: SensorGeometry) -> tuple[int, int]:
+    """(row0, col0) of a procedural sample's window: the first draw of the sample's stream (seeded by
+    (``spec.seed``, index)), so ``tensor_fields`` knows it before the sample renders."""
+    return sample_window(geometry, spec.stored_px + 2 * spec.margin_px, rng)
+
+
 def render_sample(spec: CacheSpec, index: int, tensor, geometry: SensorGeometry,
                   scenes: Sequence | None = None) -> dict:
     """One cached sample (seeded by (spec.seed, index)): optical image, targets and window position."""
@@ -264,7 +270,7 @@ def render_sample(spec: CacheSpec, index: int, tensor, geometry: SensorGeometry,
     rng = np.random.default_rng([spec.seed, index])
     size = spec.stored_px + 2 * spec.margin_px
     if scenes is None:
-        row0, col0 = sample_window(geometry, size, rng)  # the first draw: ``tensor_fields`` replays it
+        row0, col0 = procedural_window(spec, rng, geometry)
         rgb, range_m = draw_scene(spec.stored_px + 2 * SCENE_MARGIN_PX, spec.scene_scale_max, rng)
         rgb, range_m = mirror_extend(rgb, range_m, spec.margin_px - SCENE_MARGIN_PX)
     else:
@@ -364,7 +370,7 @@ def tensor_fields(spec: CacheSpec, indices: Sequence[int]) -> list[int]:
     size = spec.stored_px + 2 * spec.margin_px
     fields: set[int] = set()
     for index in indices:
-        row0, col0 = sample_window(geometry, size, np.random.default_rng([spec.seed, index]))
+        row0, col0 = procedural_window(spec, np.random.default_rng([spec.seed, index]), geometry)
         fields.update(psf_map.field_indices(render_zones(geometry, tensor, row0, col0, size, size)[1]))
     return sorted(fields)
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -162,6 +163,47 @@ def evidence_stage(network: EvidenceNetwork, camera: BuiltCamera, threads: int |
     return stage
 
 
+@dataclass
+class PixelReads:
+    """``read_pixels``' result: 1/d and its variance at every pixel (H × W), the window grid after the support read,
+    the windows' own reads, the pixels the selection scored and the steps' times."""
+
+    inv_px: np.ndarray
+    var_px: np.ndarray
+    inv_grid: np.ndarray
+    var_grid: np.ndarray
+    inv_own: np.ndarray
+    var_own: np.ndarray
+    selected: int
+    timings: dict
+
+
+def read_pixels(inv_own: np.ndarray, var_own: np.ndarray, rgb: np.ndarray, support: SupportConfig | None,
+                colour_sigma: float, select: PixelSelect | None, window_px: int, stride_px: int,
+                threads: int = 1) -> PixelReads:
+    """Steps 3–4 (module doc) from the windows' own reads (1/d and variance on the window grid) and the frame's
+    H × W × 3 linear RGB: the support read (``support`` None: off), the colour-guided upsampling, then the pixel
+    selection where the windows disagree (``select`` None: off; it needs the support read). The colours the support
+    read takes serve the selection too."""
+    timings: dict[str, float] = {}
+    inv_grid, var_grid, colours = inv_own, var_own, None
+    if support is not None:
+        t0 = time.perf_counter()
+        colours = support_colours(rgb, support, inv_own.shape, window_px, stride_px, threads)
+        inv_grid, var_grid = frame_support_read(inv_own, var_own, rgb, support, window_px, stride_px, threads, colours)
+        timings["support_s"] = time.perf_counter() - t0
+    log_rgb = pixel_log_colour(rgb)
+    inv_px, var_px = guided_upsample(inv_grid, var_grid, log_rgb, stride_px, colour_sigma, threads=threads)
+    selected = 0
+    if select is not None and support is not None:
+        t0 = time.perf_counter()
+        grids = Grids.of_frame(inv_grid, var_grid, inv_own, var_own, rgb, log_rgb, stride_px, window_px,
+                               support.dark_floor, threads, colours)
+        selected = select_depth(select, grids, inv_px, var_px, threads)
+        timings["pixel_select_s"] = time.perf_counter() - t0
+    return PixelReads(inv_px, var_px, inv_grid, var_grid, inv_own, var_own, selected, timings)
+
+
 def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, camera: BuiltCamera,
                     progress: bool = False) -> DecodedFrame:
     """Decode a ``devices.RawFrame`` of ``camera`` (module doc); ``parts["classical"]`` holds the classical
@@ -179,29 +221,11 @@ def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, ca
     t0 = time.perf_counter()
     rgb = raw_to_rgb(frame.data, frame.black_level_dn, frame.white_level_dn, frame.cfa)
     stride_px = stage.config.stride_px
-    inv_own, var_own = inv_grid, sig_grid.astype(np.float32) ** 2
-    inv_grid, var_grid = inv_own, var_own
-    colours = None
-    if network.support is not None:
-        t1 = time.perf_counter()
-        colours = support_colours(rgb, network.support, inv_own.shape, stage.config.window_px, stride_px,
-                                  stage.threads)
-        inv_grid, var_grid = frame_support_read(inv_own, var_own, rgb, network.support, stage.config.window_px,
-                                                stride_px, stage.threads, colours)
-        timings["support_s"] = time.perf_counter() - t1
-    log_rgb = pixel_log_colour(rgb)
-    inv_px, var_px = guided_upsample(inv_grid, var_grid, log_rgb, stride_px, network.colour_sigma,
-                                     threads=stage.threads)
-    pixels_selected = 0
-    if network.pixel_select is not None:
-        t1 = time.perf_counter()
-        assert network.support is not None  # a manifest with pixel_select and no support is refused on loading
-        grids = Grids.of_frame(inv_grid, var_grid, inv_own, var_own, rgb, log_rgb, stride_px, stage.config.window_px,
-                               network.support.dark_floor, stage.threads, colours)
-        pixels_selected = select_depth(network.pixel_select, grids, inv_px, var_px, stage.threads)
-        del grids
-        timings["pixel_select_s"] = time.perf_counter() - t1
-    del rgb, colours
+    pixels = read_pixels(inv_grid, sig_grid.astype(np.float32) ** 2, rgb, network.support, network.colour_sigma,
+                         network.pixel_select, stage.config.window_px, stride_px, stage.threads)
+    inv_px, var_px, inv_grid, var_grid = pixels.inv_px, pixels.var_px, pixels.inv_grid, pixels.var_grid
+    timings.update(pixels.timings)
+    del rgb
     valid = result.valid & np.isfinite(inv_px) & (inv_px > 0)
     depth = np.where(valid, np.float32(1.0) / np.where(valid, inv_px, np.float32(1.0)), np.float32(np.nan))
     sigma = np.where(valid, np.sqrt(np.maximum(var_px, np.float32(0.0))) * depth * depth, np.float32(np.nan))
@@ -218,9 +242,9 @@ def decode_evidence(network: EvidenceNetwork, stage: ClassicalDecoder, frame, ca
               "confident_coverage": float(confident.sum() / max(valid.sum(), 1)),
               "blocks_run": stats["blocks_run"], "blocks_skipped": stats["blocks_skipped"],
               "support": None if network.support is None else network.support.to_dict(),
-              "pixels_selected": pixels_selected,
+              "pixels_selected": pixels.selected,
               "decoder_stats": stats, "timings_s": {**stats["timings_s"], **timings}}
     return DecodedFrame(aif, depth, valid, sigma, report,
                         {"classical": result, "grid_inv_depth": inv_grid, "grid_sigma_inv": np.sqrt(var_grid),
-                       "grid_inv_depth_own": inv_own, "grid_sigma_inv_own": np.sqrt(var_own)})
+                       "grid_inv_depth_own": pixels.inv_own, "grid_sigma_inv_own": np.sqrt(pixels.var_own)})
 
