@@ -165,3 +165,27 @@ def test_two_threads_score_the_same_bits_as_one(monkeypatch):
     np.testing.assert_array_equal(reads[0][0], reads[1][0])
     np.testing.assert_array_equal(reads[0][1], reads[1][1])
     assert not np.all(reads[0][0] == 0.5)
+
+
+@pytest.mark.parametrize("argv, word", [(["--seed", "20260"], "reported"), (["--seed", "-2"], ">= 0"),
+                                        (["--seed", "5", "--tiles", "0"], "--tiles"),
+                                        (["--seed", "5", "--tiles", "65"], "--tiles")])
+def test_the_fit_refuses_bad_arguments_before_decoding_a_tile(capsys, argv, word):
+    from bmi_sdk.nn.pixel_select_fit import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv + ["--manifest", str(EVIDENCE_MODEL.with_suffix(".manifest.json"))])
+    assert exit_info.value.code == 2 and word in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("text, word", [(None, "cannot read"), ("not json", "cannot read"),
+                                        ('{"decoder": "learned"}', "not an evidence")])
+def test_the_fit_refuses_a_manifest_it_cannot_write_into(tmp_path, capsys, text, word):
+    from bmi_sdk.nn.pixel_select_fit import main
+
+    path = tmp_path / "m.json"
+    if text is not None:
+        path.write_text(text)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--seed", "5", "--manifest", str(path)])
+    assert exit_info.value.code == 2 and word in capsys.readouterr().err

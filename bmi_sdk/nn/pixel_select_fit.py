@@ -10,7 +10,8 @@ features
 fitted to the least mean relative range error of the candidates' softmax mixture, each (scale, σ, region) group
 weighted equally. The weights go into the manifest's ``pixel_select`` (written atomically), with the fit's command
 and its error before and after on the fitted pixels (``pixel_select_fit``). The seed must be one no reported number
-uses (docs/results.md reports seed 20260); ``bmi eval`` then measures the result on others.
+uses (``REPORTED_SEEDS``, refused); ``bmi eval`` then measures the result on others. Bad arguments are refused before
+any tile is decoded.
 """
 
 from __future__ import annotations
@@ -29,6 +30,9 @@ HIDDEN = 16
 STEPS = 800
 BATCH = 8000
 LEARNING_RATE = 3e-3
+REPORTED_SEEDS = (20260, 777)
+"""Seeds whose tiles docs/results.md reports: a fit on them would be scored on its own data."""
+MAX_TILES = 64
 FIT_DISAGREEMENT = float(np.log(1.1))
 """The pixels fitted on: those whose 2 × 2 windows' support reads span more than 10 % in 1/d."""
 DISAGREEMENT = float(np.log(1.35))
@@ -144,7 +148,17 @@ def main(argv=None) -> int:
     parser.add_argument("--tiles", type=int, default=6, help="tiles per field region (default 6)")
     parser.add_argument("--manifest", required=True, help="the evidence network's manifest to write the weights into")
     args = parser.parse_args(argv)
+    if args.seed < 0 or args.seed in REPORTED_SEEDS:
+        parser.error(f"--seed must be >= 0 and none of the reported seeds {list(REPORTED_SEEDS)}, got {args.seed}")
+    if not 1 <= args.tiles <= MAX_TILES:
+        parser.error(f"--tiles must be 1..{MAX_TILES}, got {args.tiles}")
     manifest_path = Path(args.manifest)
+    try:
+        manifest = json.loads(manifest_path.read_text())
+    except (OSError, ValueError) as exc:
+        parser.error(f"--manifest {manifest_path}: cannot read it as JSON ({exc})")
+    if not isinstance(manifest, dict) or manifest.get("decoder") != "evidence":
+        parser.error(f"--manifest {manifest_path} is not an evidence network's manifest")
     data = collect(args.seed, args.tiles, manifest=str(manifest_path))
     select, errors = fit(data)
     manifest = json.loads(manifest_path.read_text())
