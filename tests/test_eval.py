@@ -353,3 +353,17 @@ def test_eval_refuses_a_reference_that_is_not_a_decoder_run(capsys):
     assert main(["eval", "--decoder", "classical", "--reference", "evidence", "--conditions", "standard"]) == 2
     captured = capsys.readouterr()
     assert "--reference evidence" in captured.err and "rendering" not in captured.err + captured.out
+
+
+def test_natural_textures_draw_the_standard_tiles_with_scattered_texture_exponents():
+    """The condition's tiles hold the same layout and ranges as ``standard``'s, with other textures."""
+    assert evaluate.NATURAL in evaluate.known_conditions()
+    plain = evaluate.Benchmark(tiles=1, tile_px=64, scene_scale=4.0)
+    natural = evaluate.Benchmark(tiles=1, tile_px=64, scene_scale=4.0,
+                                 texture_spread=evaluate.NATURAL_TEXTURE_SPREAD)
+    (rgb_p, range_p), (rgb_n, range_n) = plain.scene("edge", 0), natural.scene("edge", 0)
+    np.testing.assert_array_equal(range_p, range_n)
+    assert not np.array_equal(rgb_p, rgb_n)
+    for bad in (-0.1, 2.0, math.nan):
+        with pytest.raises(ValueError, match="texture_spread"):
+            evaluate.Benchmark(texture_spread=bad)

@@ -106,3 +106,37 @@ def test_bad_arguments_are_named():
         generate_scene(4, 64, 0)
     with pytest.raises(ValueError, match="near_m"):
         generate_scene(64, 64, 0, near_m=5.0, far_m=2.0)
+
+
+@pytest.mark.parametrize("power", [1.4, 2.6])
+def test_a_surface_drawn_at_another_power_exponent_keeps_it_across_the_detail_cutoff(monkeypatch, power):
+    """A 1/f^p texture's amplitude slope differs from a 1/f² one's by −(p − 2)/2 on both sides of the cutoff: the
+    low field's exponent, the detail tile's and the band weights all follow p. (The upsampled low field rolls off
+    towards its Nyquist frequency alike at every p, so the slopes are compared with p = 2's, the same draws.)"""
+    size = 1024
+
+    def slopes(p):
+        painter = _Painter(size, size, np.random.default_rng(3), 0.7, 10.0, exponent_spread=0.4)
+        monkeypatch.setattr(painter, "power_exponent", lambda: p)
+        luminance = painter.texture(size, size, contrast=1.0, chroma=0.0)[:, :, 0]
+        return np.array([spectrum_slope(luminance, 4 / size, 1 / 64), spectrum_slope(luminance, 1 / 64, 0.4)])
+
+    np.testing.assert_allclose(slopes(power) - slopes(2.0), -(power - 2.0) / 2, atol=0.1)
+
+
+def test_scattered_exponents_follow_their_law_and_leave_the_scene_as_it_was():
+    painter = _Painter(64, 64, np.random.default_rng(4), 0.7, 10.0, exponent_spread=0.4)
+    draws = np.array([painter.power_exponent() for _ in range(4000)])
+    assert draws.mean() == pytest.approx(2.0, abs=0.03) and draws.std() == pytest.approx(0.4, abs=0.03)
+    assert draws.min() >= 1.0 and draws.max() <= 3.0
+    assert _Painter(64, 64, np.random.default_rng(4), 0.7, 10.0).power_exponent() == 2.0
+    plain, natural = generate_scene(256, 256, 9), generate_scene(256, 256, 9, exponent_spread=0.4)
+    np.testing.assert_array_equal(plain.range_m, natural.range_m)  # the same layout and ranges
+    assert np.abs(np.log(plain.rgb + 1e-3) - np.log(natural.rgb + 1e-3)).mean() > 0.01  # other textures
+    np.testing.assert_array_equal(generate_scene(256, 256, 9, exponent_spread=0.0).rgb, plain.rgb)
+
+
+@pytest.mark.parametrize("spread", [-0.1, 1.5, float("nan")])
+def test_a_bad_exponent_spread_is_refused(spread):
+    with pytest.raises(ValueError, match="exponent_spread"):
+        generate_scene(64, 64, 0, exponent_spread=spread)

@@ -227,10 +227,10 @@ def _dataset_window(scenes: Sequence, geometry: SensorGeometry, size_px: int, rn
     raise ValueError("could not find a mostly valid window in 100 placed patches")
 
 
-def scene_crop(draw_px: int, scene_px: int, rng: np.random.Generator,
-               offset: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def scene_crop(draw_px: int, scene_px: int, rng: np.random.Generator, offset: tuple[int, int] | None = None,
+               exponent_spread: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(rgb, range_m) of the ``draw_px``² crop at ``offset`` (row, col; default centred) of a ``scene_px``² procedural
-    scene drawn from ``rng``. ``generate_scene`` sizes its objects to the scene, so a scene drawn k× larger than the
+    scene drawn from ``rng`` (its surfaces' texture exponents scattered by ``exponent_spread``, ``generate_scene``). ``generate_scene`` sizes its objects to the scene, so a scene drawn k× larger than the
     crop holds objects k× larger against it, as a frame's are against a tile; ``scene_px`` = ``draw_px`` is the
     whole scene, drawn as before crops existed."""
     from bmi_sdk.scenes import generate_scene
@@ -238,7 +238,7 @@ def scene_crop(draw_px: int, scene_px: int, rng: np.random.Generator,
     if scene_px < draw_px:
         raise ValueError(f"a {draw_px}² crop needs a scene of at least that size, got {scene_px}²")
     r0, c0 = offset if offset is not None else ((scene_px - draw_px) // 2,) * 2
-    scene = generate_scene(scene_px, scene_px, rng)
+    scene = generate_scene(scene_px, scene_px, rng, exponent_spread=exponent_spread)
     if scene_px == draw_px:
         return scene.rgb, scene.range_m
     box = slice(r0, r0 + draw_px), slice(c0, c0 + draw_px)

@@ -32,6 +32,10 @@ A condition is what changes between capture and the fixed decoders:
 
 * noise σ (the sensor stage; ``ideal`` = σ 0, still 12-bit quantised,
   ``standard`` = 0.005, ``noise_<σ>`` the sweep);
+* the scene's texture statistics (``natural_textures``: the same tiles, layout,
+  colours and ranges, with each surface's texture power spectrum 1/f^p, p drawn
+  about 2 with std 0.4 as natural images' exponents scatter, where ``standard``'s
+  are all 1/f², the likelihood's prior; σ 0.005);
 * hardware errors, no retraining, each an ``optics.perturb.Perturbation``: the
   one hardware-error model, the one ``bmi calibrate`` fits. Errors a rotationally
   symmetric tensor can hold (``HARDWARE``: PSF shift, scale, stray light, sensor
@@ -111,6 +115,12 @@ SCENE_SCALES = {1.0: "stress test", 4.0: "paper", 16.0: "large surfaces"}
 """The named scene scales (``bmi eval --scales 1,4,16``): ×1 draws a whole room into one tile."""
 SAMPLED = "built_camera_sampled"
 """The condition of built cameras drawn from the error prior and read with their fitted calibration."""
+NATURAL = "natural_textures"
+"""The condition of the same tiles with each surface's texture power exponent drawn about 2 (``Benchmark.
+texture_spread`` = ``NATURAL_TEXTURE_SPREAD``), design camera, σ 0.005."""
+NATURAL_TEXTURE_SPREAD = 0.4
+"""The std of natural images' power-spectrum exponents about 2 (van der Schaaf & van Hateren, Vision Research 36,
+1996)."""
 
 HARDWARE = {
     "psf_shift_0.5px": Perturbation(psf_shift_px=(0.5, 0.0)),
@@ -148,7 +158,7 @@ def noise_conditions() -> dict:
 
 def known_conditions() -> list[str]:
     """Every condition name, in the default order."""
-    return [*noise_conditions(), *HARDWARE, *EXACT, SAMPLED, "fisheye_standard"]
+    return [*noise_conditions(), NATURAL, *HARDWARE, *EXACT, SAMPLED, "fisheye_standard"]
 
 
 @dataclass(frozen=True)
@@ -163,8 +173,12 @@ class Benchmark:
     #                           bmi eval runs at PAPER_SCENE_SCALE
     texture_exponent: str = "prior"  # the decoders that take one read with this texture model
     #                                  (``decode.classical.TEXTURE_EXPONENTS``; ``DecoderOptions.texture_exponent``)
+    texture_spread: float = 0.0  # the std about 2 of each surface's texture power exponent (``generate_scene``'s
+    #                              ``exponent_spread``; 0: every surface 1/f²; the ``natural_textures`` condition's)
 
     def __post_init__(self):
+        if not 0.0 <= self.texture_spread <= 1.0:
+            raise ValueError(f"texture_spread must be in [0, 1], got {self.texture_spread}")
         if not self.scene_scale >= 1.0:
             raise ValueError(f"scene_scale must be >= 1 (1: scenes drawn at the tile's own scale), "
                              f"got {self.scene_scale}")
@@ -214,7 +228,8 @@ class Benchmark:
         larger, whose objects are that much larger against the tile (``nn.data.scene_crop``)."""
         draw_px = self.tile_px + 2 * SCENE_MARGIN_PX
         rgb, range_m = scene_crop(draw_px, int(round(draw_px * self.scene_scale)),
-                                  np.random.default_rng([self.seed, 7, list(REGIONS).index(region), i]))
+                                  np.random.default_rng([self.seed, 7, list(REGIONS).index(region), i]),
+                                  exponent_spread=self.texture_spread)
         return mirror_extend(rgb, range_m, self.margin_px - SCENE_MARGIN_PX)
 
     def renders(self, tensor, progress: bool = False, psf_mode: str = "tensor",
@@ -588,6 +603,11 @@ def run_benchmark(model=None, bench: Benchmark = Benchmark(), conditions: list[s
         renders = renders or bench.renders(design.psf_tensor(), progress)
         for tiles in base:
             rows += score(tiles, renders, bench, noise[name], name)
+    if NATURAL in conditions:
+        natural = replace(bench, texture_spread=NATURAL_TEXTURE_SPREAD)
+        renders_n = natural.renders(design.psf_tensor(), progress)
+        for tiles in base:
+            rows += score(tiles, renders_n, natural, STANDARD_SIGMA, NATURAL)
     for name in [c for c in conditions if c in HARDWARE]:
         camera = BenchmarkCamera(bench.lens, HARDWARE[name])
         renders_p = bench.renders(camera.psf_tensor(), progress, zone_px=camera.render_zone_px("tensor"))

@@ -14,7 +14,12 @@ drawing, nearest surface wins, so occlusion is exact per pixel:
 * textures with ≈1/f amplitude spectra: a low-resolution 1/f field (1/32 of
   the frame, cheap at any size) upsampled, plus a periodic 1/f detail tile
   high-passed above 1/64 cycle/px and cropped at random offsets; reflectance is
-  log-normal (``base colour · exp(texture)``), with per-channel colour noise;
+  log-normal (``base colour · exp(texture)``), with per-channel colour noise.
+  With ``exponent_spread`` s > 0 each surface's luminance texture has its own
+  power spectrum 1/f^p, p drawn from N(2, s²) (clipped to [1, 3]), as natural
+  images' exponents scatter about 2 (van der Schaaf & van Hateren, Vision
+  Research 36, 1996: s ≈ 0.4); the draws come from a generator spawned from
+  the scene's, so the scene's layout, colours and ranges are those of s = 0;
 * a smooth illumination field (exp of 1/f noise) that makes dark regions, a few
   polygonal shadows, and specular spots that saturate (clipped at 1).
 
@@ -35,6 +40,8 @@ from bmi_sdk.scenes.scene import Scene
 _LOW_RES_FACTOR = 32  # low-resolution texture field: one sample per 32×32 output pixels
 _DETAIL_TILE_PX = 1024  # periodic detail tile (frequencies above _DETAIL_CUTOFF)
 _DETAIL_CUTOFF = 1.0 / 64  # cycles/px: where the detail tile takes over from the upsampled low field
+POWER_EXPONENT_RANGE = (1.0, 3.0)  # a surface's drawn power-spectrum exponent is clipped to this range
+_EXPONENT_STEP = 0.04  # drawn power exponents are rounded to this step, so a scene makes few detail tiles
 
 
 def pink_noise(shape: tuple[int, int], rng: np.random.Generator, highpass_cpp: float = 0.0,
@@ -79,7 +86,8 @@ def _add_periodic(field: np.ndarray, tile: np.ndarray, weight: float, oy: int, o
 class _Painter:
     """Z-buffered drawing into the output arrays, one bounding box at a time."""
 
-    def __init__(self, height: int, width: int, rng: np.random.Generator, near_m: float, far_m: float):
+    def __init__(self, height: int, width: int, rng: np.random.Generator, near_m: float, far_m: float,
+                 exponent_spread: float = 0.0):
         self.h, self.w, self.rng = height, width, rng
         self.near_m, self.far_m = near_m, far_m
         self.rgb = np.zeros((height, width, 3), dtype=np.float32)
@@ -91,17 +99,49 @@ class _Painter:
         low_band, high_band = math.log(max(size * _DETAIL_CUTOFF, 1.0) + 1.0), math.log(0.5 / _DETAIL_CUTOFF)
         self.detail_weight = math.sqrt(high_band / (low_band + high_band))
         self.low_weight = math.sqrt(low_band / (low_band + high_band))
+        self.exponent_spread = exponent_spread
+        # spawned, not drawn: the main generator's stream (layout, colours, ranges) is that of a 1/f² scene
+        self.exponent_rng = rng.spawn(1)[0] if exponent_spread > 0 else None
+        self.bands: dict[float, tuple[float, float, np.ndarray]] = {}
+
+    def power_exponent(self) -> float:
+        """The next surface's power-spectrum exponent p (module doc): 2, or drawn from N(2, spread²), clipped to
+        ``POWER_EXPONENT_RANGE`` and rounded to ``_EXPONENT_STEP``."""
+        if self.exponent_rng is None:
+            return 2.0
+        p = float(np.clip(2.0 + self.exponent_spread * self.exponent_rng.standard_normal(), *POWER_EXPONENT_RANGE))
+        return round(p / _EXPONENT_STEP) * _EXPONENT_STEP
+
+    def texture_bands(self, p: float) -> tuple[float, float, np.ndarray]:
+        """(low-field weight, detail weight, detail tile) of a 1/f^p texture: the weights split its variance between
+        the low field (1/size to ``_DETAIL_CUTOFF`` cycles/px) and the detail tile (beyond, to 0.5) as the 2-D power
+        ∝ f^−p distributes it, ∫ f^(1−p) df over each band; p = 2 is the 1/f² split made at construction."""
+        if p == 2.0:
+            return self.low_weight, self.detail_weight, self.tile
+        if p not in self.bands:
+            assert self.exponent_rng is not None
+            size = max(self.h, self.w)
+            k = 2.0 - p
+            low = abs((_DETAIL_CUTOFF ** k - (1.0 / size) ** k) / k)
+            high = abs((0.5 ** k - _DETAIL_CUTOFF ** k) / k)
+            tile = pink_noise((_DETAIL_TILE_PX, _DETAIL_TILE_PX), self.exponent_rng, highpass_cpp=_DETAIL_CUTOFF,
+                              exponent=p / 2.0)
+            self.bands[p] = (math.sqrt(low / (low + high)), math.sqrt(high / (low + high)), tile)
+        return self.bands[p]
 
     # -- textures -----------------------------------------------------------
     def texture(self, h: int, w: int, contrast: float, chroma: float, out: np.ndarray | None = None) -> np.ndarray:
-        """h×w×3 log-reflectance variation: 1/f luminance (low field + detail tile) + colour noise."""
+        """h×w×3 log-reflectance variation: luminance of power spectrum 1/f^p (low field + detail tile; p 2, or drawn
+        per surface, ``power_exponent``) + 1/f colour noise."""
         rng = self.rng
+        p = self.power_exponent()
+        low_weight, detail_weight, tile = self.texture_bands(p)
         lh, lw = max(2, -(-h // _LOW_RES_FACTOR)), max(2, -(-w // _LOW_RES_FACTOR))
-        low = pink_noise((lh, lw), rng)
+        low = pink_noise((lh, lw), rng, exponent=p / 2.0)
         colour = np.stack([pink_noise((lh, lw), rng) for _ in range(3)], axis=2)
-        low3 = (contrast * self.low_weight) * low[:, :, None] + chroma * colour
+        low3 = (contrast * low_weight) * low[:, :, None] + chroma * colour
         field = cv2.resize(np.ascontiguousarray(low3), (w, h), dst=out, interpolation=cv2.INTER_LINEAR)
-        _add_periodic(field, self.tile, contrast * self.detail_weight, *rng.integers(0, _DETAIL_TILE_PX, size=2))
+        _add_periodic(field, tile, contrast * detail_weight, *rng.integers(0, _DETAIL_TILE_PX, size=2))
         return field
 
     def random_colour(self) -> np.ndarray:
@@ -208,13 +248,17 @@ def _shape_mask(kind: str, size: int, rng: np.random.Generator) -> np.ndarray:
 
 def generate_scene(height_px: int, width_px: int, rng: np.random.Generator | int, *,
                    near_m: float = 0.7, far_m: float = 10.0, n_objects: int | None = None,
-                   n_thin: int | None = None, name: str | None = None) -> Scene:
+                   n_thin: int | None = None, name: str | None = None, exponent_spread: float = 0.0) -> Scene:
     """A random layered scene of ``height_px``×``width_px`` (linear RGB, range along each pixel's ray).
 
     ``rng`` is a ``numpy.random.Generator`` or a seed; the same seed gives the
     same scene. ``n_objects``/``n_thin`` default to random counts (10–24, 2–7).
-    Ranges lie in [near_m, far_m]; every pixel is valid (no NaN).
+    Ranges lie in [near_m, far_m]; every pixel is valid (no NaN). ``exponent_spread``: the std of the surfaces'
+    texture power exponents about 2 (module doc; 0: every surface 1/f²).
     """
+    if not 0.0 <= exponent_spread <= 1.0:
+        raise ValueError(f"exponent_spread must be in [0, 1] (the std of the power exponents about 2), got "
+                         f"{exponent_spread}")
     if height_px < 8 or width_px < 8:
         raise ValueError(f"scene must be at least 8×8 px, got {height_px}×{width_px}")
     if not 0 < near_m < far_m:
@@ -223,7 +267,7 @@ def generate_scene(height_px: int, width_px: int, rng: np.random.Generator | int
     rng = np.random.default_rng(rng) if not isinstance(rng, np.random.Generator) else rng
     H, W = height_px, width_px
     s = min(H, W)
-    p = _Painter(H, W, rng, near_m, far_m)
+    p = _Painter(H, W, rng, near_m, far_m, exponent_spread)
 
     # back wall: the whole frame, far, gently slanted
     wall_m = math.exp(rng.uniform(math.log(0.45 * far_m), math.log(far_m)))
