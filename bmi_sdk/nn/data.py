@@ -230,9 +230,10 @@ def _dataset_window(scenes: Sequence, geometry: SensorGeometry, size_px: int, rn
 def scene_crop(draw_px: int, scene_px: int, rng: np.random.Generator, offset: tuple[int, int] | None = None,
                exponent_spread: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(rgb, range_m) of the ``draw_px``² crop at ``offset`` (row, col; default centred) of a ``scene_px``² procedural
-    scene drawn from ``rng`` (its surfaces' texture exponents scattered by ``exponent_spread``, ``generate_scene``). ``generate_scene`` sizes its objects to the scene, so a scene drawn k× larger than the
-    crop holds objects k× larger against it, as a frame's are against a tile; ``scene_px`` = ``draw_px`` is the
-    whole scene, drawn as before crops existed."""
+    scene drawn from ``rng``, its surfaces' texture exponents scattered by ``exponent_spread`` (``generate_scene``).
+    ``generate_scene`` sizes its objects to the scene, so a scene drawn k× larger than the crop holds objects k×
+    larger against it, as a frame's are against a tile; ``scene_px`` = ``draw_px`` is the whole scene, drawn as before
+    crops existed."""
     from bmi_sdk.scenes import generate_scene
 
     if scene_px < draw_px:

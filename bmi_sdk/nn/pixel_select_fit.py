@@ -161,7 +161,6 @@ def main(argv=None) -> int:
         parser.error(f"--manifest {manifest_path} is not an evidence network's manifest")
     data = collect(args.seed, args.tiles, manifest=str(manifest_path))
     select, errors = fit(data)
-    manifest = json.loads(manifest_path.read_text())
     manifest["pixel_select"] = select.to_dict()
     command = "python -m bmi_sdk.nn.pixel_select_fit " + " ".join(argv or sys.argv[1:])
     manifest["pixel_select_fit"] = {"command": command,
