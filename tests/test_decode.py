@@ -281,6 +281,72 @@ def test_plane_nll_equals_the_brute_force_profile_over_beta():
     assert np.all(got[:, 0] < got[:, 1])  # the kernel that made the data wins
 
 
+def test_the_skipped_low_bins_are_those_within_that_many_cycles_of_dc_on_both_axes():
+    """``rfft_multiplicity``: 1 cycle skips DC and its 8 neighbours (the rfft's 6 bins of them), 2 cycles (a weakly
+    textured window's, ``WEAK_TEXTURE_LOW_CYCLES``) the 5 × 5 block about DC (15 rfft bins); every other bin keeps its
+    multiplicity. A value outside [1, n/4] is refused."""
+    full = rfft_multiplicity(32, 1) + (rfft_multiplicity(32, 1) == 0) * 2.0
+    full[:, [0, -1]] = 1.0
+    for cycles, dropped in ((1, 6), (2, 15), (8, 9 * 17)):
+        m = rfft_multiplicity(32, cycles)
+        ky = np.minimum(np.arange(32), 32 - np.arange(32))[:, None]
+        kx = np.arange(17)[None, :]
+        near = np.maximum(ky, kx) <= cycles
+        assert int((m == 0).sum()) == dropped and np.all(m[near] == 0)
+        np.testing.assert_array_equal(m[~near], full[~near])
+    for bad in (0, 9, 1.5, True, -1):
+        with pytest.raises(ValueError, match="low_cycles_skipped must be an integer in \\[1, 8\\]"):
+            rfft_multiplicity(32, bad)
+
+
+def test_shading_of_one_cycle_per_window_leaves_the_evidence_unchanged_when_two_cycles_are_skipped():
+    """A smooth shading across each window (one cosine cycle per window, 6× the texture's amplitude) is not the
+    texture the prior describes. Through the window's periodic Hann taper it lands in the bins within 2 cycles of DC
+    alone, so skipping 2 cycles (a weakly textured window's) scores the shaded windows exactly as the unshaded ones,
+    to float32 rounding, while skipping 1 lets it move their NLLs by nats (β's profile absorbs part of it)."""
+    from bmi_sdk.decode.evidence import hann_taper, window_spectra
+
+    n = 16
+    model, _, taper_energy, noise_var = _hann_bank_spectra((5, 9, 13), true_index=1, windows=1, n=n, seed=2)
+    rng = np.random.default_rng(8)
+    texture = rng.normal(0.0, 0.05, (4 * n, 4 * n)).astype(np.float32)
+    shading = (0.3 * np.cos(2.0 * np.pi * np.arange(4 * n) / n))[None, :].astype(np.float32)
+    taper = hann_taper(n)
+    plain, shaded = (window_spectra(p, n, n // 2, taper)[0] for p in (texture, texture + shading))
+    for cycles, moved in ((2, False), (1, True)):
+        a, b = (plane_nll(x, model, noise_var, taper_energy, low_cycles_skipped=cycles) for x in (plain, shaded))
+        if moved:
+            assert np.median(np.abs(b - a)) > 2.0
+        else:
+            np.testing.assert_allclose(b, a, rtol=0, atol=1e-2)
+
+
+def test_a_windows_texture_contrast_is_its_textures_rms_over_its_mean_whatever_the_exposure():
+    """``texture_contrast`` on white textures of known contrast (RMS 0.05 of a mean 0.4) under noise of σ 0.01: a
+    tapered periodogram's expected power is Σt² (texture variance + noise variance) at every bin away from DC, so
+    the band's power less the noise, over the mean, reads the contrast (median over the windows within 3 %). Three
+    times the exposure (signal and noise σ alike) reads the same contrast; a window of no signal is never weak."""
+    from bmi_sdk.decode.evidence import hann_taper, texture_contrast, window_spectra
+
+    n, contrast, mean, sigma = 32, 0.05, 0.4, 0.01
+    taper = hann_taper(n)
+    energy = float((taper ** 2).sum())
+    rng = np.random.default_rng(11)
+    fields = [rng.normal(0.0, 1.0, (2, 160, 160)) for _ in range(4)]
+
+    def read(exposure: float) -> np.ndarray:
+        planes = [exposure * (mean * (1 + contrast * t) + sigma * e) for t, e in fields]
+        windows = [window_spectra(p.astype(np.float32), n, n // 4, taper) for p in planes]
+        return texture_contrast([w[0] for w in windows], [w[1] for w in windows],
+                                [np.full(len(w[1]), (exposure * sigma) ** 2) for w in windows], energy)
+
+    got = read(1.0)
+    assert got.shape == (17 * 17,) and np.median(got) == pytest.approx(contrast, rel=0.03)
+    np.testing.assert_allclose(read(3.0), got, rtol=1e-4)
+    dark = texture_contrast([np.ones((1, n, n // 2 + 1), np.float32)] * 4, [np.zeros(1)] * 4, [np.zeros(1)] * 4, energy)
+    assert np.all(np.isinf(dark))
+
+
 def test_a_candidates_nll_on_a_shared_beta_grid_does_not_depend_on_the_other_candidates_scored():
     """The fine pass scores a few candidates on the coarse pass's β grid (``grid_model``): each candidate's NLL
     is then what it was when scored beside the coarse set, to the float32 product's rounding (BLAS splits a
@@ -516,6 +582,55 @@ def test_a_dark_walls_bias_is_halved_by_the_exact_model():
                              noise_profile=NoiseProfile.additive(0.005), aif=False)
         bias[gate] = abs(float(np.nanmedian(1.0 / out.grid_inv_depth)) / depth_m - 1.0)
     assert bias[0.0] > 0.08 and bias[1.0] < 0.6 * bias[0.0], bias
+
+
+def _shaded_wall_raw(contrast: float, seed: int = 0):
+    """(raw, row0, col0, psf_map, truth_m): a 1/f² wall of mean 0.3 and texture ``contrast`` at 3 m, 20° of field,
+    under a smooth shading (1 + 0.3 cos, period 200 px: a lamp's falloff across a wall), 288² px at σ 0.005."""
+    from bmi_sdk.scenes.procedural import pink_noise
+
+    tensor = lens_tensor("bmi_monocentric")
+    psf_map = PsfMap(tensor, GEOMETRY, mode="tensor")
+    n, margin, depth_m = 384, 48, 3.0
+    shading = 1.0 + 0.3 * np.cos(2.0 * np.pi * np.arange(n) / 200.0)[None, :]
+    wall = 0.3 * (1.0 + contrast * pink_noise((n, n), np.random.default_rng(seed))) * shading
+    r, c = GEOMETRY.pixel_of_field(20.0, 30.0)
+    row0, col0 = int(r - n / 2) // 2 * 2, int(c - n / 2) // 2 * 2
+    optical = render_coded(np.repeat(np.clip(wall, 0, 1)[..., None], 3, axis=2).astype(np.float32),
+                           np.full((n, n), depth_m, np.float32), tensor, GEOMETRY, row0, col0, psf_map=psf_map)
+    optical *= relative_illumination(GEOMETRY, row0, col0, n, n)[..., None]
+    t = n - 2 * margin
+    raw = simulate_raw(optical[margin:margin + t, margin:margin + t], 0.005, np.random.default_rng(1),
+                       row0 + margin, col0 + margin)
+    return raw, row0 + margin, col0 + margin, psf_map, depth_m
+
+
+def test_a_weakly_textured_wall_under_smooth_shading_reads_near_its_depth_once_its_lowest_ring_is_skipped():
+    """A wall of faint texture (contrast 0.03) under a lamp's smooth shading: the shading puts far more power into
+    each window's lowest bins than the texture does, and no candidate's stationary model explains it, so scored on
+    every bin the wall reads about 50 % off. Its windows' texture contrast is below ``weak_texture_below`` 0.07 (the
+    evidence decoder's), so their NLLs skip the ring within 2 cycles of DC, which holds the shading, and the wall
+    reads within about 20 %. The same wall with a texture of contrast 0.3 has no weak window: it reads exactly as
+    without the knob."""
+    raw, row0, col0, psf_map, depth_m = _shaded_wall_raw(0.03)
+    absrel = {}
+    for gate in (0.0, 0.07):
+        decoder = ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig(weak_texture_below=gate))
+        out = decoder.decode(raw, BLACK, WHITE, GEOMETRY, row0, col0, noise_profile=NoiseProfile.additive(0.005),
+                             aif=False)
+        absrel[gate] = float(np.mean(np.abs(out.depth_m[out.valid] - depth_m) / depth_m))
+    assert absrel[0.0] > 0.35 and absrel[0.07] < 0.25 and absrel[0.07] < 0.5 * absrel[0.0], absrel
+    raw, row0, col0, psf_map, depth_m = _shaded_wall_raw(0.3)
+    reads = [ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig(weak_texture_below=gate)).decode(
+        raw, BLACK, WHITE, GEOMETRY, row0, col0, noise_profile=NoiseProfile.additive(0.005), aif=False).grid_inv_depth
+        for gate in (0.0, 0.07)]
+    np.testing.assert_array_equal(reads[0], reads[1])
+
+
+@pytest.mark.parametrize("gate", [-0.01, 1.5, float("nan"), float("inf")])
+def test_a_weak_texture_gate_outside_zero_to_one_is_refused(gate):
+    with pytest.raises(ValueError, match="weak_texture_below must lie in \\[0, 1\\]"):
+        ClassicalConfig(weak_texture_below=gate)
 
 
 def test_a_lens_s_far_plane_is_read_with_the_camera_s_exact_kernels(nominal_decoder):
@@ -1107,6 +1222,23 @@ def test_the_exponent_gate_keeps_the_priors_slope_unless_profiling_lowers_the_po
 def test_an_exponent_gate_it_cannot_apply_is_refused(knobs, message):
     with pytest.raises(ValueError, match=message):
         ClassicalConfig(**{"slopes": (1.6, 2.0, 2.4), **knobs})
+
+
+def test_the_evidence_decoders_volume_skips_weak_windows_lowest_ring_as_its_manifest_says(tmp_path):
+    """The shipped evidence network's manifest sets the weak-texture gate its classical stage reads with; a manifest
+    without the knob (made before it existed) reads the dataclass's 0: every window on every bin but DC's
+    neighbours, as it was made."""
+    import shutil
+
+    from bmi_sdk.runtime.evidence import EVIDENCE_MODEL, EvidenceNetwork
+
+    assert EvidenceNetwork(EVIDENCE_MODEL).stage_config().weak_texture_below == pytest.approx(0.07)
+    path = tmp_path / EVIDENCE_MODEL.name
+    shutil.copy(EVIDENCE_MODEL, path)
+    manifest = json.loads(EVIDENCE_MODEL.with_suffix(".manifest.json").read_text())
+    knobs = {k: v for k, v in manifest["classical_config"].items() if k != "weak_texture_below"}
+    path.with_suffix(".manifest.json").write_text(json.dumps(dict(manifest, classical_config=knobs)))
+    assert EvidenceNetwork(path).stage_config().weak_texture_below == 0.0
 
 
 def test_a_texture_exponent_mode_sets_its_knobs_and_an_unknown_one_is_refused():

@@ -45,12 +45,12 @@ def _infer(capsys, *args) -> tuple[int, str]:
 NUMERIC_OPTIONS = {"--tile-px": "cnn", "--overlap-px": "cnn", "--threads": "cnn", "--ply-step": "cnn",
                    "--window-px": "classical", "--stride-px": "classical", "--candidates": "classical",
                    "--noise-sigma": "classical", "--pool-sigma-px": "classical", "--exact-model-below": "classical",
-                   "--clipped-planes-per-frame": "classical"}
+                   "--weak-texture-below": "classical", "--clipped-planes-per-frame": "classical"}
 HOSTILE = ("100000", "1e6", "-10", "0", "nan", "inf")
 ACCEPTED = {("--overlap-px", "0"), ("--pool-sigma-px", "0"), ("--ply-step", "100000"), ("--exact-model-below", "0"),
-            ("--clipped-planes-per-frame", "0")}
+            ("--weak-texture-below", "0"), ("--clipped-planes-per-frame", "0")}
 """Hostile-looking values that are valid: no overlap, no pooling, one point in the point cloud, no window scored
-with the exact model, no clipped plane scored."""
+with the exact model, none without its lowest ring, no clipped plane scored."""
 
 
 @pytest.mark.parametrize("option", NUMERIC_OPTIONS)

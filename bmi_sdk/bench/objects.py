@@ -3,21 +3,24 @@
 Scenes like a user's, for the decoders' depth edges and σ: a wall 4–8 m away and ``OBJECTS`` discs and boxes 0.9–3.5 m
 away, 40–200 px across (the objects of `bmi eval`'s tiles at the paper's scale, ×3–4), drawn far to near so that
 nearer ones occlude. Every surface carries its own texture of power spectrum 1/f^p about its own mean colour
-(``surface_texture``), at its own contrast: objects ``OBJECT_CONTRAST``, the wall ``WALLS`` (textured, or weak: there
-the honest read is a wide σ). p is 2 on every surface (natural images' average, the likelihood's prior) or scattered
-about 2 as natural images' exponents are (``EXPONENT_SPREADS``). 384² px at φ 30°, σ 0.005, rendered and decoded with
-the design camera's exact kernels (the simulated device's and ``bmi infer``'s path). Per textures, wall, field angle
-and decoder (the default evidence decoder, the classical one, the evidence decoder with a wider support read,
-``WIDE_SUPPORT``, and the evidence decoder with the texture's exponent profiled where the evidence asks for it,
-``PROFILED_EXPONENT``),
-over ``SEEDS`` scenes (``--full``: ``FULL_SEEDS``) pooled: AbsRel, within ``EDGE_NEAR_PX`` of a depth edge and beyond it, on the wall beyond it, δ1, σ's honesty (std of error/σ, 1 for an honest σ, and the share
-within one σ, 0.683) and the confident coverage (σ ≤ 10 % of the depth).
+(``surface_texture``), at its own contrast: objects ``OBJECT_CONTRAST``, the wall ``WALLS`` (textured; weak, where the
+honest read is a wide σ; weak and lit by a lamp near it, ``lamp_irradiance``). p is 2 on every surface (natural
+images' average, the likelihood's prior) or scattered about 2 as natural images' exponents are
+(``EXPONENT_SPREADS``). 384² px at φ 30°, σ 0.005, rendered and decoded with the design camera's exact kernels (the
+simulated device's and ``bmi infer``'s path). Per textures, wall, field angle and decoder (the default evidence
+decoder, the classical one, the evidence decoder with a wider support read, ``WIDE_SUPPORT``, the evidence decoder
+with the texture's exponent profiled where the evidence asks for it, ``PROFILED_EXPONENT``, and the evidence decoder
+with its weak-texture gate off, every window scored on every bin: ``decode.classical.window_groups``), over ``SEEDS``
+scenes (``--full``: ``FULL_SEEDS``) pooled: AbsRel, within ``EDGE_NEAR_PX`` of a depth edge and beyond it, on the wall
+beyond it, δ1, σ's honesty (std of error/σ, 1 for an honest σ, and the share within one σ, 0.683) and the confident
+coverage (σ ≤ 10 % of the depth).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import itertools
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -31,8 +34,22 @@ OBJECT_RANGE_M = (0.9, 3.5)
 WALL_RANGE_M = (4.0, 8.0)
 OBJECT_CONTRAST = (0.2, 0.5)
 """Range of each object texture's std relative to its mean colour."""
-WALLS = {"textured wall": 0.3, "weak wall": 0.03}
-"""The wall texture's std relative to its mean colour."""
+LAMP_DISTANCE_PX = 300.0
+"""A lamp-lit wall's lamp: its distance from the wall in the wall's pixels (about 0.5 m from a wall 5 m away)."""
+
+
+@dataclass(frozen=True)
+class Wall:
+    """A scene's wall: its texture's std relative to its mean colour, and whether a lamp near it lights it
+    (``lamp_irradiance``) rather than an even light."""
+
+    contrast: float
+    lamp: bool = False
+
+
+WALLS = {"textured wall": Wall(0.3), "weak wall": Wall(0.03), "weak wall, lamp-lit": Wall(0.03, lamp=True)}
+"""The walls each scene is drawn with. A weakly textured wall is where the honest read is a wide σ; lit by a lamp, its
+smooth shading puts far more power into each window's lowest frequencies than its texture does."""
 MEAN_COLOUR = (0.08, 0.6)
 """Range of a surface's mean linear colour, per channel."""
 EXPONENT_SPREADS = {"1/f²": 0.0, "1/f^(2 ± 0.4)": 0.4}
@@ -69,11 +86,22 @@ def surface_texture(size: int, rng: np.random.Generator, contrast: float, power_
     return np.clip(colour * (1.0 + contrast * field), 0.005, 1.0).astype(np.float32)
 
 
-def object_scene(seed: int, wall_contrast: float, exponent_spread: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """(rgb, range_m) of ``SIZE_PX`` + 2 ``PLANE_MARGIN_PX`` square: a wall of texture contrast ``wall_contrast``
-    and the objects of ``seed`` before it (module doc), each surface's power exponent drawn from a normal law about 2 of
-    std ``exponent_spread`` (from a generator of its own, so the same seed gives the same objects, colours and
-    ranges for every wall and spread)."""
+def lamp_irradiance(size: int, rng: np.random.Generator) -> np.ndarray:
+    """(size, size) the irradiance of a wall lit by a point lamp ``LAMP_DISTANCE_PX`` from it, its foot drawn
+    uniformly over the wall, relative to its mean: h / (h² + r²)^(3/2) (inverse square times the incidence cosine),
+    r the distance from the lamp's foot."""
+    rows, cols = np.mgrid[0:size, 0:size] + 0.5
+    foot_row, foot_col = rng.uniform(0, size, 2)
+    h = LAMP_DISTANCE_PX
+    irradiance = h / (h * h + (rows - foot_row) ** 2 + (cols - foot_col) ** 2) ** 1.5
+    return irradiance / irradiance.mean()
+
+
+def object_scene(seed: int, wall: Wall, exponent_spread: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(rgb, range_m) of ``SIZE_PX`` + 2 ``PLANE_MARGIN_PX`` square: ``wall`` (its texture contrast; lit by a lamp,
+    ``lamp_irradiance``, or evenly) and the objects of ``seed`` before it (module doc), each surface's power exponent
+    drawn from a normal law about 2 of std ``exponent_spread`` (from a generator of its own, so the same seed gives
+    the same objects, colours and ranges for every wall and spread)."""
     from .decoder import PLANE_MARGIN_PX
 
     size = SIZE_PX + 2 * PLANE_MARGIN_PX
@@ -81,7 +109,10 @@ def object_scene(seed: int, wall_contrast: float, exponent_spread: float = 0.0) 
     wall_rng = np.random.default_rng([seed, 1])
     exponent_rng = np.random.default_rng([seed, 2])
     exponent = lambda: 2.0 + exponent_spread * exponent_rng.standard_normal()  # noqa: E731
-    rgb = surface_texture(size, wall_rng, wall_contrast, exponent())
+    rgb = surface_texture(size, wall_rng, wall.contrast, exponent())
+    if wall.lamp:
+        rgb = np.clip(rgb * lamp_irradiance(size, np.random.default_rng([seed, 3]))[..., None], 0.005,
+                      1.0).astype(np.float32)
     range_m = np.full((size, size), np.exp(wall_rng.uniform(*np.log(WALL_RANGE_M))), np.float32)
     count = int(rng.integers(*OBJECTS))
     ranges = np.sort(np.exp(rng.uniform(*np.log(OBJECT_RANGE_M), count)))[::-1]  # far to near: nearer ones occlude
@@ -124,16 +155,19 @@ def run(full: bool = False) -> str:
     profiled = f"evidence, --texture-exponent {PROFILED_EXPONENT}"
     volumes = {profiled: ClassicalDecoder.for_psf_map(psf_map, with_texture_exponent(network.stage_config(),
                                                                                      PROFILED_EXPONENT))}
-    names = (*DECODER_NAMES, wide, profiled)
+    ungated = "evidence, every window on every bin (weak_texture_below 0)"
+    volumes[ungated] = ClassicalDecoder.for_psf_map(psf_map, dataclasses.replace(network.stage_config(),
+                                                                                 weak_texture_below=0.0))
+    names = (*DECODER_NAMES, wide, profiled, ungated)
     seeds = FULL_SEEDS if full else SEEDS
     m = PLANE_MARGIN_PX
     rows = []
-    for (textures, spread), (wall_name, wall_contrast), field_deg in itertools.product(
+    for (textures, spread), (wall_name, wall), field_deg in itertools.product(
             EXPONENT_SPREADS.items(), WALLS.items(), FIELDS_DEG):
         pooled: dict = {name: [] for name in names}
         truths, near, walls = [], [], []
         for seed in seeds:
-            rgb, range_m = object_scene(seed, wall_contrast, spread)
+            rgb, range_m = object_scene(seed, wall, spread)
             raw, row0, col0 = window_raw(rgb, range_m, psf_map.tensor, geometry, field_deg, 30.0, seed, psf_map)
             truth = range_m[m:-m, m:-m]
             truths.append(truth)

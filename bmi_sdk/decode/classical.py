@@ -69,12 +69,14 @@ from .candidates import Candidates, inverse_depth_candidates
 from .clipped import ClippedPairs, choose_clipped_planes, clipped_weights
 from .evidence import (
     EXPONENT_PRIOR,
+    WEAK_TEXTURE_LOW_CYCLES,
     Evidence,
     gated_exponent,
     hann_taper,
     plane_nll,
     profile_exponent,
     taper_variance_inflation,
+    texture_contrast,
     window_spectra,
     windows_touching,
 )
@@ -112,6 +114,10 @@ marked valid."""
 MAX_SLOPE = 4.0
 """The steepest prior exponent a ``ClassicalConfig`` takes: a texture of power spectrum 1/f⁴ is already smoother than
 any defocus the camera can tell from it."""
+
+MAX_WEAK_TEXTURE_CONTRAST = 1.0
+"""The largest ``ClassicalConfig.weak_texture_below``: a texture whose RMS equals its mean already fills the range a
+non-negative signal allows, so no window is weaker than that."""
 
 MAX_EXPONENT_GATE_NATS = 1e6
 """The largest ``ClassicalConfig.exponent_gate_nats``: a pool's NLL spans far fewer nats than this (its windows' curves
@@ -153,6 +159,8 @@ class ClassicalConfig:
     window_model: str = "tapered"  # the evidence model with the taper's smoothing (``evidence.folded_model``)
     exact_model_below: float = 0.0  # windows whose mean signal (fraction of white) is below this are scored with
     #                                 the exact expected periodogram (``evidence.expected_periodogram``); 0: none
+    weak_texture_below: float = 0.0  # windows whose texture contrast (``evidence.texture_contrast``) is below this
+    #                                  skip the bins within ``WEAK_TEXTURE_LOW_CYCLES`` of DC (``window_groups``); 0: none
     clipped_planes_per_frame: int = 2048  # a frame scores at most this many (window, plane) pairs holding samples
     #                                       at the white level with those samples left out (``clipped``); the rest,
     #                                       and every pair at 0, give no evidence
@@ -187,6 +195,9 @@ class ClassicalConfig:
                              f"got {self.theta_step_deg}")
         if not 0.0 <= self.exact_model_below <= 1.0:
             raise ValueError(f"exact_model_below must lie in [0, 1] (a fraction of white), got {self.exact_model_below}")
+        if not 0.0 <= self.weak_texture_below <= MAX_WEAK_TEXTURE_CONTRAST:
+            raise ValueError(f"weak_texture_below must lie in [0, {MAX_WEAK_TEXTURE_CONTRAST:g}] (a texture contrast: "
+                             f"RMS over mean), got {self.weak_texture_below}")
         if isinstance(self.clipped_planes_per_frame, bool) or not isinstance(self.clipped_planes_per_frame, int) \
                 or self.clipped_planes_per_frame < 0:
             raise ValueError(f"clipped_planes_per_frame must be a whole number >= 0, got "
@@ -295,17 +306,19 @@ class ClassicalDecoder:
 
     # -- evidence ---------------------------------------------------------------------------------
     def _block_nll(self, spectra: list, models: np.ndarray, noise_vars: list, taper_energy: float,
-                   clipped: list, grid_models: np.ndarray | None = None) -> np.ndarray:
+                   clipped: list, grid_models: np.ndarray | None = None, low_cycles: int = 1) -> np.ndarray:
         """(slopes, windows, D) NLL summed over the planes at each prior slope (``evidence.profile_exponent`` profiles
         the slope out once every plane's evidence, clipped pairs' included, is in); ``models`` is
         ``ZoneKernels.models`` (planes, slopes, D, n, m), ``noise_vars`` each plane's per-window noise variance,
         ``clipped`` each plane's windows holding a sample at the white level: that plane gives them no evidence
         (a clipped plateau's sharp rim reads as a sharp kernel, confidently and wrongly). ``grid_models``: the
-        models that place the β grid (``evidence.plane_nll``), default ``models``."""
+        models that place the β grid (``evidence.plane_nll``), default ``models``; ``low_cycles`` the cycles about DC the
+        NLL skips (``evidence.rfft_multiplicity``)."""
         grid = models if grid_models is None else grid_models
         total: np.ndarray | None = None
         for p, power in enumerate(spectra):
-            per_slope = np.stack([plane_nll(power, models[p, a], noise_vars[p], taper_energy, grid_model=grid[p, a])
+            per_slope = np.stack([plane_nll(power, models[p, a], noise_vars[p], taper_energy, grid_model=grid[p, a],
+                                            low_cycles_skipped=low_cycles)
                                   for a in range(models.shape[1])])
             per_slope[:, clipped[p]] = 0.0
             total = per_slope if total is None else total + per_slope
@@ -314,19 +327,19 @@ class ClassicalDecoder:
         return total                                               # (slopes, windows, D)
 
     def _field_nll(self, spectra: list, reads: list, models: list, noise_vars: list, taper_energy: float,
-                   clipped: list, grid_models: list | None = None) -> np.ndarray:
+                   clipped: list, grid_models: list | None = None, low_cycles: int = 1) -> np.ndarray:
         """(slopes, windows, D) NLL of a block's windows, each read with the zones ``ZoneKernels.field_reads`` gives it
         (``models`` one ``_block_nll`` model stack per read, ``grid_models`` the stacks that place each read's β
         grid): the weighted sum of the zones' NLLs, which is the NLL under the kernels interpolated to the
-        window's θ to first order in the zones' spacing."""
+        window's θ to first order in the zones' spacing; ``low_cycles`` as ``_block_nll``'s."""
         grid_models = grid_models or [None] * len(reads)
         if len(reads) == 1:
-            return self._block_nll(spectra, models[0], noise_vars, taper_energy, clipped, grid_models[0])
+            return self._block_nll(spectra, models[0], noise_vars, taper_energy, clipped, grid_models[0], low_cycles)
         total = np.zeros((models[0].shape[1], len(spectra[0]), models[0].shape[2]))
         for (_, idx, weight), zone_models, zone_grid in zip(reads, models, grid_models):
             pick = lambda planes: [p[idx] for p in planes]  # noqa: E731
             total[:, idx] += weight[:, None] * self._block_nll(pick(spectra), zone_models, pick(noise_vars),
-                                                               taper_energy, pick(clipped), zone_grid)
+                                                               taper_energy, pick(clipped), zone_grid, low_cycles)
         return total
 
     def decode(self, raw: np.ndarray, black_level_dn: float, white_level_dn: float, geometry: SensorGeometry,
@@ -415,18 +428,19 @@ class ClassicalDecoder:
                 pairs = ClippedPairs(views(padded), views(weights_padded), block_chosen, taper, self.zones.kernels,
                                      reads, cfg.slopes, noise)
             masked = np.zeros((4, nr * nc), bool) if pairs is None else pairs.scored
-            # windows scored with the exact expected periodogram (dark ones, ``exact_model_below``) and the rest, each
-            # group's β grid placed by its own windows and coarse models; without a gate, one group of every window
-            groups = [(mask, exact, block_part(mask, spectra, noise_vars, clipped, reads))
-                      for mask, exact in window_groups(windows, cfg.exact_model_below) if mask.any()]
+            # windows scored with the exact expected periodogram (dark ones, ``exact_model_below``) or the tapered
+            # model, on every bin but DC's neighbours or, weakly textured (``weak_texture_below``), without the lowest
+            # ring too; each group's β grid placed by its own windows and coarse models (one group without gates)
+            groups = [(mask, exact, low, block_part(mask, spectra, noise_vars, clipped, reads))
+                      for mask, exact, low in window_groups(windows, noise_vars, taper_energy, cfg) if mask.any()]
             coarse_nll = np.empty((n_slopes, nr * nc, len(coarse)))
             coarse_models = {}
-            for mask, exact, (g_spectra, g_noise, g_clipped, g_reads) in groups:
+            for mask, exact, low, (g_spectra, g_noise, g_clipped, g_reads) in groups:
                 tm = time.perf_counter()
-                coarse_models[exact] = [self.zones.models(z, coarse, exact) for z, _, _ in g_reads]
+                coarse_models[exact, low] = [self.zones.models(z, coarse, exact) for z, _, _ in g_reads]
                 kernels_s += time.perf_counter() - tm
-                coarse_nll[:, mask] = self._field_nll(g_spectra, g_reads, coarse_models[exact], g_noise, taper_energy,
-                                                      g_clipped)
+                coarse_nll[:, mask] = self._field_nll(g_spectra, g_reads, coarse_models[exact, low], g_noise,
+                                                      taper_energy, g_clipped, low_cycles=low)
             if pairs is not None:
                 coarse_nll += pairs.nll(coarse)
             coarse_by_slope = coarse_nll
@@ -443,12 +457,12 @@ class ClassicalDecoder:
             nll_by_slope[:, :, np.isin(which, coarse)] = coarse_by_slope[:, :, np.isin(coarse, which)]
             if len(fine):
                 fine_nll = np.empty((n_slopes, nr * nc, len(fine)))
-                for mask, exact, (g_spectra, g_noise, g_clipped, g_reads) in groups:
+                for mask, exact, low, (g_spectra, g_noise, g_clipped, g_reads) in groups:
                     tm = time.perf_counter()
                     models = [self.zones.models(z, fine, exact) for z, _, _ in g_reads]
                     kernels_s += time.perf_counter() - tm
                     fine_nll[:, mask] = self._field_nll(g_spectra, g_reads, models, g_noise, taper_energy, g_clipped,
-                                                        coarse_models[exact])
+                                                        coarse_models[exact, low], low)
                 if pairs is not None:
                     fine_nll += pairs.nll(fine)
                 nll_by_slope[:, :, np.isin(which, fine)] = fine_nll
@@ -668,14 +682,27 @@ class ClassicalDecoder:
         return {zone: np.array(sorted(idx)) for zone, idx in sorted(wanted.items())}
 
 
-def window_groups(windows: list, exact_below: float) -> list[tuple[np.ndarray, bool]]:
-    """[(window mask, exact)]: which of a block's windows (``evidence.window_spectra`` of the four planes) are scored
-    with the exact expected periodogram (``evidence.expected_periodogram``: exact True) and which with the tapered
-    model. A window is exact when its mean signal, the mean of R, G (the two G planes' mean) and B as a fraction of
-    white, is below ``exact_below`` (0: none is)."""
+def window_groups(windows: list, noise_vars: list, taper_energy: float, config: ClassicalConfig
+                  ) -> list[tuple[np.ndarray, bool, int]]:
+    """[(window mask, exact, low cycles)]: how each of a block's windows (``evidence.window_spectra`` of the four
+    planes, with their noise variances) is scored.
+
+    exact: with the exact expected periodogram (``evidence.expected_periodogram``) rather than the tapered model,
+    where a window's mean signal, the mean of R, G (the two G planes' mean) and B as a fraction of white, is below
+    ``config.exact_model_below`` (0: none is). Low cycles: the cycles about DC its NLL skips,
+    ``evidence.WEAK_TEXTURE_LOW_CYCLES`` where its texture contrast (``evidence.texture_contrast``) is below
+    ``config.weak_texture_below`` (0: none is), else 1. A weakly textured window's lowest frequencies hold, besides
+    its own faint texture, whatever else lies in it (a brighter neighbour's defocused light, a surface's shading or
+    edge); none of that follows the window's stationary model, and with the texture faint it outweighs the texture
+    there (docs/decoder.md, step 2)."""
     r, g1, g2, b = (np.asarray(w[1], np.float64) for w in windows)
-    dark = (r + 0.5 * (g1 + g2) + b) / 3.0 < exact_below
-    return [(~dark, False), (dark, True)]
+    dark = (r + 0.5 * (g1 + g2) + b) / 3.0 < config.exact_model_below
+    weak = np.zeros_like(dark)
+    if config.weak_texture_below > 0:
+        weak = texture_contrast([w[0] for w in windows], [w[1] for w in windows], noise_vars,
+                                taper_energy) < config.weak_texture_below
+    return [(~dark & ~weak, False, 1), (dark & ~weak, True, 1), (~dark & weak, False, WEAK_TEXTURE_LOW_CYCLES),
+            (dark & weak, True, WEAK_TEXTURE_LOW_CYCLES)]
 
 
 def block_part(mask: np.ndarray, spectra: list, noise_vars: list, clipped: list, reads: list

@@ -338,19 +338,52 @@ def _hann_window_ft(n_plane: int) -> np.ndarray:
     return sfft.rfft2(window / window.sum())
 
 
-def rfft_multiplicity(n_plane: int) -> np.ndarray:
-    """(n, n//2+1) how many full-spectrum bins each rfft bin stands for (1 on the self-conjugate columns).
+def rfft_multiplicity(n_plane: int, low_cycles_skipped: int = 1) -> np.ndarray:
+    """(n, n//2+1) how many full-spectrum bins each rfft bin stands for (1 on the self-conjugate columns), 0 for
+    the bins the evidence skips: those within ``low_cycles_skipped`` cycles per window of DC on both axes.
 
-    DC and its eight neighbours get 0: the window's mean is removed, and through the taper that removal takes
-    about half the expected power of the neighbouring bins (measured against a Monte Carlo periodogram,
+    DC and its eight neighbours are always skipped: the window's mean is removed, and through the taper that removal
+    takes about half the expected power of the neighbouring bins (measured against a Monte Carlo periodogram,
     ``tests/test_decode.py``), which no stationary model holds; from two bins out the model matches to 1–2 %.
+    Weakly textured windows skip the next ring as well (``WEAK_TEXTURE_LOW_CYCLES``, ``weak_texture_windows``).
     """
+    if isinstance(low_cycles_skipped, bool) or not isinstance(low_cycles_skipped, (int, np.integer)) \
+            or not 1 <= low_cycles_skipped <= n_plane // 4:
+        raise ValueError(f"low_cycles_skipped must be an integer in [1, {n_plane // 4}] for {n_plane}-sample planes, "
+                         f"got {low_cycles_skipped!r}")
     m = np.full((n_plane, n_plane // 2 + 1), 2.0)
     m[:, 0] = 1.0
     if n_plane % 2 == 0:
         m[:, -1] = 1.0
-    m[[0, 1, -1], :2] = 0.0
+    rows = np.r_[0:low_cycles_skipped + 1, n_plane - low_cycles_skipped:n_plane]
+    m[rows, :low_cycles_skipped + 1] = 0.0
     return m
+
+
+WEAK_TEXTURE_LOW_CYCLES = 2
+"""Cycles per window about DC that a weakly textured window's evidence skips (``weak_texture_windows``)."""
+TEXTURE_BAND_CYCLES = (3.0, 6.0)
+"""The radial band (cycles per window, lower bound included) whose power measures a window's texture contrast
+(``texture_contrast``): above the lowest bins, below the frequencies a far defocus takes away."""
+
+
+def texture_contrast(spectra: list, means: list, noise_vars: list, taper_energy: float) -> np.ndarray:
+    """(windows,) each window's texture contrast: the RMS amplitude of its texture in ``TEXTURE_BAND_CYCLES``, noise
+    taken out, over its mean signal, from the four planes' window spectra (``window_spectra``: power, t²-weighted
+    means) and noise variances. A tapered periodogram's expected power at a bin is Σt² × (the field's spectral
+    density + the noise variance), so mean(P) / Σt² − σ² is the texture's power per bin; its square root over the
+    mean is the contrast, whatever the exposure. Infinite (never weak) where a window's mean is not positive."""
+    n = spectra[0].shape[1]
+    ky = np.fft.fftfreq(n) * n
+    kx = np.arange(spectra[0].shape[2])
+    radius = np.hypot(ky[:, None], kx[None, :])
+    band = (radius >= TEXTURE_BAND_CYCLES[0]) & (radius < TEXTURE_BAND_CYCLES[1])
+    power = np.mean([np.asarray(s)[:, band].mean(axis=1) / taper_energy - np.asarray(v, np.float64)
+                     for s, v in zip(spectra, noise_vars)], axis=0)
+    mean = np.mean([np.asarray(m, np.float64) for m in means], axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        contrast = np.sqrt(np.maximum(power, 0.0)) / mean
+    return np.where(mean > 0, contrast, np.inf)
 
 
 def window_spectra(plane: np.ndarray, n_plane: int, stride_plane: int, taper: np.ndarray,
@@ -445,7 +478,7 @@ class Evidence:
 
 
 def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: float,
-              grid_model: np.ndarray | None = None) -> np.ndarray:
+              grid_model: np.ndarray | None = None, low_cycles_skipped: int = 1) -> np.ndarray:
     """(windows, D) NLL of one plane's window spectra, β profiled out (module doc).
 
     ``power`` (windows, n, m) float32; ``model`` (D, n, m) = Σ_aliases |K_d|² S per candidate;
@@ -454,14 +487,14 @@ def plane_nll(power: np.ndarray, model: np.ndarray, noise_var, taper_energy: flo
     P' = P / s and β' = β / s, P / V + log V = P' / (β' A + 1) + log(β' A + 1) + log s, so one grid of
     β' and one matrix product serve windows of every noise level, exactly; the log s term is the
     same for every candidate of a window and is kept, so the NLL is the true one; the bins are those
-    ``rfft_multiplicity`` keeps, each counted with the ½ of the module doc.
+    ``rfft_multiplicity`` keeps (``low_cycles_skipped``), each counted with the ½ of the module doc.
     ``grid_model``: the candidates whose gains place the β grid (default ``model``'s own). The grid's
     levels change the profiled NLL by up to a few tenths of a nat, so NLLs that are compared with each
     other (a coarse pass's and the fine pass that completes it) must share one grid.
     """
     nw = power.shape[0]
     n_cand = model.shape[0]
-    mult = rfft_multiplicity(model.shape[1])
+    mult = rfft_multiplicity(model.shape[1], low_cycles_skipped)
     keep = mult > 0
 
     def bins(m: np.ndarray) -> np.ndarray:  # (candidates, F): the kept bins of models, in units of the taper's energy
