@@ -368,11 +368,14 @@ TEXTURE_BAND_CYCLES = (3.0, 6.0)
 
 
 def texture_contrast(spectra: list, means: list, noise_vars: list, taper_energy: float) -> np.ndarray:
-    """(windows,) each window's texture contrast: the RMS amplitude of its texture in ``TEXTURE_BAND_CYCLES``, noise
-    taken out, over its mean signal, from the four planes' window spectra (``window_spectra``: power, t²-weighted
-    means) and noise variances. A tapered periodogram's expected power at a bin is Σt² × (the field's spectral
-    density + the noise variance), so mean(P) / Σt² − σ² is the texture's power per bin; its square root over the
-    mean is the contrast, whatever the exposure. Infinite (never weak) where a window's mean is not positive."""
+    """(windows,) each window's texture contrast in ``TEXTURE_BAND_CYCLES``, from the four planes' window spectra
+    (``window_spectra``: power, t²-weighted means) and noise variances.
+
+    A tapered periodogram's expected power at a bin is Σt² × (the field's power per bin + the noise variance), so
+    mean(P) / Σt² − σ² over the band's bins is the texture's power per bin there (the variance of a white texture of
+    that level); its square root over the window's mean signal is the contrast, the same at any exposure. On
+    ``bmi bench objects``' 1/f² walls of contrast (std over mean) 0.3 and 0.03, the median 64-px window reads 0.33–0.37
+    and 0.034–0.037. Infinite (never weak) where a window's mean is not positive."""
     n = spectra[0].shape[1]
     ky = np.fft.fftfreq(n) * n
     kx = np.arange(spectra[0].shape[2])
