@@ -321,12 +321,16 @@ def test_shading_of_one_cycle_per_window_leaves_the_evidence_unchanged_when_two_
             np.testing.assert_allclose(b, a, rtol=0, atol=1e-2)
 
 
-def test_a_windows_texture_contrast_is_its_textures_rms_over_its_mean_whatever_the_exposure():
-    """``texture_contrast`` on white textures of known contrast (RMS 0.05 of a mean 0.4) under noise of σ 0.01: a
+def test_a_windows_texture_contrast_is_its_textures_rms_over_its_mean_and_a_blur_takes_its_sharpness():
+    """``texture_bands`` on white textures of known contrast (RMS 0.05 of a mean 0.4) under noise of σ 0.01: a
     tapered periodogram's expected power is Σt² (texture variance + noise variance) at every bin away from DC, so
-    the band's power less the noise, over the mean, reads the contrast (median over the windows within 3 %). Three
-    times the exposure (signal and noise σ alike) reads the same contrast; a window of no signal is never weak."""
-    from bmi_sdk.decode.evidence import hann_taper, texture_contrast, window_spectra
+    the band's power less the noise, over the mean, reads the contrast (median over the windows within 3 %), and a
+    white texture's upper band holds as much power per bin as its contrast band (sharpness 1). Three times the
+    exposure (signal and noise σ alike) reads the same; a Gaussian blur of σ 3 samples empties the upper band
+    (sharpness near 0); a window of no signal is never weak."""
+    from scipy.ndimage import gaussian_filter
+
+    from bmi_sdk.decode.evidence import hann_taper, texture_bands, window_spectra
 
     n, contrast, mean, sigma = 32, 0.05, 0.4, 0.01
     taper = hann_taper(n)
@@ -334,17 +338,21 @@ def test_a_windows_texture_contrast_is_its_textures_rms_over_its_mean_whatever_t
     rng = np.random.default_rng(11)
     fields = [rng.normal(0.0, 1.0, (2, 160, 160)) for _ in range(4)]
 
-    def read(exposure: float) -> np.ndarray:
-        planes = [exposure * (mean * (1 + contrast * t) + sigma * e) for t, e in fields]
+    def read(exposure: float, blur: float = 0.0) -> tuple:
+        planes = [exposure * (mean * (1 + contrast * (gaussian_filter(t, blur) / gaussian_filter(t, blur).std()
+                                                       if blur else t)) + sigma * e) for t, e in fields]
         windows = [window_spectra(p.astype(np.float32), n, n // 4, taper) for p in planes]
-        return texture_contrast([w[0] for w in windows], [w[1] for w in windows],
-                                [np.full(len(w[1]), (exposure * sigma) ** 2) for w in windows], energy)
+        return texture_bands([w[0] for w in windows], [w[1] for w in windows],
+                             [np.full(len(w[1]), (exposure * sigma) ** 2) for w in windows], energy)
 
-    got = read(1.0)
+    got, sharpness = read(1.0)
     assert got.shape == (17 * 17,) and np.median(got) == pytest.approx(contrast, rel=0.03)
-    np.testing.assert_allclose(read(3.0), got, rtol=1e-4)
-    dark = texture_contrast([np.ones((1, n, n // 2 + 1), np.float32)] * 4, [np.zeros(1)] * 4, [np.zeros(1)] * 4, energy)
-    assert np.all(np.isinf(dark))
+    assert np.median(sharpness) == pytest.approx(1.0, abs=0.1)
+    np.testing.assert_allclose(read(3.0)[0], got, rtol=1e-4)
+    assert np.median(read(1.0, blur=3.0)[1]) < 0.02
+    dark = texture_bands([np.ones((1, n, n // 2 + 1), np.float32)] * 4, [np.zeros(1)] * 4, [np.zeros(1)] * 4,
+                         energy)
+    assert np.all(np.isinf(dark[0]))
 
 
 def test_a_candidates_nll_on_a_shared_beta_grid_does_not_depend_on_the_other_candidates_scored():
@@ -625,6 +633,26 @@ def test_a_weakly_textured_wall_under_smooth_shading_reads_near_its_depth_once_i
         raw, BLACK, WHITE, GEOMETRY, row0, col0, noise_profile=NoiseProfile.additive(0.005), aif=False).grid_inv_depth
         for gate in (0.0, 0.07)]
     np.testing.assert_array_equal(reads[0], reads[1])
+
+
+def test_a_near_planes_defocus_keeps_its_lowest_ring_however_faint_its_texture_reads():
+    """A near surface's defocus takes its 3–6 cycle band down with its texture (a 1/f² plane at 0.7 m on the axis
+    reads contrast about 0.1 there) and empties the band above (sharpness about 0.01): its lowest ring is the
+    evidence of its depth, so no gate puts its windows in the weak group. The same texture at 6 m keeps its upper
+    band (sharpness about 0.17): under a gate above its contrast every window is weak."""
+    from bmi_sdk.decode.classical import WEAK_TEXTURE_LOW_CYCLES, window_groups
+    from bmi_sdk.decode.evidence import hann_taper, window_spectra
+
+    taper = hann_taper(32)
+    energy = float((taper ** 2).sum())
+    for depth_m, weak_share in ((0.7, 0.0), (6.0, 1.0)):
+        raw, row0, col0, _, _ = _plane_frame(depth_m, 0.0, texture="pink", size=256)
+        windows = [window_spectra(p, 32, 8, taper) for p in normalised_planes(raw, BLACK, WHITE, row0, col0)]
+        noise_vars = [np.full(len(w[1]), 0.005 ** 2) for w in windows]
+        groups = window_groups(windows, noise_vars, energy, ClassicalConfig(weak_texture_below=1.0))
+        weak = np.logical_or.reduce([mask for mask, _, low in groups if low == WEAK_TEXTURE_LOW_CYCLES])
+        assert weak.mean() == weak_share, (depth_m, weak.mean())
+        assert np.array_equal(np.logical_or.reduce([mask for mask, _, _ in groups]), np.ones_like(weak))
 
 
 @pytest.mark.parametrize("gate", [-0.01, 1.5, float("nan"), float("inf")])

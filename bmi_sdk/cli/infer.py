@@ -48,8 +48,8 @@ CLASSICAL_FLAGS = {
                              "window alone; docs/decoder.md, method step 4b)"),
     "exact_model_below": (number(0, 1), "windows whose mean signal, a fraction of white, is below this are scored with "
                                         "the exact expected periodogram (0: none; docs/decoder.md, method step 2)"),
-    "weak_texture_below": (number(0, 1), "windows whose texture contrast (RMS over mean, 3–6 cycles per window) is "
-                                         "below this skip the bins within 2 cycles of DC (0: none; docs/decoder.md, "
+    "weak_texture_below": (number(0, 1), "sharp windows whose texture contrast (RMS over mean, 3–6 cycles per window) "
+                                         "is below this skip the bins within 2 cycles of DC (0: none; docs/decoder.md, "
                                          "method step 2)"),
     "clipped_planes_per_frame": (whole(0, 65536), "(window, colour plane) pairs holding samples at the white level "
                                                   "scored from their other samples, at most, about 6 ms of one core "

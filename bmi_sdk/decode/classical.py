@@ -69,6 +69,7 @@ from .candidates import Candidates, inverse_depth_candidates
 from .clipped import ClippedPairs, choose_clipped_planes, clipped_weights
 from .evidence import (
     EXPONENT_PRIOR,
+    SHARP_TEXTURE_RATIO,
     WEAK_TEXTURE_LOW_CYCLES,
     Evidence,
     gated_exponent,
@@ -76,7 +77,7 @@ from .evidence import (
     plane_nll,
     profile_exponent,
     taper_variance_inflation,
-    texture_contrast,
+    texture_bands,
     window_spectra,
     windows_touching,
 )
@@ -159,7 +160,7 @@ class ClassicalConfig:
     window_model: str = "tapered"  # the evidence model with the taper's smoothing (``evidence.folded_model``)
     exact_model_below: float = 0.0  # windows whose mean signal (fraction of white) is below this are scored with
     #                                 the exact expected periodogram (``evidence.expected_periodogram``); 0: none
-    weak_texture_below: float = 0.0  # windows whose texture contrast (``evidence.texture_contrast``) is below this
+    weak_texture_below: float = 0.0  # sharp windows whose texture contrast (``evidence.texture_bands``) is below this
     #                                  skip the bins within ``WEAK_TEXTURE_LOW_CYCLES`` of DC (``window_groups``); 0: none
     clipped_planes_per_frame: int = 2048  # a frame scores at most this many (window, plane) pairs holding samples
     #                                       at the white level with those samples left out (``clipped``); the rest,
@@ -690,17 +691,20 @@ def window_groups(windows: list, noise_vars: list, taper_energy: float, config: 
     exact: with the exact expected periodogram (``evidence.expected_periodogram``) rather than the tapered model,
     where a window's mean signal, the mean of R, G (the two G planes' mean) and B as a fraction of white, is below
     ``config.exact_model_below`` (0: none is). Low cycles: the cycles about DC its NLL skips,
-    ``evidence.WEAK_TEXTURE_LOW_CYCLES`` where its texture contrast (``evidence.texture_contrast``) is below
-    ``config.weak_texture_below`` (0: none is), else 1. A weakly textured window's lowest frequencies hold, besides
-    its own faint texture, whatever else lies in it (a brighter neighbour's defocused light, a surface's shading or
-    edge); none of that follows the window's stationary model, and with the texture faint it outweighs the texture
-    there (docs/decoder.md, step 2)."""
+    ``evidence.WEAK_TEXTURE_LOW_CYCLES`` where its texture is weak and sharp (``evidence.texture_bands``: contrast
+    below ``config.weak_texture_below``, 0: none is, and sharpness at least ``evidence.SHARP_TEXTURE_RATIO``), else 1.
+    A weakly textured window's lowest frequencies hold, besides its own faint texture, whatever else lies in it (a
+    brighter neighbour's defocused light, a surface's shading or edge); none of that follows the window's stationary
+    model, and with the texture faint it outweighs the texture there. A strongly defocused window also shows little
+    texture at 3–6 cycles, but its blur empties the band above as well, and there the lowest ring is the evidence of
+    its depth: it keeps every bin (docs/decoder.md, step 2)."""
     r, g1, g2, b = (np.asarray(w[1], np.float64) for w in windows)
     dark = (r + 0.5 * (g1 + g2) + b) / 3.0 < config.exact_model_below
     weak = np.zeros_like(dark)
     if config.weak_texture_below > 0:
-        weak = texture_contrast([w[0] for w in windows], [w[1] for w in windows], noise_vars,
-                                taper_energy) < config.weak_texture_below
+        contrast, sharpness = texture_bands([w[0] for w in windows], [w[1] for w in windows], noise_vars,
+                                            taper_energy)
+        weak = (contrast < config.weak_texture_below) & (sharpness >= SHARP_TEXTURE_RATIO)
     return [(~dark & ~weak, False, 1), (dark & ~weak, True, 1), (~dark & weak, False, WEAK_TEXTURE_LOW_CYCLES),
             (dark & weak, True, WEAK_TEXTURE_LOW_CYCLES)]
 

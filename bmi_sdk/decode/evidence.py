@@ -345,7 +345,7 @@ def rfft_multiplicity(n_plane: int, low_cycles_skipped: int = 1) -> np.ndarray:
     DC and its eight neighbours are always skipped: the window's mean is removed, and through the taper that removal
     takes about half the expected power of the neighbouring bins (measured against a Monte Carlo periodogram,
     ``tests/test_decode.py``), which no stationary model holds; from two bins out the model matches to 1–2 %.
-    Weakly textured windows skip the next ring as well (``WEAK_TEXTURE_LOW_CYCLES``, ``weak_texture_windows``).
+    Weak, sharp windows skip the next ring as well (``WEAK_TEXTURE_LOW_CYCLES``, ``classical.window_groups``).
     """
     if isinstance(low_cycles_skipped, bool) or not isinstance(low_cycles_skipped, (int, np.integer)) \
             or not 1 <= low_cycles_skipped <= n_plane // 4:
@@ -361,32 +361,46 @@ def rfft_multiplicity(n_plane: int, low_cycles_skipped: int = 1) -> np.ndarray:
 
 
 WEAK_TEXTURE_LOW_CYCLES = 2
-"""Cycles per window about DC that a weakly textured window's evidence skips (``weak_texture_windows``)."""
+"""Cycles per window about DC that a weakly textured, sharp window's evidence skips (``classical.window_groups``)."""
 TEXTURE_BAND_CYCLES = (3.0, 6.0)
 """The radial band (cycles per window, lower bound included) whose power measures a window's texture contrast
-(``texture_contrast``): above the lowest bins, below the frequencies a far defocus takes away."""
+(``texture_bands``): above the lowest bins, below where the noise takes over a faint texture."""
+SHARPNESS_BAND_CYCLES = (6.0, 12.0)
+"""The band above it, whose texture power against the contrast band's says whether the kernel left the window sharp
+(``texture_bands``)."""
+SHARP_TEXTURE_RATIO = 0.05
+"""A window's texture is sharp when its power per bin in ``SHARPNESS_BAND_CYCLES`` is at least this fraction of its
+power per bin in ``TEXTURE_BAND_CYCLES``: a 1/f² texture the kernel leaves whole has 0.24 (the bands' mean 1/f²), a
+near surface's defocus empties the upper band (about 0)."""
 
 
-def texture_contrast(spectra: list, means: list, noise_vars: list, taper_energy: float) -> np.ndarray:
-    """(windows,) each window's texture contrast in ``TEXTURE_BAND_CYCLES``, from the four planes' window spectra
-    (``window_spectra``: power, t²-weighted means) and noise variances.
+def texture_bands(spectra: list, means: list, noise_vars: list, taper_energy: float) -> tuple[np.ndarray, np.ndarray]:
+    """(contrast, sharpness), each (windows,): a window's texture contrast in ``TEXTURE_BAND_CYCLES`` and its texture
+    power per bin in ``SHARPNESS_BAND_CYCLES`` over that in ``TEXTURE_BAND_CYCLES``, from the four planes' window
+    spectra (``window_spectra``: power, t²-weighted means) and noise variances.
 
     A tapered periodogram's expected power at a bin is Σt² × (the field's power per bin + the noise variance), so
-    mean(P) / Σt² − σ² over the band's bins is the texture's power per bin there (the variance of a white texture of
+    mean(P) / Σt² − σ² over a band's bins is the texture's power per bin there (the variance of a white texture of
     that level); its square root over the window's mean signal is the contrast, the same at any exposure. On
     ``bmi bench objects``' 1/f² walls of contrast (std over mean) 0.3 and 0.03, the median 64-px window reads 0.33–0.37
-    and 0.034–0.037. Infinite (never weak) where a window's mean is not positive."""
+    and 0.034–0.037. The contrast is infinite (never weak) where a window's mean is not positive, the sharpness 0
+    where the contrast band holds no texture above the noise."""
     n = spectra[0].shape[1]
     ky = np.fft.fftfreq(n) * n
     kx = np.arange(spectra[0].shape[2])
     radius = np.hypot(ky[:, None], kx[None, :])
-    band = (radius >= TEXTURE_BAND_CYCLES[0]) & (radius < TEXTURE_BAND_CYCLES[1])
-    power = np.mean([np.asarray(s)[:, band].mean(axis=1) / taper_energy - np.asarray(v, np.float64)
-                     for s, v in zip(spectra, noise_vars)], axis=0)
+
+    def power(cycles: tuple) -> np.ndarray:  # (windows,) texture power per bin in the band, noise out, over the planes
+        band = (radius >= cycles[0]) & (radius < cycles[1])
+        return np.mean([np.asarray(s)[:, band].mean(axis=1) / taper_energy - np.asarray(v, np.float64)
+                        for s, v in zip(spectra, noise_vars)], axis=0)
+
+    texture, upper = power(TEXTURE_BAND_CYCLES), power(SHARPNESS_BAND_CYCLES)
     mean = np.mean([np.asarray(m, np.float64) for m in means], axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        contrast = np.sqrt(np.maximum(power, 0.0)) / mean
-    return np.where(mean > 0, contrast, np.inf)
+        contrast = np.where(mean > 0, np.sqrt(np.maximum(texture, 0.0)) / mean, np.inf)
+        sharpness = np.where(texture > 0, upper / texture, 0.0)
+    return contrast, sharpness
 
 
 def window_spectra(plane: np.ndarray, n_plane: int, stride_plane: int, taper: np.ndarray,
