@@ -618,16 +618,19 @@ def test_a_weakly_textured_wall_under_smooth_shading_reads_near_its_depth_once_i
     each window's lowest bins than the texture does, and no candidate's stationary model explains it, so scored on
     every bin the wall reads about 50 % off. Its windows' texture contrast is below ``weak_texture_below`` 0.07 (the
     evidence decoder's), so their NLLs skip the ring within 2 cycles of DC, which holds the shading, and the wall
-    reads within about 20 %. The same wall with a texture of contrast 0.3 has no weak window: it reads exactly as
-    without the knob."""
+    reads within about 20 % (``stats["windows_weak_texture"]`` counts them: three quarters of the grid's windows). The same
+    wall with a texture of contrast 0.3 has no weak window: it reads exactly as without the knob."""
     raw, row0, col0, psf_map, depth_m = _shaded_wall_raw(0.03)
-    absrel = {}
+    absrel, weak_windows = {}, {}
     for gate in (0.0, 0.07):
         decoder = ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig(weak_texture_below=gate))
         out = decoder.decode(raw, BLACK, WHITE, GEOMETRY, row0, col0, noise_profile=NoiseProfile.additive(0.005),
                              aif=False)
         absrel[gate] = float(np.mean(np.abs(out.depth_m[out.valid] - depth_m) / depth_m))
+        weak_windows[gate] = out.stats["windows_weak_texture"]
+    windows = out.grid_inv_depth.size
     assert absrel[0.0] > 0.35 and absrel[0.07] < 0.25 and absrel[0.07] < 0.5 * absrel[0.0], absrel
+    assert weak_windows[0.0] == 0 and weak_windows[0.07] > 0.6 * windows, (weak_windows, windows)
     raw, row0, col0, psf_map, depth_m = _shaded_wall_raw(0.3)
     reads = [ClassicalDecoder.for_psf_map(psf_map, ClassicalConfig(weak_texture_below=gate)).decode(
         raw, BLACK, WHITE, GEOMETRY, row0, col0, noise_profile=NoiseProfile.additive(0.005), aif=False).grid_inv_depth

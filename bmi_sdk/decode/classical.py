@@ -471,6 +471,7 @@ class ClassicalDecoder:
             depth_b, sigma_b, _ = Evidence(nll.reshape(nr, nc, -1), cand_inv[which]).refine()
             return {"evidence": (coarse_nll - coarse_nll.min(axis=1, keepdims=True)).reshape(nr, nc, -1),
                     "clipped": int(np.logical_or.reduce(clipped).sum()), "masked": int(masked.any(axis=0).sum()),
+                    "weak": sum(int(mask.sum()) for mask, _, low, _ in groups if low > 1),
                     "blind": np.logical_and.reduce([c & ~m for c, m in zip(clipped, masked)]).reshape(nr, nc),
                     "inv": 1.0 / depth_b, "sig": sigma_b * self.laplace_inflation,
                     "curves": (whole_curves(coarse, coarse_nll, which, nll, n_cand).reshape(nr, nc, -1)
@@ -481,7 +482,7 @@ class ClassicalDecoder:
                     "full": window_reads * n_cand, "done": window_reads * (len(coarse) + len(fine)),
                     "evidence_s": time.perf_counter() - t0 - kernels_s, "kernels_s": kernels_s}
 
-        skipped = windows_clipped = windows_masked = 0
+        skipped = windows_clipped = windows_masked = windows_weak = 0
         bar = None
         if progress:
             from tqdm import tqdm
@@ -497,6 +498,7 @@ class ClassicalDecoder:
             evidence[cells] = read["evidence"]
             windows_clipped += read["clipped"]
             windows_masked += read["masked"]
+            windows_weak += read["weak"]
             blind[cells] = read["blind"]
             inv[cells] = read["inv"]
             sig[cells] = read["sig"]
@@ -567,6 +569,7 @@ class ClassicalDecoder:
                  "windows_scored_without_clipped_samples": windows_masked,
                  "windows_without_evidence": int(blind.sum()),
                  "windows_exponent_profiled": windows_profiled,
+                 "windows_weak_texture": windows_weak,  # scored without their lowest ring (``window_groups``)
                  "candidate_evaluations": evaluations["done"],
                  "candidate_evaluations_exhaustive": evaluations["full"],
                  "kernel_sets_computed": self.zones.kernel_sets_computed,
