@@ -52,7 +52,7 @@ CLASSICAL_FLAGS = {
                                          "is below this skip the bins within 2 cycles of DC (0: none; docs/decoder.md, "
                                          "method step 2)"),
     "clipped_planes_per_frame": (whole(0, 65536), "(window, colour plane) pairs holding samples at the white level "
-                                                  "scored from their other samples, at most, about 6 ms of one core "
+                                                  "scored from their other samples, at most, 2-7 ms of one core "
                                                   "each (0: such planes give no evidence; docs/decoder.md, step 2)"),
 }
 """The ``decode.ClassicalConfig`` fields ``bmi infer --decoder classical`` takes as flags (``--window-px`` …): their
