@@ -594,23 +594,19 @@ def test_a_dark_walls_bias_is_halved_by_the_exact_model():
 
 def _shaded_wall_raw(contrast: float, seed: int = 0):
     """(raw, row0, col0, psf_map, truth_m): a 1/f² wall of mean 0.3 and texture ``contrast`` at 3 m, 20° of field,
-    under a smooth shading (1 + 0.3 cos, period 200 px: a lamp's falloff across a wall), 288² px at σ 0.005."""
+    under a smooth shading (1 + 0.3 cos, period 200 px: a lamp's falloff across a wall), 336² px at σ 0.005
+    (``bench.decoder.window_raw``)."""
+    from bmi_sdk.bench.decoder import window_raw
     from bmi_sdk.scenes.procedural import pink_noise
 
     tensor = lens_tensor("bmi_monocentric")
     psf_map = PsfMap(tensor, GEOMETRY, mode="tensor")
-    n, margin, depth_m = 384, 48, 3.0
+    n, depth_m = 384, 3.0
     shading = 1.0 + 0.3 * np.cos(2.0 * np.pi * np.arange(n) / 200.0)[None, :]
-    wall = 0.3 * (1.0 + contrast * pink_noise((n, n), np.random.default_rng(seed))) * shading
-    r, c = GEOMETRY.pixel_of_field(20.0, 30.0)
-    row0, col0 = int(r - n / 2) // 2 * 2, int(c - n / 2) // 2 * 2
-    optical = render_coded(np.repeat(np.clip(wall, 0, 1)[..., None], 3, axis=2).astype(np.float32),
-                           np.full((n, n), depth_m, np.float32), tensor, GEOMETRY, row0, col0, psf_map=psf_map)
-    optical *= relative_illumination(GEOMETRY, row0, col0, n, n)[..., None]
-    t = n - 2 * margin
-    raw = simulate_raw(optical[margin:margin + t, margin:margin + t], 0.005, np.random.default_rng(1),
-                       row0 + margin, col0 + margin)
-    return raw, row0 + margin, col0 + margin, psf_map, depth_m
+    wall = np.clip(0.3 * (1.0 + contrast * pink_noise((n, n), np.random.default_rng(seed))) * shading, 0, 1)
+    raw, row0, col0 = window_raw(np.repeat(wall[..., None], 3, axis=2).astype(np.float32),
+                                 np.full((n, n), depth_m, np.float32), tensor, GEOMETRY, 20.0, 30.0, 1, psf_map)
+    return raw, row0, col0, psf_map, depth_m
 
 
 def test_a_weakly_textured_wall_under_smooth_shading_reads_near_its_depth_once_its_lowest_ring_is_skipped():
@@ -618,7 +614,7 @@ def test_a_weakly_textured_wall_under_smooth_shading_reads_near_its_depth_once_i
     each window's lowest bins than the texture does, and no candidate's stationary model explains it, so scored on
     every bin the wall reads about 50 % off. Its windows' texture contrast is below ``weak_texture_below`` 0.07 (the
     evidence decoder's), so their NLLs skip the ring within 2 cycles of DC, which holds the shading, and the wall
-    reads within about 20 % (``stats["windows_weak_texture"]`` counts them: three quarters of the grid's windows). The same
+    reads within about 20 % (``stats["windows_weak_texture"]`` counts them: most of the grid's windows). The same
     wall with a texture of contrast 0.3 has no weak window: it reads exactly as without the knob."""
     raw, row0, col0, psf_map, depth_m = _shaded_wall_raw(0.03)
     absrel, weak_windows = {}, {}

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -38,7 +37,7 @@ LAMP_DISTANCE_PX = 300.0
 """A lamp-lit wall's lamp: its distance from the wall in the wall's pixels (about 0.5 m from a wall 5 m away)."""
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class Wall:
     """A scene's wall: its texture's std relative to its mean colour, and whether a lamp near it lights it
     (``lamp_irradiance``) rather than an even light."""
