@@ -168,6 +168,9 @@ def test_two_threads_score_the_same_bits_as_one(monkeypatch):
 
 
 @pytest.mark.parametrize("argv, word", [(["--seed", "20260"], "reported"), (["--seed", "-2"], ">= 0"),
+                                        (["--seed", "4242,777"], "reported"), (["--seed", "5,5"], "distinct"),
+                                        (["--seed", "5,x"], "integers"), (["--seed", ",".join(map(str, range(17)))],
+                                                                        "distinct"),
                                         (["--seed", "5", "--tiles", "0"], "--tiles"),
                                         (["--seed", "5", "--tiles", "65"], "--tiles")])
 def test_the_fit_refuses_bad_arguments_before_decoding_a_tile(capsys, argv, word):
