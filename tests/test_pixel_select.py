@@ -169,7 +169,8 @@ def test_two_threads_score_the_same_bits_as_one(monkeypatch):
 
 @pytest.mark.parametrize("argv, word", [(["--seed", "20260"], "reported"), (["--seed", "-2"], ">= 0"),
                                         (["--seed", "4242,777"], "reported"), (["--seed", "5,5"], "distinct"),
-                                        (["--seed", "5,x"], "integers"), (["--seed", ",".join(map(str, range(17)))],
+                                        (["--seed", "5,x"], "integers"), (["--steps", "0"], "--steps"),
+                                        (["--steps", "100001"], "--steps"), (["--seed", ",".join(map(str, range(17)))],
                                                                         "distinct"),
                                         (["--seed", "5", "--tiles", "0"], "--tiles"),
                                         (["--seed", "5", "--tiles", "65"], "--tiles")])
