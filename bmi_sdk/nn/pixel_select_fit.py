@@ -20,6 +20,8 @@ weakly textured walls worse, so the shipped scorer is the one-seed fit (docs/dec
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import itertools
 import json
 import sys
 from pathlib import Path
@@ -61,16 +63,18 @@ def collect(seeds: tuple[int, ...], tiles: int, scales=(1.0, 4.0, 16.0), sigmas=
     from bmi_sdk.sensor import NoiseProfile
 
     out: dict[str, list] = {"features": [], "inv": [], "usable": [], "range_m": [], "group": []}
+    # one decoder for every seed and scale: it reads only the benchmark's lens, tile size and threads
+    opening = Benchmark(tiles=tiles)
+    camera = BenchmarkCamera(opening.lens)
+    models = {} if manifest is None else {"evidence": str(Path(manifest).with_suffix("").with_suffix(".onnx"))}
+    decoder = open_tiles(("evidence",), camera, models, None, opening)[0].decoder
+    network, stage = decoder.model, decoder.stage
+    geometry = lens_geometry(opening.lens)
+    s, size = stage.config.stride_px, opening.tile_px
     group = 0
-    for seed, scale in ((seed, scale) for seed in seeds for scale in scales):
-        bench = Benchmark(tiles=tiles, seed=seed, scene_scale=scale)
-        camera = BenchmarkCamera(bench.lens)
-        models = {} if manifest is None else {"evidence": str(Path(manifest).with_suffix("").with_suffix(".onnx"))}
-        decoder = open_tiles(("evidence",), camera, models, None, bench)[0].decoder
-        network, stage = decoder.model, decoder.stage
-        geometry = lens_geometry(bench.lens)
+    for seed, scale in itertools.product(seeds, scales):
+        bench = dataclasses.replace(opening, seed=seed, scene_scale=scale)
         renders = bench.renders(camera.psf_tensor())
-        s, size = stage.config.stride_px, bench.tile_px
         for sigma in sigmas:
             for region in ("centre", "edge"):
                 for k, item in enumerate(renders):
