@@ -193,3 +193,26 @@ def test_the_fit_refuses_a_manifest_it_cannot_write_into(tmp_path, capsys, text,
     with pytest.raises(SystemExit) as exit_info:
         main(["--seed", "5", "--manifest", str(path)])
     assert exit_info.value.code == 2 and word in capsys.readouterr().err
+
+
+def test_a_second_fit_into_a_manifest_another_fit_is_writing_is_refused_before_decoding_a_tile(tmp_path, capsys):
+    """Two fits into one manifest at once would each write their weights over the other's: a fit holds the lock file
+    beside the manifest from reading it to writing it, and a second is refused, naming the first's process, with the
+    manifest untouched."""
+    import os
+
+    from bmi_sdk.io_atomic import lock_folder, unlock_folder
+    from bmi_sdk.nn.pixel_select_fit import LOCK_SUFFIX, main
+
+    manifest = tmp_path / "evidence.manifest.json"
+    manifest.write_text(EVIDENCE_MODEL.with_suffix(".manifest.json").read_text())
+    before = manifest.read_bytes()
+    lock = tmp_path / ("evidence.manifest.json" + LOCK_SUFFIX)
+    fd = lock_folder(lock)  # the other fit's lock
+    try:
+        code = main(["--seed", "5", "--manifest", str(manifest)])
+    finally:
+        unlock_folder(lock, fd)
+    err = capsys.readouterr().err
+    assert code == 1 and f"being written by another run (process {os.getpid()})" in err, err
+    assert manifest.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [manifest.name]

@@ -11,7 +11,7 @@ fitted to the least mean relative range error of the candidates' softmax mixture
 weighted equally. The weights go into the manifest's ``pixel_select`` (written atomically), with the fit's command
 and its error before and after on the fitted pixels (``pixel_select_fit``). The seeds must be ones no reported number
 uses (``REPORTED_SEEDS``, refused); ``bmi eval`` then measures the result on others. Bad arguments are refused before
-any tile is decoded.
+any tile is decoded, and so is a second fit into a manifest another fit is writing (``LOCK_SUFFIX``).
 
 Several seeds (``--seed 4242,31337,555,9001 --steps 3000``) fit a scorer that reads ``bmi eval``'s scenes better but
 weakly textured walls worse, so the shipped scorer is the one-seed fit (docs/decoder.md, step 5b).
@@ -43,6 +43,9 @@ MAX_TILES = 64
 MAX_SEEDS = 16
 """Seeds one fit collects at most: each adds its tiles' decodes and about 100 k pixels × 32 candidates × 14 features
 of float32 (180 MB) to the fit's memory."""
+LOCK_SUFFIX = ".lock"
+"""The lock file beside ``--manifest`` (``io_atomic.lock_folder``) a fit holds from reading the manifest to writing it:
+two fits into one manifest at once would each write their weights over the other's."""
 FIT_DISAGREEMENT = float(np.log(1.1))
 """The pixels fitted on: those whose 2 × 2 windows' support reads span more than 10 % in 1/d."""
 DISAGREEMENT = float(np.log(1.35))
@@ -166,7 +169,7 @@ def seed_list(text: str) -> tuple[int, ...]:
 
 
 def main(argv=None) -> int:
-    from bmi_sdk.io_atomic import write_json
+    from bmi_sdk.io_atomic import FolderBusyError, lock_folder, unlock_folder
 
     parser = argparse.ArgumentParser(prog="python -m bmi_sdk.nn.pixel_select_fit", description=__doc__.split("\n")[0])
     parser.add_argument("--seed", type=seed_list, default=(4242,),
@@ -184,6 +187,24 @@ def main(argv=None) -> int:
     if not 1 <= args.steps <= MAX_STEPS:
         parser.error(f"--steps must be 1..{MAX_STEPS}, got {args.steps}")
     manifest_path = Path(args.manifest)
+    lock = manifest_path.with_name(manifest_path.name + LOCK_SUFFIX)
+    try:
+        lock_fd = lock_folder(lock)
+    except FolderBusyError as exc:
+        print(f"{parser.prog}: error: --manifest {manifest_path}: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:
+        parser.error(f"--manifest {manifest_path}: cannot read it as JSON ({exc})")
+    try:
+        return _fit_into(manifest_path, args, argv, parser)
+    finally:
+        unlock_folder(lock, lock_fd)
+
+
+def _fit_into(manifest_path: Path, args, argv, parser) -> int:
+    """``main``'s work under the manifest's lock: read it, collect, fit, write the weights back (atomically)."""
+    from bmi_sdk.io_atomic import write_json
+
     try:
         manifest = json.loads(manifest_path.read_text())
     except (OSError, ValueError) as exc:
